@@ -1,0 +1,70 @@
+"""thermojax: differentiable grey-box identification of lumped-parameter thermal networks.
+
+The JAX API loads lazily (module-level `__getattr__`), so `import thermojax.reference`
+and the file readers never import JAX. Importing any JAX name switches JAX to
+float64 (`jax_enable_x64`): stiff thermal networks need it.
+"""
+
+import importlib
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    # model files and telemetry (no JAX)
+    "InputError": "._errors",
+    "ModelSpec": "._spec",
+    "Parameter": "._spec",
+    "load_model": "._model_file",
+    "parse_model": "._model_file",
+    "save_model": "._model_file",
+    "dump_model": "._model_file",
+    "Telemetry": "._telemetry",
+    "read_telemetry": "._telemetry",
+    "write_telemetry": "._telemetry",
+    "Profile": "._profiles",
+    "builtin_profile": "._profiles",
+    # JAX core
+    "Topology": "._network",
+    "ThermalNetwork": "._network",
+    "StableDynamics": "._network",
+    "LinearSystem": "._system",
+    "DiscreteSystem": "._system",
+    "discretize": "._discretize",
+    "discretize_process_noise": "._discretize",
+    "AbstractDiscretization": "._discretize",
+    "MatrixExponential": "._discretize",
+    "Modal": "._discretize",
+    "Tustin": "._discretize",
+    "ForwardEuler": "._discretize",
+    "simulate": "._simulate",
+    "simulate_batch": "._simulate",
+    "steady_state": "._simulate",
+    "Solution": "._simulate",
+    "AbstractSimulator": "._simulate",
+    "ExactHold": "._simulate",
+    "DiffraxSimulator": "._simulate",
+    "parameter_mask": "._parameters",
+    "free_parameters": "._parameters",
+    "with_free_parameters": "._parameters",
+}
+
+_JAX_MODULES = {"._network", "._system", "._discretize", "._simulate", "._parameters"}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'thermojax' has no attribute '{name}'")
+    if module in _JAX_MODULES:
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return __all__

@@ -1,0 +1,365 @@
+"""Telemetry CSV: read, check and write (formats spec §1; pure NumPy).
+
+A telemetry file is a CSV whose first column is `time_s` (seconds, strictly
+increasing) and whose other columns are channels named freely. Lines starting with
+`#` (after optional whitespace) and blank lines are skipped. A cell may be empty or
+`nan` (a dropped sample), read as NaN. Sampling must be uniform up to jitter under
+1 % of the median period; a larger irregular step is refused with the line where it
+happens.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import InputError
+
+TIME_COLUMN = "time_s"
+
+# Largest tolerated deviation of one step from the median step, as a fraction of it.
+JITTER_TOLERANCE = 0.01
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Telemetry:
+    """One run of telemetry.
+
+    **Arguments:**
+
+    - `ts`: sample times, s, shape `(times,)`, float64, strictly increasing.
+    - `channels`: column name -> values, each shape `(times,)`, float64; NaN where a
+      cell was empty or `nan`. Insertion order is the file's column order.
+    - `path`: the file it was read from, or `None` for data built in memory.
+    - `lines`: the 1-based file line number of each data row, shape `(times,)`, int64
+      (for error messages). Defaults to `1 .. times` (data row numbers) in memory.
+
+    Arrays are stored read-only. Equality is identity.
+    """
+
+    ts: np.ndarray
+    channels: dict[str, np.ndarray]
+    path: str | None = None
+    lines: np.ndarray | None = None
+
+    def __post_init__(self):
+        ts = np.array(self.ts, dtype=np.float64)
+        if ts.ndim != 1:
+            raise InputError(f"`Telemetry(ts=...)` must be one-dimensional, got shape {ts.shape}.",
+                             field=TIME_COLUMN)
+        n = ts.shape[0]
+        channels = {}
+        for name, values in dict(self.channels).items():
+            a = np.array(values, dtype=np.float64)
+            if a.shape != (n,):
+                raise InputError(f"`Telemetry(channels=...)` column {name!r} has shape {a.shape}, "
+                                 f"expected ({n},) like `ts`.", field=str(name))
+            a.setflags(write=False)
+            channels[str(name)] = a
+        lines = (np.arange(1, n + 1, dtype=np.int64) if self.lines is None
+                 else np.array(self.lines, dtype=np.int64))
+        if lines.shape != (n,):
+            raise InputError(f"`Telemetry(lines=...)` has shape {lines.shape}, expected ({n},).",
+                             field="lines")
+        ts.setflags(write=False)
+        lines.setflags(write=False)
+        object.__setattr__(self, "ts", ts)
+        object.__setattr__(self, "channels", channels)
+        object.__setattr__(self, "lines", lines)
+        object.__setattr__(self, "path", None if self.path is None else str(self.path))
+
+    @property
+    def dt(self) -> float:
+        """Median sample period, s (NaN with fewer than two samples)."""
+        if self.ts.shape[0] < 2:
+            return math.nan
+        return float(np.median(np.diff(self.ts)))
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Channel names in file order (without `time_s`)."""
+        return tuple(self.channels)
+
+    def __len__(self) -> int:
+        return int(self.ts.shape[0])
+
+    def column(self, name: str) -> np.ndarray:
+        """The values of channel `name` (or `ts` for `"time_s"`), shape `(times,)`."""
+        if name == TIME_COLUMN:
+            return self.ts
+        try:
+            return self.channels[name]
+        except KeyError:
+            raise _missing(self, name) from None
+
+    def __repr__(self) -> str:
+        return (f"Telemetry(path={self.path!r}, samples={len(self)}, dt={self.dt:g} s, "
+                f"channels={list(self.channels)})")
+
+
+def _missing(telemetry: Telemetry, name: str) -> InputError:
+    available = ", ".join(telemetry.channels) or "(none)"
+    return InputError(f"no column {name!r}; the available columns are: {available}. "
+                      "Check the spelling in the model, or add the column to the data.",
+                      file=telemetry.path, field=name)
+
+
+def _where(telemetry: Telemetry, index: int) -> tuple[int | None, str]:
+    """(line for InputError, words for the message) of data row `index` (0-based)."""
+    if telemetry.path is None:
+        return None, f"data row {index + 1}"
+    return int(telemetry.lines[index]), f"line {int(telemetry.lines[index])}"
+
+
+# ---------------------------------------------------------------------------
+# reading
+
+
+def _is_skipped(line: str) -> bool:
+    s = line.lstrip()
+    return not s or s.startswith("#")
+
+
+def read_telemetry(path: str | os.PathLike) -> Telemetry:
+    """Read a telemetry CSV file.
+
+    **Arguments:**
+
+    - `path`: the CSV file.
+
+    **Returns:** a `Telemetry` with `ts` (s), one float64 channel per other column
+    (NaN for empty or `nan` cells) and the line number of each data row.
+
+    **Raises:** `InputError` naming the file, the line and the column for: a missing
+    file; no header; a first column other than `time_s`; an empty or duplicate column
+    name; a row with the wrong number of cells; a non-numeric cell; an empty or
+    non-finite `time_s`; `time_s` not strictly increasing; fewer than two data rows;
+    a step that differs from the median step by 1 % or more.
+    """
+    file = str(path)
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as f:
+            text = f.read()
+    except FileNotFoundError:
+        raise InputError("no such file; check the path given to --data.", file=file) from None
+    except IsADirectoryError:
+        raise InputError("is a directory, not a telemetry CSV file.", file=file) from None
+    except UnicodeDecodeError as e:
+        raise InputError(f"is not UTF-8 text ({e.reason} at byte {e.start}); save the "
+                         "telemetry as a UTF-8 CSV file.", file=file) from None
+
+    physical = text.splitlines()
+    kept = [(i, line) for i, line in enumerate(physical, start=1) if not _is_skipped(line)]
+    if not kept:
+        raise InputError(f"the file is empty; expected a header line starting with "
+                         f"'{TIME_COLUMN},' and data rows below it.", file=file)
+    line_numbers = [i for i, _ in kept]
+    reader = csv.reader([line for _, line in kept], strict=True)
+    rows = []
+    try:
+        for row in reader:
+            if reader.line_num != len(rows) + 1:
+                raise InputError("a quoted cell is not closed on its line; write one row per "
+                                 "line and close every quote.", file=file,
+                                 line=line_numbers[len(rows)])
+            rows.append(row)
+    except csv.Error as e:
+        k = min(max(reader.line_num, 1), len(line_numbers)) - 1
+        raise InputError(f"malformed CSV ({e}); check the quoting on this line.",
+                         file=file, line=line_numbers[k]) from None
+
+    header_line = line_numbers[0]
+    header = [cell.strip() for cell in rows[0]]
+    if header[0] != TIME_COLUMN:
+        raise InputError(f"the first column is {header[0]!r}, expected '{TIME_COLUMN}' "
+                         f"(time in seconds); the header line must start with '{TIME_COLUMN},'.",
+                         file=file, line=header_line, field=header[0])
+    seen: dict[str, int] = {}
+    for k, name in enumerate(header):
+        if not name:
+            raise InputError(f"column {k + 1} of the header has no name; name every column.",
+                             file=file, line=header_line)
+        if name in seen:
+            raise InputError(f"column name {name!r} appears twice (columns {seen[name] + 1} and "
+                             f"{k + 1}); column names must be unique.",
+                             file=file, line=header_line, field=name)
+        seen[name] = k
+
+    data = rows[1:]
+    data_lines = np.asarray(line_numbers[1:], dtype=np.int64)
+    n_cols = len(header)
+    for row, line in zip(data, data_lines.tolist()):
+        if len(row) != n_cols:
+            raise InputError(f"the row has {len(row)} cells but the header names {n_cols} "
+                             f"columns ({', '.join(header)}).", file=file, line=line)
+    if not data:
+        raise InputError("the file has a header but no data rows.", file=file, line=header_line)
+
+    columns = [_parse_column(cells, name, data_lines, file)
+               for name, cells in zip(header, zip(*data))]
+    ts = columns[0]
+    bad = np.flatnonzero(~np.isfinite(ts))
+    if bad.size:
+        k = int(bad[0])
+        raise InputError(f"'{TIME_COLUMN}' is empty or not finite; every row needs a time in "
+                         "seconds.", file=file, line=int(data_lines[k]), field=TIME_COLUMN)
+    if ts.shape[0] < 2:
+        raise InputError("the file holds a single data row; at least two are needed to "
+                         "define a sample period.", file=file, line=int(data_lines[0]))
+    steps = np.diff(ts)
+    bad = np.flatnonzero(steps <= 0)
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise InputError(f"'{TIME_COLUMN}' = {ts[k]!r} does not increase (the previous row, "
+                         f"line {int(data_lines[k - 1])}, has {ts[k - 1]!r}); times must be "
+                         "strictly increasing.", file=file, line=int(data_lines[k]),
+                         field=TIME_COLUMN)
+    period = float(np.median(steps))
+    bad = np.flatnonzero(np.abs(steps - period) > JITTER_TOLERANCE * period)
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise InputError(
+            f"irregular sampling: the step from the previous row is {steps[k - 1]!r} s but the "
+            f"median period is {period!r} s (only jitter under {JITTER_TOLERANCE:.0%} is "
+            "tolerated). Resample the run to a uniform period or split it into separate "
+            "files at the gap.", file=file, line=int(data_lines[k]), field=TIME_COLUMN)
+
+    channels = dict(zip(header[1:], columns[1:]))
+    return Telemetry(ts=ts, channels=channels, path=file, lines=data_lines)
+
+
+def _parse_column(cells: Sequence[str], name: str, lines: np.ndarray, file: str) -> np.ndarray:
+    """Parse one column of cells into float64, empty cells -> NaN."""
+    text = np.char.strip(np.asarray(cells, dtype=str))
+    text[text == ""] = "nan"
+    try:
+        return text.astype(np.float64)
+    except ValueError:
+        pass
+    for k, cell in enumerate(text.tolist()):  # slow path: find the offending cell
+        try:
+            float(cell)
+        except ValueError:
+            raise InputError(f"cell {cell!r} is not a number (write numbers like 12.5 or "
+                             "1e-3; leave the cell empty or write nan for a dropped sample).",
+                             file=file, line=int(lines[k]), field=name) from None
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+# ---------------------------------------------------------------------------
+# checks
+
+
+def check_inputs(telemetry: Telemetry, columns: Iterable[str]) -> None:
+    """Check that input columns exist and hold a finite value on every row.
+
+    **Arguments:**
+
+    - `telemetry`: the run.
+    - `columns`: names of input columns (boundary temperatures, powers).
+
+    **Raises:** `InputError` for a missing column (listing the available ones) or an
+    empty, `nan` or infinite cell (naming the column and the line).
+    """
+    for name in columns:
+        values = telemetry.column(name)
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            line, where = _where(telemetry, int(bad[0]))
+            raise InputError(
+                f"input column {name!r} is empty or not finite at {where} "
+                f"({bad.size} such cells); inputs must be known at every sample. Fill or "
+                "interpolate the gap, or split the run there.",
+                file=telemetry.path, line=line, field=name)
+
+
+def check_sensors(telemetry: Telemetry, columns: Iterable[str]) -> None:
+    """Check that sensor columns exist and hold at least one reading.
+
+    Empty and `nan` cells are dropped samples and allowed; an infinite reading is not.
+
+    **Arguments:**
+
+    - `telemetry`: the run.
+    - `columns`: names of measured columns (sensors, bias channels).
+
+    **Raises:** `InputError` for a missing column (listing the available ones), a
+    column with no reading at all, or an infinite cell (naming the line).
+    """
+    for name in columns:
+        values = telemetry.column(name)
+        if np.all(np.isnan(values)):
+            raise InputError(f"sensor column {name!r} has no readings (every cell is empty or "
+                             "nan); drop it from the model or use a run that measured it.",
+                             file=telemetry.path, field=name)
+        bad = np.flatnonzero(np.isinf(values))
+        if bad.size:
+            line, where = _where(telemetry, int(bad[0]))
+            raise InputError(f"sensor column {name!r} is infinite at {where}; leave the cell "
+                             "empty (or nan) for a dropped sample.",
+                             file=telemetry.path, line=line, field=name)
+
+
+# ---------------------------------------------------------------------------
+# writing
+
+
+def _check_name(name: str) -> str:
+    if not isinstance(name, str) or not name or name != name.strip() \
+            or any(c in name for c in ',"\r\n'):
+        raise InputError(f"`write_telemetry(channels=...)`: column name {name!r} must be a "
+                         "non-empty string without commas, quotes, line breaks or surrounding "
+                         "spaces.", field=str(name))
+    if name == TIME_COLUMN:
+        raise InputError(f"`write_telemetry(channels=...)`: '{TIME_COLUMN}' is the time column; "
+                         "pass the times as `ts`.", field=name)
+    return name
+
+
+def _format(values: np.ndarray) -> list[str]:
+    # %.17g round-trips every float64 exactly; NaN is a dropped sample: an empty cell.
+    return ["" if v != v else "%.17g" % v for v in values.tolist()]
+
+
+def write_telemetry(path: str | os.PathLike, ts, channels: Mapping[str, object],
+                    comments: Iterable[str] = ()) -> Path:
+    """Write a telemetry CSV file that `read_telemetry` reads back bit for bit.
+
+    **Arguments:**
+
+    - `path`: the file to write (overwritten).
+    - `ts`: sample times, s, shape `(times,)`.
+    - `channels`: column name -> values, each shape `(times,)`; NaN is written as an
+      empty cell.
+    - `comments`: lines written first, each as `# ...`.
+
+    **Returns:** the path written.
+    """
+    t = np.asarray(ts, dtype=np.float64)
+    if t.ndim != 1:
+        raise InputError(f"`write_telemetry(ts=...)` must be one-dimensional, got shape {t.shape}.",
+                         field=TIME_COLUMN)
+    names = [_check_name(name) for name in channels]
+    values = []
+    for name in names:
+        a = np.asarray(channels[name], dtype=np.float64)
+        if a.shape != t.shape:
+            raise InputError(f"`write_telemetry(channels=...)` column {name!r} has shape "
+                             f"{a.shape}, expected {t.shape} like `ts`.", field=name)
+        values.append(a)
+    out = []
+    for comment in comments:
+        for part in str(comment).splitlines() or [""]:
+            out.append(f"# {part}".rstrip())
+    out.append(",".join([TIME_COLUMN, *names]))
+    out.extend(map(",".join, zip(*[_format(v) for v in [t, *values]])))
+    path = Path(path)
+    with open(path, "w", encoding="utf-8", newline="") as f:
+        f.write("\n".join(out) + "\n")
+    return path
