@@ -72,3 +72,48 @@ def as_np(x):
 
 
 __all__ = ["tree_allclose", "random_topology", "random_network", "imu6", "rtd2", "as_np", "jax"]
+
+
+def toml_network(path):
+    """The physical matrices of a model file, read with `tomllib` alone (no thermojax).
+
+    An independent reference for tests: returns a dict with `c` (J/K, per node),
+    `K = L + diag(g_b)` (W/K), `G` (heat flow per unit input, W/K or 1, inputs in
+    the file's order: boundaries first, then heat inputs), `input_names`, `holds`
+    (default "foh"), and `A = -K / c`, `B = G / c` as NumPy float64.
+    """
+    import tomllib
+
+    with open(path, "rb") as f:
+        doc = tomllib.load(f)
+
+    def value(v):
+        return float(v["value"] if isinstance(v, dict) else v)
+
+    names = [node["name"] for node in doc["nodes"]]
+    idx = {name: i for i, name in enumerate(names)}
+    n = len(names)
+    c = np.array([value(node["capacitance"]) for node in doc["nodes"]])
+    K = np.zeros((n, n))
+    for link in doc.get("links", []):
+        i, j = (idx[x] for x in link["between"])
+        g = value(link["conductance"])
+        K[i, i] += g
+        K[j, j] += g
+        K[i, j] -= g
+        K[j, i] -= g
+    entries = [(b, value(b["conductance"]), True) for b in doc.get("boundaries", [])] + \
+              [(h, value(h.get("gain", 1.0)), False) for h in doc.get("heat_inputs", [])]
+    input_names, holds = [], []
+    for entry, _, _ in entries:
+        if entry["input"] not in input_names:
+            input_names.append(entry["input"])
+            holds.append(entry.get("hold", "foh"))
+    G = np.zeros((n, len(input_names)))
+    for entry, g, is_boundary in entries:
+        i, j = idx[entry["node"]], input_names.index(entry["input"])
+        G[i, j] += g
+        if is_boundary:
+            K[i, i] += g
+    return {"c": c, "K": K, "G": G, "input_names": tuple(input_names), "holds": tuple(holds),
+            "A": -K / c[:, None], "B": G / c[:, None]}

@@ -4,10 +4,13 @@
 capacitance of six). So the filter spec here is a pytree shaped like the model
 whose leaves are boolean NumPy arrays, `True` where the element is free.
 `free_parameters` gathers those elements into one flat vector (what an
-optimizer sees) and `with_free_parameters` scatters a vector back.
+optimizer sees) and `with_free_parameters` scatters a vector back. Inside
+`jit`, pass `FreeIndex(mask)` instead: the same information, hashable.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import equinox as eqx
 import jax
@@ -20,41 +23,63 @@ from ._spec import ModelSpec
 
 def parameter_mask(network: ThermalNetwork, spec: ModelSpec) -> ThermalNetwork:
     """The free/fixed mask of a network built by `ThermalNetwork.from_spec(spec)`."""
-    free = lambda params: np.array([not p.fixed for p in params], dtype=bool)  # noqa: E731
     return eqx.tree_at(
         lambda n: (n.log_capacitance, n.log_conductance, n.log_boundary_conductance,
                    n.log_heat_gain),
         network,
-        (free(n.capacitance for n in spec.nodes), free(k.conductance for k in spec.links),
-         free(b.conductance for b in spec.boundaries), free(h.gain for h in spec.heat_inputs)),
+        (_free(n.capacitance for n in spec.nodes), _free(k.conductance for k in spec.links),
+         _free(b.conductance for b in spec.boundaries), _free(h.gain for h in spec.heat_inputs)),
     )
 
 
-def _leaves(tree):
-    return jax.tree.leaves(eqx.filter(tree, eqx.is_array))
+def _free(params) -> np.ndarray:
+    return np.array([not p.fixed for p in params], dtype=bool)
 
 
-def _mask_leaves(mask):
-    return jax.tree.leaves(eqx.filter(mask, lambda x: isinstance(x, np.ndarray)))
+@dataclass(frozen=True)
+class FreeIndex:
+    """Hashable form of a mask: the flat indices of the free elements, per array leaf."""
+
+    per_leaf: tuple[tuple[int, ...], ...]
+
+    def __init__(self, mask):
+        leaves = jax.tree.leaves(eqx.filter(mask, lambda x: isinstance(x, np.ndarray)))
+        object.__setattr__(self, "per_leaf",
+                           tuple(tuple(int(i) for i in np.flatnonzero(m)) for m in leaves))
+
+    @property
+    def size(self) -> int:
+        return sum(len(ix) for ix in self.per_leaf)
+
+
+def _index(mask) -> FreeIndex:
+    return mask if isinstance(mask, FreeIndex) else FreeIndex(mask)
 
 
 def free_parameters(tree, mask) -> jax.Array:
     """The free elements of `tree`'s array leaves, flattened in leaf order."""
-    parts = [jnp.ravel(leaf)[np.flatnonzero(m)] for leaf, m in zip(_leaves(tree), _mask_leaves(mask))]
+    leaves = jax.tree.leaves(eqx.filter(tree, eqx.is_array))
+    parts = [jnp.ravel(leaf)[np.array(ix, dtype=int)]
+             for leaf, ix in zip(leaves, _index(mask).per_leaf)]
     return jnp.concatenate(parts) if parts else jnp.zeros((0,))
 
 
 def with_free_parameters(tree, mask, theta: jax.Array):
     """`tree` with its free elements replaced by `theta` (inverse of `free_parameters`)."""
+    index = _index(mask)
     dynamic, static = eqx.partition(tree, eqx.is_array)
     leaves, treedef = jax.tree.flatten(dynamic)
+    if len(leaves) != len(index.per_leaf):
+        raise ValueError(f"`with_free_parameters` got a mask for {len(index.per_leaf)} array "
+                         f"leaves and a tree with {len(leaves)}.")
+    if index.size != theta.shape[0]:
+        raise ValueError(f"`with_free_parameters` got {theta.shape[0]} values for {index.size} "
+                         "free parameters.")
     out, offset = [], 0
-    for leaf, m in zip(leaves, _mask_leaves(mask)):
-        idx = np.flatnonzero(m)
-        flat = jnp.ravel(leaf).at[idx].set(theta[offset:offset + idx.size])
-        out.append(flat.reshape(leaf.shape))
-        offset += idx.size
-    if offset != theta.shape[0]:
-        raise ValueError(f"`with_free_parameters` got {theta.shape[0]} values for {offset} free "
-                         "parameters.")
+    for leaf, ix in zip(leaves, index.per_leaf):
+        if ix:
+            flat = jnp.ravel(leaf).at[np.array(ix, dtype=int)].set(theta[offset:offset + len(ix)])
+            leaf = flat.reshape(leaf.shape)
+        out.append(leaf)
+        offset += len(ix)
     return eqx.combine(jax.tree.unflatten(treedef, out), static)

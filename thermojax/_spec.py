@@ -295,7 +295,8 @@ def _check_grounded(spec: ModelSpec, fail) -> None:
         neighbours[b].add(a)
     grounded = {b.node for b in spec.boundaries}
     for e in spec.effects:  # an extra boundary path grounds its node too
-        if e.kind == "boundary" and len(e.where) == 2:
+        # (an unknown node here is reported by _validate_effects, with its line)
+        if e.kind == "boundary" and len(e.where) == 2 and e.where[1] in neighbours:
             grounded.add(e.where[1])
     reached = set(grounded)
     frontier = list(grounded)
@@ -324,6 +325,10 @@ def _validate_effects(spec, fail, nodes: set[str], inputs: set[str], sensors: se
             arities = sorted({len(p) for p in kind.where})
             fail(f"'{e.kind}' takes where = a list of {' or '.join(map(str, arities))} names, "
                  f"got {list(e.where)}.", "effects", i, "where")
+        if e.kind == "viscoelastic" and not any(b.column == e.where[1] for b in spec.biases):
+            fail(f"viscoelastic acts on bias column '{e.where[1]}', which needs a [[biases]] "
+                 "entry for that column; add one, or name the column of an existing "
+                 "[[biases]] entry.", "effects", i, "where")
         for role, name in zip(patterns[0], e.where):
             ok = {"node": name in all_nodes,
                   "node_or_input": name in all_nodes or name in inputs or name not in sensors,
@@ -346,9 +351,6 @@ def _validate_effects(spec, fail, nodes: set[str], inputs: set[str], sensors: se
             if e.name in all_nodes:
                 fail(f"extra_node name '{e.name}' is already a node.", "effects", i, "name")
             new_nodes.add(e.name)
-        if e.kind == "viscoelastic" and not any(b.column == e.where[1] for b in spec.biases):
-            fail(f"viscoelastic acts on bias column '{e.where[1]}', which needs a [[biases]] "
-                 "entry for that column.", "effects", i, "where")
 
 
 def _validate_biases(spec, fail, nodes: set[str], used: set[str]) -> None:

@@ -140,7 +140,7 @@ def read_telemetry(path: str | os.PathLike) -> Telemetry:
     file; no header; a first column other than `time_s`; an empty or duplicate column
     name; a row with the wrong number of cells; a non-numeric cell; an empty or
     non-finite `time_s`; `time_s` not strictly increasing; fewer than two data rows;
-    a step that differs from the median step by 1 % or more.
+    a step that differs from the median step by more than 1 %.
     """
     file = str(path)
     try:
@@ -155,25 +155,17 @@ def read_telemetry(path: str | os.PathLike) -> Telemetry:
                          "telemetry as a UTF-8 CSV file.", file=file) from None
 
     physical = text.splitlines()
-    kept = [(i, line) for i, line in enumerate(physical, start=1) if not _is_skipped(line)]
-    if not kept:
-        raise InputError(f"the file is empty; expected a header line starting with "
-                         f"'{TIME_COLUMN},' and data rows below it.", file=file)
+    # keep a line unless it is blank or a comment ('#' after optional whitespace)
+    kept = [(i, line) for i, line in enumerate(physical, start=1)
+            if line and line[0] != "#" and (not line[0].isspace() or not _is_skipped(line))]
     line_numbers = [i for i, _ in kept]
-    reader = csv.reader([line for _, line in kept], strict=True)
-    rows = []
-    try:
-        for row in reader:
-            if reader.line_num != len(rows) + 1:
-                raise InputError("a quoted cell is not closed on its line; write one row per "
-                                 "line and close every quote.", file=file,
-                                 line=line_numbers[len(rows)])
-            rows.append(row)
-    except csv.Error as e:
-        k = min(max(reader.line_num, 1), len(line_numbers)) - 1
-        raise InputError(f"malformed CSV ({e}); check the quoting on this line.",
-                         file=file, line=line_numbers[k]) from None
+    lines = [line for _, line in kept]
+    if not lines:
+        raise InputError(f"the file has no header (it is empty or holds only comments); "
+                         f"expected a header line starting with '{TIME_COLUMN},' and data "
+                         "rows below it.", file=file)
 
+    rows = _csv_rows(lines[:1], line_numbers[:1], file)
     header_line = line_numbers[0]
     header = [cell.strip() for cell in rows[0]]
     if header[0] != TIME_COLUMN:
@@ -191,18 +183,27 @@ def read_telemetry(path: str | os.PathLike) -> Telemetry:
                              file=file, line=header_line, field=name)
         seen[name] = k
 
-    data = rows[1:]
+    data = lines[1:]
     data_lines = np.asarray(line_numbers[1:], dtype=np.int64)
-    n_cols = len(header)
-    for row, line in zip(data, data_lines.tolist()):
-        if len(row) != n_cols:
-            raise InputError(f"the row has {len(row)} cells but the header names {n_cols} "
-                             f"columns ({', '.join(header)}).", file=file, line=line)
-    if not data:
+    n_rows, n_cols = len(data), len(header)
+    if not n_rows:
         raise InputError("the file has a header but no data rows.", file=file, line=header_line)
-
-    columns = [_parse_column(cells, name, data_lines, file)
-               for name, cells in zip(header, zip(*data))]
+    if any('"' in line for line in data):  # quoted cells: let the csv module split them
+        rows = _csv_rows(data, data_lines.tolist(), file)
+        counts = np.fromiter(map(len, rows), dtype=np.int64, count=n_rows)
+    else:  # plain cells: a comma always separates two cells
+        rows = None
+        counts = np.fromiter((line.count(",") for line in data), dtype=np.int64,
+                             count=n_rows) + 1
+    bad = np.flatnonzero(counts != n_cols)
+    if bad.size:
+        k = int(bad[0])
+        raise InputError(f"the row has {int(counts[k])} cells but the header names {n_cols} "
+                         f"columns ({', '.join(header)}).", file=file, line=int(data_lines[k]))
+    cells = (",".join(data).split(",") if rows is None
+             else [cell for row in rows for cell in row])
+    values = _parse_cells(cells, header, data_lines, file).reshape(n_rows, n_cols)
+    columns = [np.ascontiguousarray(values[:, j]) for j in range(n_cols)]
     ts = columns[0]
     bad = np.flatnonzero(~np.isfinite(ts))
     if bad.size:
@@ -216,8 +217,8 @@ def read_telemetry(path: str | os.PathLike) -> Telemetry:
     bad = np.flatnonzero(steps <= 0)
     if bad.size:
         k = int(bad[0]) + 1
-        raise InputError(f"'{TIME_COLUMN}' = {ts[k]!r} does not increase (the previous row, "
-                         f"line {int(data_lines[k - 1])}, has {ts[k - 1]!r}); times must be "
+        raise InputError(f"'{TIME_COLUMN}' = {float(ts[k])!r} does not increase (the previous row, "
+                         f"line {int(data_lines[k - 1])}, has {float(ts[k - 1])!r}); times must be "
                          "strictly increasing.", file=file, line=int(data_lines[k]),
                          field=TIME_COLUMN)
     period = float(np.median(steps))
@@ -225,8 +226,8 @@ def read_telemetry(path: str | os.PathLike) -> Telemetry:
     if bad.size:
         k = int(bad[0]) + 1
         raise InputError(
-            f"irregular sampling: the step from the previous row is {steps[k - 1]!r} s but the "
-            f"median period is {period!r} s (only jitter under {JITTER_TOLERANCE:.0%} is "
+            f"irregular sampling: the step from the previous row is {float(steps[k - 1])!r} s "
+            f"but the median period is {period!r} s (only jitter under {JITTER_TOLERANCE:.0%} is "
             "tolerated). Resample the run to a uniform period or split it into separate "
             "files at the gap.", file=file, line=int(data_lines[k]), field=TIME_COLUMN)
 
@@ -234,22 +235,49 @@ def read_telemetry(path: str | os.PathLike) -> Telemetry:
     return Telemetry(ts=ts, channels=channels, path=file, lines=data_lines)
 
 
-def _parse_column(cells: Sequence[str], name: str, lines: np.ndarray, file: str) -> np.ndarray:
-    """Parse one column of cells into float64, empty cells -> NaN."""
-    text = np.char.strip(np.asarray(cells, dtype=str))
-    text[text == ""] = "nan"
+def _csv_rows(lines: Sequence[str], line_numbers: Sequence[int], file: str) -> list[list[str]]:
+    """Split lines with the csv module, one row per line (a quote may not span lines)."""
+    reader = csv.reader(lines, strict=True)
+    rows = []
     try:
-        return text.astype(np.float64)
+        for row in reader:
+            if reader.line_num != len(rows) + 1:
+                raise InputError("a quoted cell is not closed on its line; write one row per "
+                                 "line and close every quote.", file=file,
+                                 line=line_numbers[len(rows)])
+            rows.append(row)
+    except csv.Error as e:  # the row that failed starts after the last complete one
+        raise InputError(f"malformed CSV ({e}); check the quoting on this line and close "
+                         "every quote on the line it opens.",
+                         file=file, line=line_numbers[min(len(rows), len(line_numbers) - 1)]) \
+            from None
+    return rows
+
+
+def _parse_cells(cells: list[str], header: Sequence[str], lines: np.ndarray,
+                 file: str) -> np.ndarray:
+    """Parse row-major cells into float64, empty (or blank) cells -> NaN."""
+    nan = math.nan
+    try:  # fast path: every cell is a number or empty
+        return np.array([float(c) if c else nan for c in cells], dtype=np.float64)
     except ValueError:
         pass
-    for k, cell in enumerate(text.tolist()):  # slow path: find the offending cell
+    out = np.empty(len(cells), dtype=np.float64)
+    n_cols = len(header)
+    for k, cell in enumerate(cells):  # slow path: blank cells, or find the offending cell
+        text = cell.strip()
+        if not text:
+            out[k] = nan
+            continue
         try:
-            float(cell)
+            out[k] = float(text)
         except ValueError:
-            raise InputError(f"cell {cell!r} is not a number (write numbers like 12.5 or "
-                             "1e-3; leave the cell empty or write nan for a dropped sample).",
-                             file=file, line=int(lines[k]), field=name) from None
-    raise AssertionError("unreachable")  # pragma: no cover
+            row, col = divmod(k, n_cols)
+            raise InputError(f"cell {cell!r} in column {header[col]!r} is not a number (write "
+                             "numbers like 12.5 or 1e-3; leave the cell empty or write nan for "
+                             "a dropped sample).", file=file, line=int(lines[row]),
+                             field=header[col]) from None
+    return out
 
 
 # ---------------------------------------------------------------------------

@@ -1,0 +1,405 @@
+"""Prediction-error fitting of a model to several runs: output error or Kalman likelihood.
+
+`fit(spec, experiments, likelihood=...)` follows `optx.least_squares(fn, solver, y0, args)`:
+the solver is an optimistix solver, the residual and loss functions are
+module-level and take everything through `args`, so a second fit of the same
+structure (another unit, another candidate effect) reuses the compilation.
+
+The optimizer sees one flat vector `theta`: logs of the positive physical
+parameters and noise stds, and per-run initial temperatures in °C. A weak
+Gaussian prior on `theta` around the starting point (std `prior_log_std`, in
+log units: a factor e^3 ≈ 20 by default) keeps directions the data cannot
+determine at their starting values instead of letting them drift to 0 or
+infinity; it changes well-determined parameters by far less than their
+standard errors, and it is left out of every reported likelihood.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ._data import Dataset, Experiment
+from ._errors import InputError
+from ._identifiability import Identifiability, identifiability
+from ._likelihood import (kalman_nll, ml_sigma, output_error_nll, output_error_residuals,
+                          simulate_dataset)
+from ._metrics import fit_metrics
+from ._model import ThermalModel, model_to_spec
+from ._parameters import FreeIndex, free_parameters, with_free_parameters
+from ._spec import ModelSpec
+
+LIKELIHOODS = ("output_error", "kalman")
+
+
+class FitState(eqx.Module):
+    """Everything a fit moves: the model and each run's estimated initial temperatures."""
+
+    model: ThermalModel
+    run_initial: jax.Array  # (runs, len(model.initial_nodes)), °C
+
+
+@dataclass
+class FitResult:
+    """A fitted model with its evidence. Values are physical (J/K, W/K, °C, °C/√s)."""
+
+    spec: ModelSpec  # the fitted model, as a file would hold it
+    model: ThermalModel
+    state: FitState
+    likelihood: str
+    parameters: dict[str, dict]  # dotted name -> {"value", "std", "free"}
+    correlation: np.ndarray  # among the free parameters, in `free_names` order
+    free_names: list[str]
+    nll: float
+    aic: float
+    bic: float
+    n_params: int
+    n_samples: int
+    rmse: dict[str, float]
+    fit_percent: dict[str, float]
+    per_run: list[dict]
+    identifiability: Identifiability
+    n_steps: int
+    converged: bool
+    message: str
+    wall_time_s: float
+    predictions: list[np.ndarray] = field(repr=False, default_factory=list)
+
+
+# ---------------------------------------------------------------------------
+# The problem as pure functions of theta
+
+
+class _Problem(eqx.Module):
+    """What the residual and loss functions need besides theta (passed as optimistix `args`)."""
+
+    template: FitState
+    index: FreeIndex = eqx.field(static=True)
+    data: Dataset
+    sigma: jax.Array  # (outputs,) weights for output error (°C)
+    prior_mean: jax.Array  # (free,)
+    prior_weight: jax.Array  # (free,) 1/std of the prior; a huge weight pins a parameter
+
+
+def _state(theta, problem: _Problem) -> FitState:
+    return with_free_parameters(problem.template, problem.index, theta)
+
+
+def _oe_residuals(theta, problem: _Problem):
+    s = _state(theta, problem)
+    r = output_error_residuals(s.model, problem.data, s.run_initial) / problem.sigma
+    prior = (theta - problem.prior_mean) * problem.prior_weight
+    return r.reshape(-1), prior
+
+
+def _kalman_loss(theta, problem: _Problem):
+    s = _state(theta, problem)
+    prior = (theta - problem.prior_mean) * problem.prior_weight
+    return kalman_nll(s.model, problem.data, s.run_initial) + 0.5 * jnp.sum(prior ** 2)
+
+
+@eqx.filter_jit
+def _solve_oe(theta0, problem, solver, max_steps):
+    return optx.least_squares(_oe_residuals, solver, theta0, problem, max_steps=max_steps,
+                              throw=False)
+
+
+@eqx.filter_jit
+def _solve_kalman(theta0, problem, solver, max_steps):
+    return optx.minimise(_kalman_loss, solver, theta0, problem, max_steps=max_steps, throw=False)
+
+
+@eqx.filter_jit
+def _oe_jacobian(theta, problem):
+    return jax.jacfwd(lambda t: _oe_residuals(t, problem)[0])(theta)
+
+
+@eqx.filter_jit
+def _kalman_hessian(theta, problem):
+    return jax.hessian(lambda t: _kalman_loss(t, problem))(theta)
+
+
+@eqx.filter_jit
+def _kalman_nll_only(theta, problem):
+    s = _state(theta, problem)
+    return kalman_nll(s.model, problem.data, s.run_initial)
+
+
+@eqx.filter_jit
+def _oe_raw(theta, problem):
+    s = _state(theta, problem)
+    return output_error_residuals(s.model, problem.data, s.run_initial)
+
+
+# ---------------------------------------------------------------------------
+# Names and masks
+
+
+def _masks(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
+    """Boolean masks shaped like `FitState` (True = free) and the dotted name of every element."""
+    kalman = likelihood == "kalman"
+    nodes = spec.node_names
+    net_masks = [
+        ([not n.capacitance.fixed for n in spec.nodes],
+         [f"nodes.{n.name}.capacitance" for n in spec.nodes]),
+        ([not k.conductance.fixed for k in spec.links],
+         [f"links.{k.key}.conductance" for k in spec.links]),
+        ([not b.conductance.fixed for b in spec.boundaries],
+         [f"boundaries.{b.key}.conductance" for b in spec.boundaries]),
+        ([not h.gain.fixed for h in spec.heat_inputs],
+         [f"heat_inputs.{h.key}.gain" for h in spec.heat_inputs]),
+        ([kalman and not (s.noise is not None and s.noise.fixed) for s in spec.sensors],
+         [f"sensors.{s.column}.noise" for s in spec.sensors]),
+        ([kalman and not (n.process_noise is not None and n.process_noise.fixed)
+          for n in spec.nodes], [f"nodes.{n.name}.process_noise" for n in spec.nodes]),
+        ([False] * len(nodes), [f"nodes.{n}.initial" for n in nodes]),
+        ([False] * len(nodes), [f"nodes.{n}.initial_std" for n in nodes]),
+    ]
+    init_free = [not spec.nodes[i].initial.fixed for i in model.initial_nodes]
+    run_mask = np.array([init_free] * n_runs, dtype=bool).reshape(n_runs, len(init_free))
+    run_names = [[f"runs.{r}.nodes.{nodes[i]}.initial" for i in model.initial_nodes]
+                 for r in range(n_runs)]
+    arrays = [np.array(m, dtype=bool) for m, _ in net_masks]
+    template_mask = FitState(
+        ThermalModel(
+            eqx.tree_at(lambda n: (n.log_capacitance, n.log_conductance,
+                                   n.log_boundary_conductance, n.log_heat_gain),
+                        model.network, tuple(arrays[:4])),
+            arrays[4], arrays[5], arrays[6], arrays[7], model.initial_nodes),
+        run_mask)
+    names = [nm for _, nms in net_masks for nm in nms] + [nm for row in run_names for nm in row]
+    flat_mask = np.concatenate([*arrays, run_mask.reshape(-1)])
+    free_names = [nm for nm, f in zip(names, flat_mask) if f]
+    return template_mask, free_names
+
+
+def _is_log(name: str) -> bool:
+    return not name.endswith(".initial")
+
+
+# ---------------------------------------------------------------------------
+
+
+def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "output_error",
+        solver=None, max_steps: int = 200, prior_log_std: float = 3.0, n_starts: int = 1,
+        seed: int = 0, progress=None) -> FitResult:
+    """Fit the free parameters of `spec` to several runs at once.
+
+    **Arguments:**
+
+    - `spec`: the model (its fixed/free flags say what is estimated).
+    - `experiments`: one `Experiment` per run; parameters are shared, each run
+      has its own initial state.
+    - `likelihood`: `"output_error"` (Levenberg-Marquardt on free-run residuals
+      weighted by each sensor's noise; estimated noise stds take their ML
+      values, iterated to convergence) or `"kalman"` (BFGS on the Kalman
+      prediction-error likelihood, started from the output-error fit).
+    - `solver`: an optimistix solver; default `LevenbergMarquardt(1e-8, 1e-10)`
+      for output error and `BFGS(1e-8, 1e-10)` for Kalman.
+    - `prior_log_std`: std (log units) of the weak prior that keeps
+      unidentifiable directions at their starting values.
+    - `n_starts`: more than 1 adds starts perturbed by a log-normal factor
+      (std 0.5); the best likelihood wins.
+    - `progress`: optional callable taking a one-line string.
+
+    **Returns:** a `FitResult`.
+    """
+    if likelihood not in LIKELIHOODS:
+        raise InputError(f"unknown likelihood '{likelihood}'; use one of {list(LIKELIHOODS)}.",
+                         field="--likelihood")
+    t_start = time.perf_counter()
+    say = progress or (lambda _msg: None)
+    _check_runs(spec, experiments)
+    data = Dataset.from_experiments(experiments)
+    model = ThermalModel.from_spec(spec)
+    k = len(model.initial_nodes)
+    run_initial = jnp.broadcast_to(model.initial[np.array(model.initial_nodes, dtype=int)],
+                                   (data.n_runs, k)) if k else jnp.zeros((data.n_runs, 0))
+    template = FitState(model, jnp.asarray(run_initial))
+
+    oe_mask, oe_names = _masks(spec, model, data.n_runs, "output_error")
+    if not oe_names and likelihood == "output_error":
+        raise InputError("nothing to fit: every parameter is fixed. Make at least one "
+                         "capacitance, conductance or gain a bare number.", file=spec.source)
+    fixed_sigma = np.array([s.noise is not None and s.noise.fixed for s in spec.sensors])
+    sigma = np.asarray(model.noise)
+
+    # -- output error, with the estimated noise stds iterated to their ML values
+    index = FreeIndex(oe_mask)
+    theta0 = free_parameters(template, index)
+    starts = [theta0] + _perturbed_starts(theta0, oe_names, n_starts - 1, seed)
+    best = None
+    for s_i, start in enumerate(starts):
+        theta, n_steps, ok, sig = _fit_output_error(start, theta0, template, index, data, sigma,
+                                                    fixed_sigma, solver if likelihood ==
+                                                    "output_error" else None, max_steps,
+                                                    prior_log_std, say)
+        problem = _Problem(template, index, data, jnp.asarray(sig), theta0,
+                           jnp.full_like(theta0, 1.0 / prior_log_std))
+        res = np.asarray(_oe_raw(theta, problem))
+        nll = float(output_error_nll(res, np.asarray(data.mask), sig))
+        if n_starts > 1:
+            say(f"start {s_i + 1}/{len(starts)}: -log L = {nll:.2f}")
+        if best is None or (np.isfinite(nll) and nll < best[4]):
+            best = (theta, n_steps, ok, sig, nll)
+    theta, n_steps, converged, sigma, nll = best
+    _check_finite(theta, theta0, oe_names)
+    state = _state(theta, _Problem(template, index, data, jnp.asarray(sigma), theta0, theta0))
+    state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model, jnp.log(jnp.asarray(sigma))),
+                     state.run_initial)
+
+    if likelihood == "output_error":
+        problem = _Problem(template, index, data, jnp.asarray(sigma), theta0,
+                           jnp.zeros_like(theta0))
+        J = np.asarray(_oe_jacobian(theta, problem))
+        info = J.T @ J
+        free_names = oe_names
+        # Estimated noise stds are parameters too (ML: std(σ) = σ / sqrt(2 N)).
+        n_meas = np.asarray(data.mask).sum(axis=(0, 1))
+        noise_params = {f"sensors.{c}.noise": (float(sigma[j]),
+                                                float(sigma[j] / np.sqrt(2 * max(n_meas[j], 1))))
+                        for j, c in enumerate(spec.sensor_columns) if not fixed_sigma[j]}
+    else:
+        k_mask, k_names = _masks(spec, model, data.n_runs, "kalman")
+        k_index = FreeIndex(k_mask)
+        k_template = state  # warm start from the output-error fit
+        th0 = free_parameters(k_template, k_index)
+        prior_mean = free_parameters(template, k_index)
+        problem = _Problem(k_template, k_index, data, jnp.asarray(sigma), prior_mean,
+                           jnp.full_like(th0, 1.0 / prior_log_std))
+        say(f"Kalman likelihood: {len(k_names)} parameters, BFGS from the output-error fit")
+        sol = _solve_kalman(th0, problem, solver or optx.BFGS(rtol=1e-8, atol=1e-10), max_steps)
+        theta = sol.value
+        _check_finite(theta, th0, k_names)
+        n_steps = int(sol.stats["num_steps"])
+        converged = bool(sol.result == optx.RESULTS.successful)
+        state = _state(theta, problem)
+        problem_np = _Problem(k_template, k_index, data, jnp.asarray(sigma), prior_mean,
+                              jnp.zeros_like(th0))
+        info = np.asarray(_kalman_hessian(theta, problem_np))
+        nll = float(_kalman_nll_only(theta, problem_np))
+        free_names = k_names
+        noise_params = {}
+    ident = identifiability(info, free_names, spec)
+    values = np.asarray(theta)
+    cov = ident.covariance
+    stds_theta = np.sqrt(np.clip(np.diag(cov), 0, None))
+    parameters: dict[str, dict] = {}
+    for j, nm in enumerate(free_names):
+        v = float(np.exp(values[j])) if _is_log(nm) else float(values[j])
+        sd = None
+        if nm not in ident.unidentifiable_parameters and np.isfinite(stds_theta[j]):
+            sd = float(v * stds_theta[j]) if _is_log(nm) else float(stds_theta[j])
+        parameters[nm] = {"value": v, "std": sd, "free": True}
+    for nm, (v, sd) in noise_params.items():
+        parameters[nm] = {"value": v, "std": sd, "free": True}
+    _add_fixed_parameters(parameters, spec, state.model)
+    d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = cov / d[:, None] / d[None, :]
+
+    fitted_spec = model_to_spec(state.model, spec)
+    preds = np.asarray(simulate_dataset(state.model, data, state.run_initial))
+    preds_list = [preds[r, :n] for r, n in enumerate(data.lengths)]
+    n_params = len(free_names) + len(noise_params)
+    n_samples = int(np.asarray(data.mask).sum())
+    metrics = fit_metrics(spec.sensor_columns, experiments, preds_list)
+    message = "converged" if converged else f"stopped after {n_steps} steps without converging"
+    say(f"fit done: -log L = {nll:.2f}, {n_params} parameters, {message}")
+    return FitResult(
+        spec=fitted_spec, model=state.model, state=state, likelihood=likelihood,
+        parameters=parameters, correlation=corr, free_names=free_names, nll=nll,
+        aic=2 * n_params + 2 * nll, bic=n_params * math.log(n_samples) + 2 * nll,
+        n_params=n_params, n_samples=n_samples, rmse=metrics["rmse"],
+        fit_percent=metrics["fit_percent"], per_run=metrics["per_run"], identifiability=ident,
+        n_steps=n_steps, converged=converged, message=message,
+        wall_time_s=time.perf_counter() - t_start, predictions=preds_list)
+
+
+def _fit_output_error(start, theta0, template, index, data, sigma, fixed_sigma, solver,
+                      max_steps, prior_log_std, say, outer=4):
+    """Levenberg-Marquardt on weighted residuals, re-weighting estimated stds to their ML
+    values until they settle (a few outer passes; each reuses the compilation)."""
+    solver = solver or optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
+    theta, total, ok = start, 0, False
+    sig = np.asarray(sigma, float)
+    for it in range(outer):
+        problem = _Problem(template, index, data, jnp.asarray(sig), theta0,
+                           jnp.full_like(theta0, 1.0 / prior_log_std))
+        sol = _solve_oe(theta, problem, solver, max_steps)
+        theta = sol.value
+        total += int(sol.stats["num_steps"])
+        ok = bool(sol.result == optx.RESULTS.successful)
+        if fixed_sigma.all():
+            break
+        res = np.asarray(_oe_raw(theta, problem))
+        new = np.where(fixed_sigma, sig, np.maximum(np.asarray(ml_sigma(res, np.asarray(
+            data.mask))), 1e-12))
+        say(f"output error pass {it + 1}: noise std {np.array2string(new, precision=4)}")
+        if np.all(np.abs(np.log(new / sig)) < 1e-3):
+            sig = new
+            break
+        sig = new
+    return theta, total, ok, sig
+
+
+def _perturbed_starts(theta0, names, n, seed):
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(max(n, 0)):
+        step = np.array([rng.normal(0, 0.5) if _is_log(nm) else rng.normal(0, 1.0)
+                         for nm in names])
+        out.append(theta0 + jnp.asarray(step))
+    return out
+
+
+def _check_finite(theta, theta0, names):
+    theta = np.asarray(theta)
+    if np.all(np.isfinite(theta)):
+        return
+    bad = [nm for nm, t in zip(names, theta) if not np.isfinite(t)]
+    jump = np.abs(np.nan_to_num(theta - np.asarray(theta0), nan=np.inf))
+    worst = names[int(np.argmax(jump))] if len(names) else "?"
+    raise InputError(f"the fit diverged: {', '.join(bad) or worst} ran away to a non-finite "
+                     f"value (largest move: {worst}). Check that parameter's starting value and "
+                     "units, fix it from design data, or give the data more excitation.")
+
+
+def _check_runs(spec: ModelSpec, experiments: list[Experiment]) -> None:
+    from ._network import ThermalNetwork
+
+    if not experiments:
+        raise InputError("no runs given; pass at least one --data file.", field="--data")
+    slowest = float(np.max(np.asarray(ThermalNetwork.from_spec(spec).time_constants())))
+    for e in experiments:
+        if e.ts[-1] - e.ts[0] < slowest:
+            warnings.warn(f"{e.name}: the run lasts {e.ts[-1] - e.ts[0]:.0f} s, shorter than the "
+                          f"slowest time constant of the starting model ({slowest:.0f} s); the "
+                          "slow parameters will be poorly determined.", stacklevel=3)
+
+
+def _add_fixed_parameters(parameters: dict, spec: ModelSpec, model: ThermalModel) -> None:
+    """Fixed parameters appear in the report too, with std None."""
+    net = model.network
+    entries = [(f"nodes.{n.name}.capacitance", n.capacitance, c)
+               for n, c in zip(spec.nodes, np.asarray(net.capacitance))]
+    entries += [(f"links.{k.key}.conductance", k.conductance, g)
+                for k, g in zip(spec.links, np.asarray(net.conductance))]
+    entries += [(f"boundaries.{b.key}.conductance", b.conductance, g)
+                for b, g in zip(spec.boundaries, np.asarray(net.boundary_conductance))]
+    entries += [(f"heat_inputs.{h.key}.gain", h.gain, g)
+                for h, g in zip(spec.heat_inputs, np.asarray(net.heat_gain))]
+    entries += [(f"sensors.{s.column}.noise", s.noise, sd)
+                for s, sd in zip(spec.sensors, np.asarray(model.noise)) if s.noise is not None]
+    entries += [(f"nodes.{n.name}.initial", n.initial, n.initial.value)
+                for n in spec.nodes if n.initial is not None and n.initial.fixed]
+    for name, p, v in entries:
+        if name not in parameters and p is not None and p.fixed:
+            parameters[name] = {"value": float(v), "std": None, "free": False}

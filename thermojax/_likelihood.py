@@ -1,0 +1,148 @@
+"""The two likelihoods of measured runs: output error and the Kalman prediction error.
+
+Both follow spec §2 ("Likelihood"), the definitions of CTSM-R and pySIP:
+
+- output error: free-run simulation residuals `e = y - ŷ`, Gaussian with one
+  std per sensor, `-log L = Σ_j [N_j/2 log(2π σ_j²) + Σ e²/(2σ_j²)]`;
+- Kalman: continuous-discrete filter, update before predict, every measured
+  sample included, `-log L = Σ_k ½ (log det(2π S_k) + e_kᵀ S_k⁻¹ e_k)`.
+
+Dropped samples (NaN in the CSV, `mask` False) contribute nothing.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._data import Dataset
+from ._discretize import discretize, discretize_process_noise
+from ._model import ThermalModel
+from ._simulate import ExactHold
+
+LOG_2PI = float(jnp.log(2 * jnp.pi))
+
+
+def simulate_dataset(model: ThermalModel, data: Dataset, run_initial=None,
+                     simulator: ExactHold = ExactHold()) -> Float[Array, "runs times outputs"]:
+    """Free-run outputs of every run, each from its own initial state."""
+    system = model.network.linear_system()
+
+    def one(ts, u, r0):
+        x0 = model.initial_state(system, u[0], r0)
+        return simulator.run(system, x0, u, ts).outputs
+
+    if run_initial is None:
+        return jax.vmap(lambda ts, u: one(ts, u, None))(data.ts, data.inputs)
+    return jax.vmap(one)(data.ts, data.inputs, run_initial)
+
+
+def output_error_residuals(model, data: Dataset, run_initial=None, simulator=ExactHold()):
+    """`y - ŷ` for every run, zero where nothing was measured: (runs, times, outputs)."""
+    return jnp.where(data.mask, data.outputs - simulate_dataset(model, data, run_initial,
+                                                                simulator), 0.0)
+
+
+def output_error_nll(residuals, mask, sigma: Float[Array, " outputs"]) -> Float[Array, ""]:
+    """`-log L` of residuals with per-sensor std `sigma` (°C)."""
+    n = mask.sum(axis=(0, 1))
+    ssr = jnp.sum(residuals ** 2, axis=(0, 1))
+    return jnp.sum(0.5 * n * (LOG_2PI + 2 * jnp.log(sigma)) + 0.5 * ssr / sigma ** 2)
+
+
+def ml_sigma(residuals, mask) -> Float[Array, " outputs"]:
+    """The maximum-likelihood noise std per sensor, `sqrt(SSR_j / N_j)`."""
+    n = jnp.maximum(mask.sum(axis=(0, 1)), 1)
+    return jnp.sqrt(jnp.sum(residuals ** 2, axis=(0, 1)) / n)
+
+
+class KalmanOutput(eqx.Module):
+    """Per-sample filter quantities of one run."""
+
+    nll: Float[Array, ""]
+    innovations: Float[Array, "times outputs"]  # e_k (0 where unmeasured)
+    innovation_std: Float[Array, "times outputs"]  # sqrt(diag S_k)
+    m_filt: Float[Array, "times states"]
+    P_filt: Float[Array, "times states states"]
+    m_pred: Float[Array, "times states"]  # prior mean at k (before the update)
+    P_pred: Float[Array, "times states states"]
+
+
+def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanOutput:
+    """The continuous-discrete Kalman filter over one run (Joseph-form update).
+
+    Process noise `Qc = diag(q²)` is discretized by Van Loan; inputs are held
+    as their `hold` says; the initial mean is the model's initial state, the
+    initial covariance `diag(initial_std²)`.
+    """
+    system = model.network.linear_system()
+    dt = ts[1] - ts[0]
+    disc = discretize(system, dt)
+    _, Qd = discretize_process_noise(system.A, jnp.diag(model.process_noise ** 2), dt)
+    R = jnp.diag(model.noise ** 2)
+    C = system.C
+    n, p = system.n_states, C.shape[0]
+    m0 = model.initial_state(system, u[0], run_initial)
+    P0 = jnp.diag(model.initial_std ** 2)
+    u_next = jnp.concatenate([u[1:], u[-1:]], axis=0)
+    eye_n, eye_p = jnp.eye(n), jnp.eye(p)
+
+    def step(carry, inp):
+        m, P = carry
+        u_k, u_k1, y_k, mask_k = inp
+        Cm = C * mask_k[:, None]
+        both = mask_k[:, None] & mask_k[None, :]
+        S = jnp.where(both, Cm @ P @ Cm.T + R, eye_p)
+        e = jnp.where(mask_k, y_k - C @ m, 0.0)
+        L = jnp.linalg.cholesky(S)
+        w = jax.scipy.linalg.solve_triangular(L, e, lower=True)
+        logdet = 2 * jnp.sum(jnp.log(jnp.diag(L)))
+        n_obs = mask_k.sum()
+        nll = 0.5 * (logdet + w @ w + n_obs * LOG_2PI)  # unmeasured rows have S = 1: log 1 = 0
+        K = jax.scipy.linalg.cho_solve((L, True), Cm @ P).T  # P Cmᵀ S⁻¹
+        m_f = m + K @ e
+        IKC = eye_n - K @ Cm
+        P_f = IKC @ P @ IKC.T + K @ jnp.where(both, R, 0.0) @ K.T
+        P_f = 0.5 * (P_f + P_f.T)
+        m_next = disc.Phi @ m_f + disc.B0 @ u_k + disc.B1 @ u_k1
+        P_next = disc.Phi @ P_f @ disc.Phi.T + Qd
+        out = (nll, e, jnp.sqrt(jnp.diag(S)) * mask_k, m_f, P_f, m, P)
+        return (m_next, 0.5 * (P_next + P_next.T)), out
+
+    _, (nll, e, s, m_f, P_f, m_p, P_p) = jax.lax.scan(step, (m0, P0), (u, u_next, y, mask))
+    return KalmanOutput(jnp.sum(nll), e, s, m_f, P_f, m_p, P_p)
+
+
+def kalman_nll(model: ThermalModel, data: Dataset, run_initial=None) -> Float[Array, ""]:
+    """`-log L` of all runs under the Kalman filter."""
+    if run_initial is None:
+        out = jax.vmap(lambda ts, u, y, m: kalman_run(model, ts, u, y, m).nll)(
+            data.ts, data.inputs, data.outputs, data.mask)
+    else:
+        out = jax.vmap(lambda ts, u, y, m, r: kalman_run(model, ts, u, y, m, r).nll)(
+            data.ts, data.inputs, data.outputs, data.mask, run_initial)
+    return jnp.sum(out)
+
+
+def rts_smoother(model: ThermalModel, ts, kf: KalmanOutput):
+    """Rauch-Tung-Striebel smoothed means and stds of every node: ((times, states), (times, states))."""
+    system = model.network.linear_system()
+    Phi = discretize(system, ts[1] - ts[0]).Phi
+
+    def back(carry, inp):
+        m_s_next, P_s_next = carry
+        m_f, P_f, m_p_next, P_p_next = inp
+        G = jnp.linalg.solve(P_p_next, Phi @ P_f).T  # P_f Φᵀ P_pred⁻¹ (P_pred symmetric)
+        m_s = m_f + G @ (m_s_next - m_p_next)
+        P_s = P_f + G @ (P_s_next - P_p_next) @ G.T
+        P_s = 0.5 * (P_s + P_s.T)
+        return (m_s, P_s), (m_s, P_s)
+
+    last = (kf.m_filt[-1], kf.P_filt[-1])
+    _, (m_s, P_s) = jax.lax.scan(back, last, (kf.m_filt[:-1], kf.P_filt[:-1], kf.m_pred[1:],
+                                              kf.P_pred[1:]), reverse=True)
+    m_s = jnp.concatenate([m_s, kf.m_filt[-1:]], axis=0)
+    P_s = jnp.concatenate([P_s, kf.P_filt[-1:]], axis=0)
+    return m_s, jnp.sqrt(jnp.clip(jnp.diagonal(P_s, axis1=1, axis2=2), 0.0))

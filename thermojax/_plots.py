@@ -1,0 +1,58 @@
+"""Matplotlib figures written to PNG (headless: the Agg backend)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def plot_simulation(path: str | Path, ts, inputs: dict, nodes: dict, sensors: dict,
+                    reference: str | None = None, title: str = "") -> Path:
+    """Three stacked panels against time (h): inputs (°C, W), node temperatures
+    with the sensor readings as dots, and each node minus the `reference` node
+    (default the first): the internal gradients."""
+    t_h = np.asarray(ts) / 3600.0
+    fig, axes = plt.subplots(3, 1, figsize=(10, 9), sharex=True)
+    temp_inputs = {k: v for k, v in inputs.items() if not k.startswith("P")}
+    power_inputs = {k: v for k, v in inputs.items() if k.startswith("P")}
+    ax = axes[0]
+    for name, v in temp_inputs.items():
+        ax.plot(t_h, v, label=name, color="k")
+    ax.set_ylabel("°C")
+    if power_inputs:
+        ax2 = ax.twinx()
+        for name, v in power_inputs.items():
+            ax2.plot(t_h, v, label=name, color="tab:red", lw=0.8)
+        ax2.set_ylabel("W", color="tab:red")
+    ax.set_title(title or "inputs")
+    ax.legend(loc="upper left")
+    ax = axes[1]
+    for name, v in nodes.items():
+        ax.plot(t_h, v, label=name)
+    stride = max(1, len(t_h) // 400)
+    for name, v in sensors.items():
+        ax.plot(t_h[::stride], np.asarray(v)[::stride], ls="none", marker=".", ms=2,
+                color="0.3")
+    ax.set_ylabel("node temperature, °C")
+    ax.legend(loc="upper left", ncol=3, fontsize=8)
+    ax = axes[2]
+    reference = reference or next(iter(nodes))
+    ref = np.asarray(nodes[reference])
+    for name, v in nodes.items():
+        if name != reference:
+            ax.plot(t_h, np.asarray(v) - ref, label=name)
+    ax.set_ylabel(f"node − {reference}, K")
+    ax.legend(loc="upper left", ncol=3, fontsize=8)
+    ax.set_xlabel("time, h")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

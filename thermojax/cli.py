@@ -1,0 +1,182 @@
+"""The `thermojax` command line (spec §5). Edges only: parse, call the library, report.
+
+Every command exits 0 on success and 2 on a user's mistake, with a one-paragraph
+message naming the file, line or row, and field; never a traceback for those.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import InputError
+
+
+def _builtin_model_path(name: str) -> Path:
+    return Path(str(resources.files("thermojax") / "data" / f"{name}.toml"))
+
+
+def _resolve_model(arg: str) -> Path:
+    """A model file path, or the name of a built-in model (`imu6`, `rtd2`)."""
+    path = Path(arg)
+    if not path.exists() and path.suffix == "" and _builtin_model_path(arg).exists():
+        return _builtin_model_path(arg)
+    return path
+
+
+def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool, seed: int,
+                     dt: float, baseline_power: float, write_states: bool):
+    """Shared by `simulate` and `demo`: returns (spec, ts, inputs, states, outputs, measured)."""
+    from . import io
+    from ._telemetry import Telemetry
+
+    spec = io.load_model(model_path)
+    source = io.load_profile(profile_arg, dt=dt)
+    if isinstance(source, Telemetry):
+        ts = source.ts
+        inputs = io.model_inputs(spec, source)
+    else:
+        ts = source.ts
+        inputs = io.profile_inputs(spec, source, baseline_power)
+    if len(ts) < 2:
+        raise InputError("the profile has fewer than two samples.", field="--profile")
+    steps = np.diff(ts)
+    if np.ptp(steps) > 0.01 * np.median(steps):
+        raise InputError("`simulate` needs uniformly sampled inputs (jitter under 1 %).",
+                         file=profile_arg, field="time_s")
+
+    import jax.numpy as jnp
+
+    # Through the package's lazy loader, which switches JAX to float64 first: importing
+    # `._network` directly would simulate in float32 outside the test suite.
+    from ._network import ThermalNetwork
+    from ._simulate import simulate
+
+    net = ThermalNetwork.from_spec(spec)
+    ts_uniform = ts[0] + np.median(steps) * np.arange(len(ts))
+    sol = simulate(net, jnp.asarray(inputs), jnp.asarray(ts_uniform))
+    states, outputs = np.asarray(sol.states), np.asarray(sol.outputs)
+    measured = outputs.copy()
+    if noise:
+        rng = np.random.default_rng(seed)
+        stds = np.array([s.noise.value if s.noise is not None else 0.01 for s in spec.sensors])
+        measured = outputs + rng.standard_normal(outputs.shape) * stds[None, :]
+    channels = {c: inputs[:, j] for j, c in enumerate(spec.input_columns)}
+    channels.update({c: measured[:, j] for j, c in enumerate(spec.sensor_columns)})
+    if write_states:
+        channels.update({f"state_{n}": states[:, i] for i, n in enumerate(spec.node_names)})
+    comments = [f"simulated by thermojax from model '{spec.name}' ({model_path}), "
+                f"profile '{profile_arg}'" + (f", sensor noise seed {seed}" if noise else "")]
+    io.write_telemetry(out, ts, channels, comments=comments)
+    return spec, ts, inputs, states, outputs, measured
+
+
+def cmd_simulate(args) -> int:
+    out = Path(args.out)
+    if out.parent and not out.parent.exists():
+        raise InputError("the output folder does not exist; create it first.", file=str(out),
+                         field="--out")
+    spec, ts, *_ = _simulate_to_csv(_resolve_model(args.model), args.profile, out, args.noise,
+                                    args.seed, args.dt, args.power, args.states)
+    print(f"wrote {out}: {len(ts)} samples x {len(spec.sensor_columns)} sensors "
+          f"({', '.join(spec.sensor_columns)})")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from ._plots import plot_simulation
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = _builtin_model_path("imu6")
+    print("thermojax demo: the six-node tactical-IMU model through the seed's calibration "
+          "schedule (1, 5 and 10 °C/min ramps between -40 and +85 °C plateaus), 1 s samples, "
+          "ASIC dissipating 0.05 W.")
+    csv = out / "imu6_calibration.csv"
+    spec, ts, inputs, states, outputs, measured = _simulate_to_csv(
+        model, "calibration", csv, noise=True, seed=0, dt=1.0, baseline_power=0.05,
+        write_states=True)
+    names = spec.node_names
+    png = plot_simulation(
+        out / "imu6_calibration.png", ts,
+        {c: inputs[:, j] for j, c in enumerate(spec.input_columns)},
+        {n: states[:, i] for i, n in enumerate(names)},
+        {c: measured[:, j] for j, c in enumerate(spec.sensor_columns)},
+        reference="asic", title="imu6 through the calibration schedule")
+    i_pm, i_asic, i_mems = names.index("proof_mass"), names.index("asic"), names.index("mems")
+    lag = states[:, i_pm] - states[:, i_asic]
+    grad = states[:, i_pm] - states[:, i_mems]
+    print(f"  proof mass minus on-die (ASIC) sensor: {lag.min():+.3f} .. {lag.max():+.3f} K "
+          "(what a static polynomial on the ASIC sensor cannot see)")
+    print(f"  proof mass minus MEMS die:             {grad.min():+.4f} .. {grad.max():+.4f} K")
+    print(f"wrote {csv}")
+    print(f"wrote {png}")
+    return 0
+
+
+def _add_simulate(sub):
+    p = sub.add_parser("simulate", help="simulate a model through a chamber profile",
+                       description="Simulate a model (TOML, or built-in 'imu6'/'rtd2') through a "
+                       "chamber profile (a built-in name such as 'calibration', 'ramp5', 'shock', "
+                       "'viscoelastic_dwell', 'power_step', 'prbs', or a telemetry CSV holding the "
+                       "model's input columns) and write telemetry CSV.")
+    p.add_argument("--model", required=True, help="model TOML file or built-in model name")
+    p.add_argument("--profile", required=True, help="built-in profile name or input CSV")
+    p.add_argument("--out", required=True, help="output telemetry CSV")
+    p.add_argument("--noise", action="store_true",
+                   help="add white sensor noise with each sensor's `noise` std (0.01 °C if unset)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--dt", type=float, default=1.0,
+                   help="sample period of a built-in profile, s (default 1)")
+    p.add_argument("--power", type=float, default=0.0,
+                   help="constant power added to every heat-input column of a built-in "
+                   "profile, W (default 0)")
+    p.add_argument("--states", action="store_true",
+                   help="also write every node temperature as a column state_<node>")
+    p.set_defaults(func=cmd_simulate)
+
+
+def _add_demo(sub):
+    p = sub.add_parser("demo", help="end-to-end demo on built-in data",
+                       description="Run the end-to-end demo on built-in data and write a CSV "
+                       "and plots.")
+    p.add_argument("--out", default="thermojax_demo", help="output folder (default thermojax_demo)")
+    p.set_defaults(func=cmd_demo)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="thermojax",
+        description="Differentiable grey-box identification of lumped-parameter thermal networks.")
+    parser.add_argument("--version", action="version", version=f"thermojax {_version()}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_simulate(sub)
+    _add_demo(sub)
+    return parser
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except InputError as err:
+        print(f"thermojax {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"thermojax {args.command}: interrupted.", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
