@@ -35,6 +35,7 @@ from ._likelihood import (kalman_nll, ml_sigma, output_error_nll, output_error_r
 from ._metrics import fit_metrics
 from ._model import ThermalModel, model_to_spec
 from ._parameters import FreeIndex, free_parameters, with_free_parameters
+from ._solver import TruncatedGaussNewton, gauss_newton
 from ._spec import ModelSpec
 
 LIKELIHOODS = ("output_error", "kalman")
@@ -106,10 +107,19 @@ def _kalman_loss(theta, problem: _Problem):
     return kalman_nll(s.model, problem.data, s.run_initial) + 0.5 * jnp.sum(prior ** 2)
 
 
+def _oe_flat(theta, problem: _Problem):
+    return jnp.concatenate(_oe_residuals(theta, problem))
+
+
 @eqx.filter_jit
 def _solve_oe(theta0, problem, solver, max_steps):
-    return optx.least_squares(_oe_residuals, solver, theta0, problem, max_steps=max_steps,
-                              throw=False)
+    """(theta, steps, converged) from `gauss_newton` or an optimistix least-squares solver."""
+    if isinstance(solver, TruncatedGaussNewton):
+        sol = gauss_newton(_oe_flat, theta0, problem, solver)
+        return sol.value, sol.num_steps, sol.converged
+    sol = optx.least_squares(_oe_residuals, solver, theta0, problem, max_steps=max_steps,
+                             throw=False)
+    return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
 
 
 @eqx.filter_jit
@@ -327,16 +337,15 @@ def _fit_output_error(start, theta0, template, index, data, sigma, fixed_sigma, 
                       max_steps, prior_log_std, say, outer=4):
     """Levenberg-Marquardt on weighted residuals, re-weighting estimated stds to their ML
     values until they settle (a few outer passes; each reuses the compilation)."""
-    solver = solver or optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
+    solver = solver or TruncatedGaussNewton()
     theta, total, ok = start, 0, False
     sig = np.asarray(sigma, float)
     for it in range(outer):
         problem = _Problem(template, index, data, jnp.asarray(sig), theta0,
-                           jnp.full_like(theta0, 1.0 / prior_log_std))
-        sol = _solve_oe(theta, problem, solver, max_steps)
-        theta = sol.value
-        total += int(sol.stats["num_steps"])
-        ok = bool(sol.result == optx.RESULTS.successful)
+                           jnp.zeros_like(theta0))
+        theta, steps, ok = _solve_oe(theta, problem, solver, max_steps)
+        total += int(steps)
+        ok = bool(ok)
         if fixed_sigma.all():
             break
         res = np.asarray(_oe_raw(theta, problem))

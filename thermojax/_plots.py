@@ -56,3 +56,34 @@ def plot_simulation(path: str | Path, ts, inputs: dict, nodes: dict, sensors: di
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_fit(path: str | Path, ts, measured, predicted, columns, title: str = "") -> Path:
+    """Measured against model (upper panel of each pair) and the residual (lower), per
+    column, against time (h). `measured`/`predicted` are (times, columns)."""
+    t_h = np.asarray(ts) / 3600.0
+    n = len(columns)
+    fig, axes = plt.subplots(2 * n, 1, figsize=(10, 3.2 * n + 1), sharex=True,
+                             gridspec_kw={"height_ratios": [2, 1] * n})
+    axes = np.atleast_1d(axes)
+    stride = max(1, len(t_h) // 2000)
+    for j, c in enumerate(columns):
+        y, p = np.asarray(measured)[:, j], np.asarray(predicted)[:, j]
+        ax = axes[2 * j]
+        ax.plot(t_h[::stride], y[::stride], ".", ms=2, color="0.4", label=f"{c} measured")
+        ax.plot(t_h, p, color="tab:blue", lw=1.2, label="model")
+        ax.set_ylabel("°C")
+        ax.legend(loc="upper left", fontsize=8)
+        ax = axes[2 * j + 1]
+        ax.plot(t_h, y - p, color="tab:red", lw=0.6)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_ylabel("residual")
+    axes[0].set_title(title)
+    axes[-1].set_xlabel("time, h")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -53,8 +53,7 @@ def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool,
 
     # Through the package's lazy loader, which switches JAX to float64 first: importing
     # `._network` directly would simulate in float32 outside the test suite.
-    from ._network import ThermalNetwork
-    from ._simulate import simulate
+    from . import ThermalNetwork, simulate
 
     net = ThermalNetwork.from_spec(spec)
     ts_uniform = ts[0] + np.median(steps) * np.arange(len(ts))
@@ -118,6 +117,52 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def _load_runs(spec, paths: list[str]):
+    from ._data import Experiment
+    from ._telemetry import read_telemetry
+
+    return [Experiment.from_telemetry(spec, read_telemetry(p), name=p) for p in paths]
+
+
+def _progress(msg: str) -> None:
+    print(f"  {msg}", flush=True)
+
+
+def cmd_fit(args) -> int:
+    import warnings
+
+    from . import io
+    from ._fit import fit
+    from ._fit_report import comparison_table, write_fit_outputs
+
+    spec = io.load_model(_resolve_model(args.model))
+    experiments = _load_runs(spec, args.data)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = fit(spec, experiments, likelihood=args.likelihood, n_starts=args.starts,
+                     progress=_progress)
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    out = Path(args.out)
+    write_fit_outputs(result, experiments, out, list(args.data))
+    print(comparison_table(result))
+    print(f"wrote {out / 'model.toml'}, {out / 'report.json'} and plots")
+    return 0
+
+
+def _add_fit(sub):
+    p = sub.add_parser("fit", help="fit a model to one or more chamber runs",
+                       description="Fit the free parameters of a model to one or more telemetry "
+                       "CSV files (one chamber run each; parameters shared, each run with its "
+                       "own initial state). Writes DIR/model.toml, DIR/report.json and plots.")
+    p.add_argument("--model", required=True, help="model TOML file or built-in model name")
+    p.add_argument("--data", required=True, action="append", help="telemetry CSV (repeatable)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error")
+    p.add_argument("--starts", type=int, default=1, help="number of starts (multi-start)")
+    p.set_defaults(func=cmd_fit)
+
+
 def _add_simulate(sub):
     p = sub.add_parser("simulate", help="simulate a model through a chamber profile",
                        description="Simulate a model (TOML, or built-in 'imu6'/'rtd2') through a "
@@ -155,6 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"thermojax {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_simulate(sub)
+    _add_fit(sub)
     _add_demo(sub)
     return parser
 

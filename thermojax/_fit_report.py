@@ -1,0 +1,88 @@
+"""A `FitResult` as files: `report.json` (spec §5), the fitted model, the plots, a table."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ._fit import FitResult
+from ._model_file import save_model
+
+
+def json_safe(x):
+    """Floats that are not finite become None: JSON never holds NaN."""
+    if isinstance(x, dict):
+        return {str(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return float(x) if math.isfinite(float(x)) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.ndarray):
+        return json_safe(x.tolist())
+    if isinstance(x, set):
+        return sorted(x)
+    return x
+
+
+def fit_report(result: FitResult, runs: list[str]) -> dict:
+    """The `report.json` of `thermojax fit`."""
+    from . import __version__
+
+    return json_safe({
+        "schema": 1,
+        "thermojax_version": __version__,
+        "likelihood": result.likelihood,
+        "runs": runs,
+        "rmse": result.rmse,
+        "fit_percent": result.fit_percent,
+        "nll": result.nll,
+        "aic": result.aic,
+        "bic": result.bic,
+        "n_params": result.n_params,
+        "n_samples": result.n_samples,
+        "parameters": {k: {"value": v["value"], "std": v["std"], "free": v["free"]}
+                       for k, v in result.parameters.items()},
+        "correlation": {"names": result.free_names, "matrix": result.correlation},
+        "identifiability": result.identifiability.to_json(),
+        "per_run": result.per_run,
+        "converged": result.converged,
+        "message": result.message,
+        "n_steps": result.n_steps,
+        "wall_time_s": result.wall_time_s,
+    })
+
+
+def write_fit_outputs(result: FitResult, experiments, out: Path, runs: list[str]) -> dict:
+    """Write model.toml, report.json and one PNG per run into `out`; return the report."""
+    from ._plots import plot_fit
+
+    out.mkdir(parents=True, exist_ok=True)
+    save_model(result.spec, out / "model.toml",
+               header=f"fitted by thermojax ({result.likelihood}) from {', '.join(runs)}")
+    report = fit_report(result, runs)
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    for r, (e, pred) in enumerate(zip(experiments, result.predictions)):
+        plot_fit(out / f"fit_run{r}.png", e.ts, e.outputs, pred, result.spec.sensor_columns,
+                 title=f"run {r}: {e.name}")
+    return report
+
+
+def comparison_table(result: FitResult) -> str:
+    """Per-sensor RMSE and fit %, pooled and per run, as fixed-width text."""
+    cols = list(result.rmse)
+    lines = [f"{'sensor':<16}{'RMSE':>12}{'fit %':>10}" + "".join(
+        f"{'run ' + str(r) + ' RMSE':>14}" for r in range(len(result.per_run)))]
+    for c in cols:
+        row = f"{c:<16}{result.rmse[c]:>12.4g}{result.fit_percent[c]:>10.2f}"
+        row += "".join(f"{pr['rmse'][c]:>14.4g}" for pr in result.per_run)
+        lines.append(row)
+    lines.append(f"-log L = {result.nll:.3f}   AIC = {result.aic:.3f}   BIC = {result.bic:.3f}   "
+                 f"n_params = {result.n_params}   ({result.message})")
+    for msg in result.identifiability.messages:
+        lines.append(f"unidentifiable: {msg}")
+    return "\n".join(lines)
