@@ -68,7 +68,7 @@ def write_fit_outputs(result: FitResult, experiments, out: Path, runs: list[str]
     (out / "report.json").write_text(json.dumps(report, indent=2))
     for r, (e, pred) in enumerate(zip(experiments, result.predictions)):
         plot_fit(out / f"fit_run{r}.png", e.ts, e.outputs, pred, result.spec.sensor_columns,
-                 title=f"run {r}: {e.name}")
+                 title=f"run {r}: {Path(e.name).name}")
     return report
 
 

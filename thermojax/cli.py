@@ -163,6 +163,24 @@ def _add_fit(sub):
     p.set_defaults(func=cmd_fit)
 
 
+def cmd_run(args) -> int:
+    from ._runner import run_config
+
+    folder = run_config(args.config, progress=_progress)
+    print(f"results in {folder}")
+    return 0
+
+
+def _add_run(sub):
+    p = sub.add_parser("run", help="run a config-driven experiment",
+                       description="Run an experiment config (configs/experiments/*.toml): "
+                       "model, data or synthetic runs, likelihood, options. Each run writes a "
+                       "new results folder with the resolved config, package versions and "
+                       "outputs; nothing is overwritten.")
+    p.add_argument("config", help="experiment config TOML")
+    p.set_defaults(func=cmd_run)
+
+
 def _add_simulate(sub):
     p = sub.add_parser("simulate", help="simulate a model through a chamber profile",
                        description="Simulate a model (TOML, or built-in 'imu6'/'rtd2') through a "
@@ -201,6 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_simulate(sub)
     _add_fit(sub)
+    _add_run(sub)
     _add_demo(sub)
     return parser
 
