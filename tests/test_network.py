@@ -18,6 +18,8 @@ import thermojax as tj
 from helpers import CONFIGS, as_np, imu6, random_network, toml_network
 
 EPS = np.finfo(np.float64).eps
+
+
 # Each new topology shape costs a few XLA compilations of the scatter ops (~0.25 s): the
 # default run takes two grounded and one ungrounded network per size, `slow` adds more.
 def _cases(fast_seeds, slow_seeds):
