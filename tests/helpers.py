@@ -117,3 +117,87 @@ def toml_network(path):
             K[i, i] += g
     return {"c": c, "K": K, "G": G, "input_names": tuple(input_names), "holds": tuple(holds),
             "A": -K / c[:, None], "B": G / c[:, None]}
+
+
+# ---------------------------------------------------------------------------
+# Independent NumPy/SciPy references for fitting and Kalman tests (no thermojax maths).
+
+
+def model_matrices(path):
+    """`toml_network(path)` plus the sensor matrix `Cy`, sensor columns, process-noise
+    diffusion stds `q` (°C/√s, 0 when absent), initial values and initial stds, all read
+    with `tomllib` alone."""
+    import tomllib
+
+    with open(path, "rb") as f:
+        doc = tomllib.load(f)
+
+    def value(v, default=None):
+        if v is None:
+            return default
+        return float(v["value"] if isinstance(v, dict) else v)
+
+    net = toml_network(path)
+    names = [node["name"] for node in doc["nodes"]]
+    idx = {name: i for i, name in enumerate(names)}
+    sensors = doc.get("sensors", [])
+    Cy = np.zeros((len(sensors), len(names)))
+    for k, s in enumerate(sensors):
+        Cy[k, idx[s["node"]]] = 1.0
+    net.update(
+        Cy=Cy, names=tuple(names), sensor_columns=tuple(s["column"] for s in sensors),
+        noise=np.array([value(s.get("noise"), 0.01) for s in sensors]),
+        q=np.array([value(node.get("process_noise"), 0.0) for node in doc["nodes"]]),
+        initial={i: value(node["initial"]) for i, node in enumerate(doc["nodes"])
+                 if "initial" in node},
+        initial_std=np.array([float(node.get("initial_std", 1.0)) for node in doc["nodes"]]))
+    return net
+
+
+def np_discretize(A, B, dt, holds):
+    """Exact sampling `x[k+1] = Phi x[k] + B0 u[k] + B1 u[k+1]` by `scipy.linalg.expm` of
+    `[[A dt, B dt, 0], [0, 0, I], [0, 0, 0]]` (FOH: `u` linear between samples; ZOH: the
+    `u[k+1]` term dropped and its share moved to `u[k]`)."""
+    import scipy.linalg
+
+    n, m = B.shape
+    M = np.zeros((n + 2 * m, n + 2 * m))
+    M[:n, :n] = A * dt
+    M[:n, n:n + m] = B * dt
+    M[n:n + m, n + m:] = np.eye(m)
+    E = scipy.linalg.expm(M)
+    Phi, G0, G1 = E[:n, :n], E[:n, n:n + m], E[:n, n + m:]
+    foh = np.array([h == "foh" for h in holds], dtype=float)
+    B1 = G1 * foh[None, :]
+    return Phi, G0 - B1, B1
+
+
+def np_van_loan(A, Qc, dt):
+    """`Qd = ∫0^dt e^{As} Qc e^{Aᵀs} ds` by adaptive quadrature (`scipy.integrate.quad_vec`)."""
+    import scipy.integrate
+    import scipy.linalg
+
+    Qd, _ = scipy.integrate.quad_vec(
+        lambda s: (lambda E: E @ Qc @ E.T)(scipy.linalg.expm(A * s)), 0.0, dt,
+        epsabs=1e-16, epsrel=1e-12)
+    return 0.5 * (Qd + Qd.T)
+
+
+def np_simulate(A, B, Cy, x0, U, dt, holds, Qd=None, rng=None):
+    """States and outputs of the exact-hold recurrence from `x0`, optionally with process
+    noise `w[k] ~ N(0, Qd)` added each step (drawn from `rng`)."""
+    Phi, B0, B1 = np_discretize(A, B, dt, holds)
+    T, n = U.shape[0], A.shape[0]
+    X = np.zeros((T, n))
+    X[0] = x0
+    Lq = None if Qd is None else np.linalg.cholesky(Qd + 1e-300 * np.eye(n))
+    for k in range(T - 1):
+        X[k + 1] = Phi @ X[k] + B0 @ U[k] + B1 @ U[k + 1]
+        if Lq is not None:
+            X[k + 1] += Lq @ rng.standard_normal(n)
+    return X, X @ Cy.T
+
+
+def np_steady(A, B, u0):
+    """Equilibrium `x` with `A x + B u0 = 0`."""
+    return np.linalg.solve(A, -B @ u0)

@@ -44,8 +44,14 @@ def _finite(x: float):
 
 
 def identifiability(info: np.ndarray, names: list[str], spec: ModelSpec,
-                    max_log_std: float = 1.0, max_initial_std: float = 10.0) -> Identifiability:
-    """Analyse a Fisher information matrix `info` over the free parameters `names`."""
+                    max_log_std: float = 1.0, max_initial_std: float = 10.0,
+                    sample_period: float | None = None) -> Identifiability:
+    """Analyse a Fisher information matrix `info` over the free parameters `names`.
+
+    Unidentifiable eigen-directions that share parameters are reported together,
+    as one subspace with one message. `sample_period` (s) lets the message say
+    when a node is faster than the sampling.
+    """
     info = 0.5 * (np.asarray(info, float) + np.asarray(info, float).T)
     k = len(names)
     if k == 0:
@@ -61,16 +67,30 @@ def identifiability(info: np.ndarray, names: list[str], spec: ModelSpec,
     mu_max = max(float(mu.max()) if mu.size else 1.0, 1e-300)
     cond = mu_max / max(float(mu.min()), 1e-300) if mu.size else 1.0
     weak = (mu < 1.0 / max_log_std ** 2) | (mu < 1e-12 * mu_max)
-    directions, bad = [], set()
+    groups: list[dict] = []  # directions sharing parameters, merged
     for j in np.flatnonzero(weak):
         v = V[:, j] / np.max(np.abs(V[:, j]))
         v = v * np.sign(v[np.argmax(np.abs(v))])
         members = {names[lg[i]]: round(float(v[i]), 3) for i in np.argsort(-np.abs(v))
                    if abs(v[i]) > 0.2}
-        bad.update(members)
         std = 1.0 / np.sqrt(max(mu[j], 1e-300))
-        directions.append({"combination": members, "log_std": _finite(std) if std < 1e150 else None,
-                           "message": _explain(members, spec, std)})
+        entry = {"combination": members, "log_std": _finite(std) if std < 1e150 else None}
+        touching = [g for g in groups if set(g["parameters"]) & set(members)]
+        merged = {"parameters": sorted(set(members).union(*[g["parameters"] for g in touching])),
+                  "directions": [entry] + [d for g in touching for d in g["directions"]]}
+        groups = [g for g in groups if g not in touching] + [merged]
+    directions, bad = [], set()
+    for g in groups:
+        bad.update(g["parameters"])
+        first = g["directions"][0]
+        std = first["log_std"] if first["log_std"] is not None else float("inf")
+        if len(g["directions"]) == 1:
+            msg = _explain(first["combination"], spec, std, sample_period)
+        else:
+            msg = _explain({p: 1.0 for p in g["parameters"]}, spec, std, sample_period,
+                           subspace=len(g["directions"]))
+        directions.append({"parameters": g["parameters"], "dimension": len(g["directions"]),
+                           "directions": g["directions"], "message": msg})
     # Covariance: pseudo-inverse over the identifiable directions of the full matrix.
     w, U = np.linalg.eigh(info)
     keep = w > max(1e-12 * max(w.max(), 1e-300), 1.0 / max_log_std ** 2 * 1e-6)
@@ -78,18 +98,23 @@ def identifiability(info: np.ndarray, names: list[str], spec: ModelSpec,
     for i in ini:
         if not (np.sqrt(max(cov[i, i], 0)) < max_initial_std):
             bad.add(names[i])
-            directions.append({"combination": {names[i]: 1.0}, "log_std": None,
+            directions.append({"parameters": [names[i]], "dimension": 1,
+                               "directions": [{"combination": {names[i]: 1.0}, "log_std": None}],
                                "message": f"{names[i]} is not determined by the data (std over "
                                f"{max_initial_std:g} °C): fix it, or start the run at "
                                "equilibrium and drop the estimate."})
     return Identifiability(cov, cond, directions, bad)
 
 
-def _explain(members: dict[str, float], spec: ModelSpec, std: float) -> str:
+def _explain(members: dict[str, float], spec: ModelSpec, std: float,
+             sample_period: float | None = None, subspace: int = 1) -> str:
     """One paragraph: which combination, why, and what to fix or measure."""
     caps = [n for n in members if n.endswith(".capacitance")]
     conds = [n for n in members if n.endswith(".conductance")]
-    combo = " ".join(f"{w:+.2f}·log({n})" for n, w in members.items())
+    if subspace > 1:
+        combo = f"any of {subspace} independent combinations of {', '.join(members)}"
+    else:
+        combo = "the combination " + " ".join(f"{w:+.2f}·log({n})" for n, w in members.items())
     how = f"relative std {std:.3g}" if np.isfinite(std) and std < 1e150 else "no information"
     thermal_free = [f"nodes.{n.name}.capacitance" for n in spec.nodes if not n.capacitance.fixed]
     thermal_free += [f"links.{k.key}.conductance" for k in spec.links if not k.conductance.fixed]
@@ -110,13 +135,31 @@ def _explain(members: dict[str, float], spec: ModelSpec, std: float) -> str:
         elif parts[0] == "links":
             nodes += parts[1].split("-")
     unsensed = sorted({n for n in nodes if n in spec.node_names and n not in sensed})
-    text = f"The data cannot determine the combination {combo} ({how})."
+    text = f"The data cannot determine {combo} ({how})."
     if unsensed:
         text += (f" It involves node(s) {unsensed} that no sensor sees; their dynamics are too "
-                 "fast or too weakly coupled to show in the measured temperatures. Fix these "
-                 "parameters from design data, put a sensor on one of these nodes, or excite the "
-                 "system with faster transients (power steps, PRBS) and sample faster.")
+                 "fast or too weakly coupled to show in the measured temperatures.")
+        fast = {n: tau for n, tau in _local_time_constants(spec).items()
+                if n in unsensed and sample_period is not None and tau < 2 * sample_period}
+        if fast:
+            listing = ", ".join(f"{n} ~{tau:.2g} s" for n, tau in fast.items())
+            text += (f" Local time constant(s) {listing} are shorter than twice the sample "
+                     f"period ({sample_period:g} s): these dynamics fall between samples; "
+                     f"sample faster than {1 / min(fast.values()):.2g} Hz to see them.")
+        text += (" Fix these parameters from design data, put a sensor on one of these nodes, "
+                 "or excite the system with faster transients (power steps, PRBS).")
     else:
         text += (" Fix one of these parameters from design data, or add excitation that moves "
                  "them differently (ramps at several rates, power steps).")
     return text
+
+
+def _local_time_constants(spec: ModelSpec) -> dict[str, float]:
+    """Each node's own time constant `C_i / Σ G` (s) from the spec's values."""
+    total = {n.name: 0.0 for n in spec.nodes}
+    for k in spec.links:
+        for n in k.between:
+            total[n] += k.conductance.value
+    for b in spec.boundaries:
+        total[b.node] += b.conductance.value
+    return {n.name: n.capacitance.value / total[n.name] for n in spec.nodes if total[n.name] > 0}
