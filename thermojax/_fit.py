@@ -30,7 +30,7 @@ import optimistix as optx
 from ._data import Dataset, Experiment
 from ._errors import InputError
 from ._identifiability import Identifiability, identifiability
-from ._likelihood import (kalman_nll, ml_sigma, output_error_nll, output_error_residuals,
+from ._likelihood import (kalman_nll, kalman_run, rts_smoother, ml_sigma, output_error_nll, output_error_residuals,
                           simulate_dataset)
 from ._metrics import fit_metrics
 from ._model import ThermalModel, model_to_spec
@@ -73,6 +73,10 @@ class FitResult:
     message: str
     wall_time_s: float
     predictions: list[np.ndarray] = field(repr=False, default_factory=list)
+    # Kalman only: RTS-smoothed node temperatures per run, (times, nodes) mean and std (°C).
+    smoothed: list[tuple[np.ndarray, np.ndarray]] = field(repr=False, default_factory=list)
+    theta: np.ndarray | None = field(repr=False, default=None)
+    problem: "_Problem | None" = field(repr=False, default=None)
 
 
 # ---------------------------------------------------------------------------
@@ -298,6 +302,7 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         nll = float(_kalman_nll_only(theta, problem_np))
         free_names = k_names
         noise_params = {}
+        problem = problem_np
     fitted_spec = model_to_spec(state.model, spec)
     ident = identifiability(info, free_names, fitted_spec,
                             sample_period=float(np.max(np.asarray(data.dt))))
@@ -322,6 +327,11 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     n_params = len(free_names) + len(noise_params)
     n_samples = int(np.asarray(data.mask).sum())
     metrics = fit_metrics(spec.sensor_columns, experiments, preds_list)
+    smoothed = []
+    if likelihood == "kalman":
+        m_s, s_s = _smooth(state.model, data, state.run_initial)
+        smoothed = [(np.asarray(m_s[r, :n]), np.asarray(s_s[r, :n]))
+                    for r, n in enumerate(data.lengths)]
     message = "converged" if converged else f"stopped after {n_steps} steps without converging"
     say(f"fit done: -log L = {nll:.2f}, {n_params} parameters, {message}")
     return FitResult(
@@ -331,7 +341,86 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         n_params=n_params, n_samples=n_samples, rmse=metrics["rmse"],
         fit_percent=metrics["fit_percent"], per_run=metrics["per_run"], identifiability=ident,
         n_steps=n_steps, converged=converged, message=message,
-        wall_time_s=time.perf_counter() - t_start, predictions=preds_list)
+        wall_time_s=time.perf_counter() - t_start, predictions=preds_list, smoothed=smoothed,
+        theta=np.asarray(theta), problem=problem)
+
+
+@eqx.filter_jit
+def _smooth(model, data: Dataset, run_initial):
+    def one(ts, u, y, mask, r0):
+        kf = kalman_run(model, ts, u, y, mask, r0)
+        return rts_smoother(model, ts, kf)
+
+    return jax.vmap(one)(data.ts, data.inputs, data.outputs, data.mask, run_initial)
+
+
+def profile_interval(result: FitResult, name: str, level: float = 0.95, max_refits: int = 24
+                     ) -> tuple[float | None, float | None]:
+    """Profile-likelihood confidence interval of one free parameter (output error).
+
+    The parameter is pinned at trial values (a stiff prior row in the same
+    compiled problem) while every other free parameter is refitted; the
+    interval's ends are where `2 (nll_pinned - nll_min)` reaches the
+    chi-square(1) quantile of `level`, found by bracketing and bisection.
+    Noise stds stay at their fitted values. An end that never reaches the
+    threshold (an unidentifiable side) is None.
+    """
+    from scipy.stats import chi2
+
+    if result.likelihood != "output_error" or result.problem is None:
+        raise InputError("profile intervals are available for output-error fits; refit with "
+                         "likelihood='output_error'.", field="--profile")
+    if name not in result.free_names:
+        raise InputError(f"'{name}' is not a free parameter; free ones are {result.free_names}.",
+                         field="--profile")
+    j = result.free_names.index(name)
+    problem, theta_hat = result.problem, jnp.asarray(result.theta)
+    threshold = float(chi2.ppf(level, 1))
+    base = 2 * float(gauss_newton_cost(theta_hat, problem))
+    pin = jnp.zeros_like(theta_hat).at[j].set(1e7)
+
+    def excess(value: float) -> float:
+        pinned = _Problem(problem.template, problem.index, problem.data, problem.sigma,
+                          theta_hat.at[j].set(value), pin)
+        theta, _, _ = _solve_oe(theta_hat.at[j].set(value), pinned, TruncatedGaussNewton(), 100)
+        chi = 2 * float(gauss_newton_cost(theta, problem))
+        return chi - base - threshold
+
+    std = result.parameters[name]["std"]
+    value = float(theta_hat[j])
+    log = _is_log(name)
+    step = (std / result.parameters[name]["value"] if log else std) if std else 0.5
+    ends = []
+    for sign in (-1.0, 1.0):
+        lo, hi, width, refits = value, None, 1.96 * step, 0
+        while refits < max_refits:
+            trial = value + sign * width
+            refits += 1
+            if excess(trial) > 0:
+                hi = trial
+                break
+            lo, width = trial, width * 2
+        if hi is None:
+            ends.append(None)
+            continue
+        for _ in range(max(0, max_refits - refits)):
+            mid = 0.5 * (lo + hi)
+            if abs(hi - lo) < 1e-4 * max(1.0, abs(mid)):
+                break
+            if excess(mid) > 0:
+                hi = mid
+            else:
+                lo = mid
+        end = 0.5 * (lo + hi)
+        ends.append(float(np.exp(end)) if log else end)
+    return ends[0], ends[1]
+
+
+@eqx.filter_jit
+def gauss_newton_cost(theta, problem):
+    """½χ² of the weighted output-error residuals (prior rows excluded)."""
+    r, _ = _oe_residuals(theta, problem)
+    return 0.5 * jnp.sum(r ** 2)
 
 
 def _fit_output_error(start, theta0, template, index, data, sigma, fixed_sigma, solver,

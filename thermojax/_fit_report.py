@@ -57,14 +57,26 @@ def fit_report(result: FitResult, runs: list[str]) -> dict:
     })
 
 
-def write_fit_outputs(result: FitResult, experiments, out: Path, runs: list[str]) -> dict:
-    """Write model.toml, report.json and one PNG per run into `out`; return the report."""
+def write_fit_outputs(result: FitResult, experiments, out: Path, runs: list[str],
+                      profiles: dict | None = None) -> dict:
+    """Write model.toml, report.json, one PNG per run and (Kalman) the smoothed node
+    temperatures `smoothed_run<i>.csv` into `out`; return the report."""
     from ._plots import plot_fit
+    from ._telemetry import write_telemetry
 
     out.mkdir(parents=True, exist_ok=True)
     save_model(result.spec, out / "model.toml",
                header=f"fitted by thermojax ({result.likelihood}) from {', '.join(runs)}")
     report = fit_report(result, runs)
+    if profiles:
+        report["profile_intervals"] = json_safe(profiles)
+    for r, (mean, std) in enumerate(result.smoothed):
+        nodes = result.spec.node_names
+        channels = {n: mean[:, i] for i, n in enumerate(nodes)}
+        channels.update({f"{n}_std": std[:, i] for i, n in enumerate(nodes)})
+        write_telemetry(out / f"smoothed_run{r}.csv", experiments[r].ts, channels,
+                        comments=[f"RTS-smoothed node temperatures (°C) and stds, run {r}: "
+                                  f"{runs[r]}"])
     (out / "report.json").write_text(json.dumps(report, indent=2))
     for r, (e, pred) in enumerate(zip(experiments, result.predictions)):
         plot_fit(out / f"fit_run{r}.png", e.ts, e.outputs, pred, result.spec.sensor_columns,

@@ -124,8 +124,8 @@ def _explain(members: dict[str, float], spec: ModelSpec, std: float,
     if same_sign and len(caps) + len(conds) == len(members):
         return (f"All capacitances and conductances scale together ({how}): with temperature "
                 "inputs only and no measured power, multiplying every C and G by the same factor "
-                "leaves every temperature unchanged. Fix one capacitance (for example the "
-                "housing's, from its mass and specific heat) or add a known heat input.")
+                "leaves every temperature unchanged. Fix one capacitance (from a part's mass and specific "
+                "heat) or add a known heat input (a measured power).")
     sensed = {s.node for s in spec.sensors}
     nodes = []
     for n in members:

@@ -132,7 +132,7 @@ def cmd_fit(args) -> int:
     import warnings
 
     from . import io
-    from ._fit import fit
+    from ._fit import fit, profile_interval
     from ._fit_report import comparison_table, write_fit_outputs
 
     spec = io.load_model(_resolve_model(args.model))
@@ -141,10 +141,15 @@ def cmd_fit(args) -> int:
         warnings.simplefilter("always")
         result = fit(spec, experiments, likelihood=args.likelihood, n_starts=args.starts,
                      progress=_progress)
+        profiles = {}
+        for name in args.profile or []:
+            _progress(f"profile likelihood of {name}")
+            lower, upper = profile_interval(result, name)
+            profiles[name] = {"level": 0.95, "lower": lower, "upper": upper}
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
     out = Path(args.out)
-    write_fit_outputs(result, experiments, out, list(args.data))
+    write_fit_outputs(result, experiments, out, list(args.data), profiles)
     print(comparison_table(result))
     print(f"wrote {out / 'model.toml'}, {out / 'report.json'} and plots")
     return 0
@@ -160,6 +165,9 @@ def _add_fit(sub):
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error")
     p.add_argument("--starts", type=int, default=1, help="number of starts (multi-start)")
+    p.add_argument("--profile", action="append", metavar="PARAM",
+                   help="also compute a 95 %% profile-likelihood interval of this free "
+                   "parameter, by its dotted name (repeatable; output error only)")
     p.set_defaults(func=cmd_fit)
 
 
