@@ -201,3 +201,116 @@ def np_simulate(A, B, Cy, x0, U, dt, holds, Qd=None, rng=None):
 def np_steady(A, B, u0):
     """Equilibrium `x` with `A x + B u0 = 0`."""
     return np.linalg.solve(A, -B @ u0)
+
+
+# ---------------------------------------------------------------------------
+# A small identifiable scenario shared by the fit, Kalman and CLI tests (one compilation
+# per likelihood for all of them: same structure, same data shapes).
+
+RTD2H_TEXT = """\
+# rtd2 (configs/rtd2.toml) with a measured heater on the sheath and a second sensor:
+# every capacitance and conductance is identifiable. The core's initial temperature is
+# estimated per run.
+name = "rtd2h"
+
+[[nodes]]
+name = "sheath"
+capacitance = 0.8
+
+[[nodes]]
+name = "core"
+capacitance = 0.1
+initial = 20.0  # estimated per run
+
+[[links]]
+between = ["sheath", "core"]
+conductance = 0.08333333333333333
+
+[[boundaries]]
+node = "sheath"
+input = "T_fluid"
+conductance = 0.2
+
+[[heat_inputs]]
+node = "sheath"
+input = "P_heater"
+gain = { value = 1.0, fixed = true }
+hold = "zoh"
+
+[[sensors]]
+node = "core"
+column = "T_core"
+noise = 0.01
+
+[[sensors]]
+node = "sheath"
+column = "T_sheath"
+noise = { value = 0.02, fixed = true }
+"""
+
+RTD2H_TRUTH = {
+    "nodes.sheath.capacitance": 0.8,
+    "nodes.core.capacitance": 0.1,
+    "links.sheath-core.conductance": 1 / 12,
+    "boundaries.sheath-T_fluid.conductance": 0.2,
+}
+RTD2H_RUNS = ((600, 1.0), (400, 2.0))  # (samples, sample period s) per run
+RTD2H_CORE_OFFSET = (3.0, -2.0)  # true initial core temperature minus its steady state, °C
+RTD2H_Q = np.array([0.004, 0.002])  # process-noise diffusion stds of the Kalman data, °C/√s
+
+
+def text_matrices(text: str) -> dict:
+    """`model_matrices` of model TOML text (through a temporary file)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "model.toml"
+        path.write_text(text)
+        return model_matrices(path)
+
+
+def rtd2h_inputs(n: int, dt: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(ts, U): a drifting sinusoidal fluid temperature (°C, FOH) and a random 0/0.5 W heater
+    square wave switching on multiples of 10 samples (W, ZOH)."""
+    ts = dt * np.arange(n)
+    T_fluid = 20.0 + 10.0 * np.sin(2 * np.pi * ts / 300.0) + 0.02 * ts
+    P = np.repeat(0.5 * rng.integers(0, 2, n // 10 + 1), 10)[:n].astype(float)
+    return ts, np.stack([T_fluid, P], axis=1)
+
+
+def rtd2h_data(seed: int = 1, process_noise: bool = False):
+    """Synthetic runs of the rtd2h truth (true noise: T_core 0.01 °C, T_sheath 0.02 °C), each
+    from the steady state of its first input with the core `RTD2H_CORE_OFFSET` off it,
+    simulated by the NumPy exact-hold recurrence (with `RTD2H_Q` process noise if asked).
+    Returns (ts, U, Y, x0) per run."""
+    mm = text_matrices(RTD2H_TEXT)
+    rng = np.random.default_rng(seed)
+    runs = []
+    for (n, dt), offset in zip(RTD2H_RUNS, RTD2H_CORE_OFFSET):
+        ts, U = rtd2h_inputs(n, dt, rng)
+        x0 = np_steady(mm["A"], mm["B"], U[0]) + np.array([0.0, offset])
+        Qd = np_van_loan(mm["A"], np.diag(RTD2H_Q ** 2), dt) if process_noise else None
+        _, Y = np_simulate(mm["A"], mm["B"], mm["Cy"], x0, U, dt, mm["holds"], Qd=Qd, rng=rng)
+        runs.append((ts, U, Y + rng.standard_normal(Y.shape) * mm["noise"], x0))
+    return runs
+
+
+def rtd2h_spec(text: str = RTD2H_TEXT):
+    return tj.parse_model(text, source="rtd2h.toml")
+
+
+def rtd2h_experiments(seed: int = 1, process_noise: bool = False):
+    from thermojax._data import Experiment
+
+    return [Experiment(ts, U, Y, name=f"run{i}") for i, (ts, U, Y, _)
+            in enumerate(rtd2h_data(seed, process_noise))]
+
+
+_FITS: dict = {}
+
+
+def cached_fit(key, make):
+    """`make()` once per test session per `key` (fits are shared between test modules)."""
+    if key not in _FITS:
+        _FITS[key] = make()
+    return _FITS[key]

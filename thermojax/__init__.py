@@ -43,17 +43,33 @@ _LAZY = {
     "AbstractSimulator": "._simulate",
     "ExactHold": "._simulate",
     "DiffraxSimulator": "._simulate",
+    "fit": "._fit",
+    "FitResult": "._fit",
+    "profile_interval": "._fit",
+    "Experiment": "._data",
+    "Dataset": "._data",
+    "ThermalModel": "._model",
+    "TruncatedGaussNewton": "._solver",
+    "kalman_nll": "._likelihood",
+    "simulate_dataset": "._likelihood",
+    "identifiability": "._identifiability",
+    "comparison_table": "._fit_report",
+    "write_fit_outputs": "._fit_report",
+    "perturbed": "._runner",
     "parameter_mask": "._parameters",
     "free_parameters": "._parameters",
     "with_free_parameters": "._parameters",
 }
 
-_JAX_MODULES = {"._network", "._system", "._discretize", "._simulate", "._parameters"}
+_JAX_MODULES = {"._network", "._system", "._discretize", "._simulate", "._parameters", "._fit",
+                "._data", "._model", "._solver", "._likelihood", "._fit_report", "._runner"}
 
 __all__ = sorted(_LAZY)
 
 
 def __getattr__(name):
+    if name == "io":
+        return importlib.import_module(".io", __name__)
     module = _LAZY.get(name)
     if module is None:
         raise AttributeError(f"module 'thermojax' has no attribute '{name}'")

@@ -303,7 +303,7 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         free_names = k_names
         noise_params = {}
         problem = problem_np
-    fitted_spec = model_to_spec(state.model, spec)
+    fitted_spec = model_to_spec(state.model, spec, process_noise=likelihood == "kalman")
     ident = identifiability(info, free_names, fitted_spec,
                             sample_period=float(np.max(np.asarray(data.dt))))
     values = np.asarray(theta)
@@ -433,7 +433,10 @@ def _fit_output_error(start, theta0, template, index, data, sigma, fixed_sigma, 
     for it in range(outer):
         problem = _Problem(template, index, data, jnp.asarray(sig), theta0,
                            jnp.zeros_like(theta0))
-        theta, steps, ok = _solve_oe(theta, problem, solver, max_steps)
+        if theta.shape[0]:
+            theta, steps, ok = _solve_oe(theta, problem, solver, max_steps)
+        else:  # nothing physical to move (a Kalman fit of the noise alone)
+            steps, ok = 0, True
         total += int(steps)
         ok = bool(ok)
         if fixed_sigma.all():
@@ -478,6 +481,15 @@ def _check_runs(spec: ModelSpec, experiments: list[Experiment]) -> None:
         raise InputError("no runs given; pass at least one --data file.", field="--data")
     slowest = float(np.max(np.asarray(ThermalNetwork.from_spec(spec).time_constants())))
     for e in experiments:
+        measured = np.isfinite(e.outputs)
+        if not measured.any():
+            raise InputError("no sensor data in this run: every sensor cell is empty or NaN.",
+                             file=e.name, field=",".join(spec.sensor_columns))
+        for j in np.flatnonzero(~measured.any(axis=0)):
+            col = spec.sensor_columns[j] if j < len(spec.sensor_columns) else f"output {j}"
+            raise InputError(f"sensor column {col!r} has no readings in this run (every cell is "
+                             "empty or nan); drop it from the model or use a run that measured "
+                             "it.", file=e.name, field=col)
         if e.ts[-1] - e.ts[0] < slowest:
             warnings.warn(f"{e.name}: the run lasts {e.ts[-1] - e.ts[0]:.0f} s, shorter than the "
                           f"slowest time constant of the starting model ({slowest:.0f} s); the "

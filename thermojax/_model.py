@@ -68,8 +68,11 @@ class ThermalModel(eqx.Module):
         return x0
 
 
-def model_to_spec(model: ThermalModel, spec: ModelSpec) -> ModelSpec:
-    """Write a model's values back into its spec (fixed flags and structure kept)."""
+def model_to_spec(model: ThermalModel, spec: ModelSpec, process_noise: bool = False) -> ModelSpec:
+    """Write a model's values back into its spec (fixed flags and structure kept).
+
+    With `process_noise` (a Kalman fit, which estimates it), every node's process noise is
+    written, also where the spec left it out; otherwise only where the spec has it."""
     net = model.network
 
     def upd(p: Parameter | None, v) -> Parameter:
@@ -77,7 +80,8 @@ def model_to_spec(model: ThermalModel, spec: ModelSpec) -> ModelSpec:
 
     nodes = tuple(dataclasses.replace(
         n, capacitance=upd(n.capacitance, c),
-        process_noise=n.process_noise if n.process_noise is None else upd(n.process_noise, q))
+        process_noise=upd(n.process_noise, q) if process_noise or n.process_noise is not None
+        else None)
         for n, c, q in zip(spec.nodes, np.asarray(net.capacitance), np.asarray(model.process_noise)))
     links = tuple(dataclasses.replace(k, conductance=upd(k.conductance, g))
                   for k, g in zip(spec.links, np.asarray(net.conductance)))

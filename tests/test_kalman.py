@@ -1,0 +1,349 @@
+"""The Kalman likelihood (`kalman_run`, `kalman_nll`) and the RTS smoother against NumPy.
+
+The reference is a continuous-discrete Kalman filter written here in plain NumPy
+from the definition in formats spec §2 ("Likelihood"):
+
+- matrices from the TOML file read by `tomllib` (`helpers.model_matrices`), never
+  through `ThermalNetwork`;
+- exact sampling by `scipy.linalg.expm` of the augmented matrix (FOH and ZOH);
+- `Qd = ∫ e^{As} Qc e^{Aᵀs} ds` by `scipy.integrate.quad_vec` (Van Loan's integral);
+- update before predict, every measured sample included (the first one too),
+  `log L = Σ_k −½ (log det(2π S_k) + e_kᵀ S_k⁻¹ e_k)` over the measured rows only;
+- the textbook covariance update `P − K S Kᵀ` (thermojax uses the Joseph form: the
+  same matrix in exact arithmetic).
+
+The RTS smoother reference is the textbook backward pass. The information criteria
+of a Kalman fit are checked against the formulas of spec §2 with `n_params` and `N`
+counted by hand.
+"""
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import thermojax as tj
+from thermojax._data import Dataset, Experiment
+from thermojax._likelihood import kalman_nll, kalman_run, rts_smoother
+from thermojax._model import ThermalModel
+
+from helpers import (CONFIGS, model_matrices, np_discretize, np_simulate, np_steady,
+                     np_van_loan)
+
+# float64 throughout; the reference's quad_vec Van Loan integral is good to ~1e-12
+# relative, and the two filters differ only by roundoff in a few hundred steps.
+RTOL = 1e-9
+
+
+# ---------------------------------------------------------------------------------------------
+# The independent reference
+
+
+def np_kalman(mm, U, Y, dt, x0):
+    """NumPy continuous-discrete Kalman filter (update before predict).
+
+    `mm`: `helpers.model_matrices`; `U` (T, inputs); `Y` (T, sensors) with NaN for a
+    dropped sample; `x0` the initial mean. Returns a dict of per-sample arrays and `nll`.
+    """
+    A, B, Cy = mm["A"], mm["B"], mm["Cy"]
+    n, p = A.shape[0], Cy.shape[0]
+    Phi, B0, B1 = np_discretize(A, B, dt, mm["holds"])
+    Qd = np_van_loan(A, np.diag(mm["q"] ** 2), dt)
+    R = np.diag(mm["noise"] ** 2)
+    m, P = np.array(x0, float), np.diag(mm["initial_std"] ** 2)
+    T = U.shape[0]
+    out = {k: [] for k in ("m_pred", "P_pred", "m_filt", "P_filt")}
+    innov, innov_std = np.zeros((T, p)), np.zeros((T, p))
+    nll = 0.0
+    for k in range(T):
+        out["m_pred"].append(m.copy())
+        out["P_pred"].append(P.copy())
+        obs = np.flatnonzero(np.isfinite(Y[k]))
+        if obs.size:
+            H = Cy[obs]
+            S = H @ P @ H.T + R[np.ix_(obs, obs)]
+            e = Y[k, obs] - H @ m
+            _, logdet = np.linalg.slogdet(2 * np.pi * S)
+            nll += 0.5 * (logdet + e @ np.linalg.solve(S, e))
+            K = P @ H.T @ np.linalg.inv(S)
+            m = m + K @ e
+            P = P - K @ S @ K.T
+            P = 0.5 * (P + P.T)
+            innov[k, obs] = e
+            innov_std[k, obs] = np.sqrt(np.diag(S))
+        out["m_filt"].append(m.copy())
+        out["P_filt"].append(P.copy())
+        u_next = U[k + 1] if k + 1 < T else U[k]
+        m = Phi @ m + B0 @ U[k] + B1 @ u_next
+        P = Phi @ P @ Phi.T + Qd
+        P = 0.5 * (P + P.T)
+    ref = {k: np.array(v) for k, v in out.items()}
+    ref.update(nll=nll, innovations=innov, innovation_std=innov_std, Phi=Phi)
+    return ref
+
+
+def np_rts(ref):
+    """Textbook Rauch-Tung-Striebel backward pass over `np_kalman`'s output."""
+    Phi = ref["Phi"]
+    m_s, P_s = ref["m_filt"].copy(), ref["P_filt"].copy()
+    for k in range(len(m_s) - 2, -1, -1):
+        G = ref["P_filt"][k] @ Phi.T @ np.linalg.inv(ref["P_pred"][k + 1])
+        m_s[k] = ref["m_filt"][k] + G @ (m_s[k + 1] - ref["m_pred"][k + 1])
+        P_s[k] = ref["P_filt"][k] + G @ (P_s[k + 1] - ref["P_pred"][k + 1]) @ G.T
+    return m_s, np.sqrt(np.diagonal(P_s, axis1=1, axis2=2))
+
+
+# ---------------------------------------------------------------------------------------------
+# Models and data
+
+
+def imu6_text(q=0.002, hold="zoh", initial=None, initial_std=None):
+    """configs/imu6.toml with process noise on every node, the power's hold, and optionally
+    an initial temperature (a TOML value, e.g. "{ value = 30.0, fixed = true }") and an
+    initial std on the housing."""
+    text = (CONFIGS / "imu6.toml").read_text().replace('hold = "zoh"', f'hold = "{hold}"')
+    lines = []
+    for line in text.splitlines():
+        lines.append(line)
+        if line.startswith("capacitance = "):
+            lines.append(f"process_noise = {q}")
+        if line == 'name = "housing"':
+            if initial is not None:
+                lines.append(f"initial = {initial}")
+            if initial_std is not None:
+                lines.append(f"initial_std = {initial_std}")
+    return "\n".join(lines) + "\n"
+
+
+RTD2_TEXT = """
+name = "rtd2q"
+[[nodes]]
+name = "sheath"
+capacitance = 0.8
+process_noise = 0.003
+initial_std = 0.3
+[[nodes]]
+name = "core"
+capacitance = 0.1
+process_noise = 0.001
+[[links]]
+between = ["sheath", "core"]
+conductance = 0.08333333333333333
+[[boundaries]]
+node = "sheath"
+input = "T_fluid"
+conductance = 0.2
+[[sensors]]
+node = "core"
+column = "T_core"
+noise = 0.01
+"""
+
+
+def load(tmp_path, text, name="model.toml"):
+    """(spec, ThermalModel, reference matrices) of a model file written from `text`."""
+    path = tmp_path / name
+    path.write_text(text)
+    spec = tj.load_model(path)
+    return spec, ThermalModel.from_spec(spec), model_matrices(path)
+
+
+def chamber_inputs(mm, n, dt, seed):
+    """A chamber ramp plus a random heater square wave (for models with a power input)."""
+    rng = np.random.default_rng(seed)
+    ts = dt * np.arange(n)
+    cols = []
+    for name in mm["input_names"]:
+        if name.startswith("T_"):
+            cols.append(22.0 + 8.0 * np.sin(2 * np.pi * ts / 240.0) + 0.01 * ts)
+        else:
+            cols.append(np.repeat(0.2 * rng.integers(0, 2, n // 7 + 1), 7)[:n])
+    return ts, np.stack(cols, axis=1)
+
+
+def noisy_outputs(mm, U, dt, x0, seed, q_scale=1.0):
+    """Outputs of an independent stochastic NumPy simulation, with sensor noise."""
+    rng = np.random.default_rng(seed)
+    Qd = np_van_loan(mm["A"], np.diag((q_scale * mm["q"]) ** 2), dt)
+    _, Y = np_simulate(mm["A"], mm["B"], mm["Cy"], x0, U, dt, mm["holds"], Qd=Qd, rng=rng)
+    return Y + rng.standard_normal(Y.shape) * mm["noise"]
+
+
+def run_filter(model, ts, U, Y, run_initial=None):
+    """thermojax's filter on one run (NaN cells -> mask False, value 0, as `Dataset` does)."""
+    mask = np.isfinite(Y)
+    return kalman_run(model, jnp.asarray(ts), jnp.asarray(U), jnp.asarray(np.where(mask, Y, 0.0)),
+                      jnp.asarray(mask), None if run_initial is None else jnp.asarray(run_initial))
+
+
+def assert_filter_matches(kf, ref):
+    assert float(kf.nll) == pytest.approx(ref["nll"], rel=RTOL)
+    for key in ("m_filt", "m_pred"):  # °C, ~20: roundoff only
+        np.testing.assert_allclose(np.asarray(getattr(kf, key)), ref[key], rtol=RTOL, atol=1e-9)
+    for key in ("P_filt", "P_pred"):  # covariances: relative to their own scale
+        scale = np.max(np.abs(ref[key]))
+        np.testing.assert_allclose(np.asarray(getattr(kf, key)), ref[key], rtol=1e-7,
+                                   atol=1e-9 * scale)
+    np.testing.assert_allclose(np.asarray(kf.innovations), ref["innovations"], rtol=1e-7,
+                               atol=1e-9)  # residuals of ~1e-2 °C: 1e-9 °C is roundoff
+    np.testing.assert_allclose(np.asarray(kf.innovation_std), ref["innovation_std"], rtol=1e-8,
+                               atol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# Tests
+
+
+def test_reference_filter_is_the_gaussian_likelihood(tmp_path):
+    """Sanity of the reference itself: with Qd = 0 and a nearly exact initial state, the
+    Kalman log-likelihood is the Gaussian density of the output-error residuals."""
+    text = RTD2_TEXT.replace("process_noise = 0.003", "process_noise = 0.0").replace(
+        "process_noise = 0.001", "process_noise = 0.0").replace("initial_std = 0.3",
+                                                                "initial_std = 1e-9")
+    text = text.replace('name = "core"\ncapacitance = 0.1', 'name = "core"\ncapacitance = 0.1\n'
+                        'initial_std = 1e-9')
+    _, _, mm = load(tmp_path, text)
+    ts, U = chamber_inputs(mm, 200, 1.0, seed=0)
+    x0 = np_steady(mm["A"], mm["B"], U[0])
+    _, Y0 = np_simulate(mm["A"], mm["B"], mm["Cy"], x0, U, 1.0, mm["holds"])
+    Y = Y0 + np.random.default_rng(1).standard_normal(Y0.shape) * 0.01
+    ref = np_kalman(mm, U, Y, 1.0, x0)
+    e = (Y - Y0)[:, 0]
+    gauss = 0.5 * np.sum(np.log(2 * np.pi * 0.01 ** 2) + e ** 2 / 0.01 ** 2)
+    assert ref["nll"] == pytest.approx(gauss, rel=1e-9)  # P stays ~1e-18: exact to roundoff
+
+
+@pytest.mark.parametrize("dt", [1.0, 2.0])
+def test_rtd2_filter_matches_numpy(tmp_path, dt):
+    """One sensor, FOH chamber input, steady initial state, a few dropped samples."""
+    _, model, mm = load(tmp_path, RTD2_TEXT)
+    ts, U = chamber_inputs(mm, 300, dt, seed=2)
+    x0 = np_steady(mm["A"], mm["B"], U[0])
+    Y = noisy_outputs(mm, U, dt, x0 + 0.05, seed=3)
+    Y[[0, 17, 18, 19, 150, 299]] = np.nan  # first and last sample dropped too
+    assert_filter_matches(run_filter(model, ts, U, Y), np_kalman(mm, U, Y, dt, x0))
+
+
+@pytest.mark.parametrize("hold", ["zoh", "foh"])
+def test_imu6_three_sensors_partial_missing(tmp_path, hold):
+    """Six nodes, three sensors; rows with one, two or all three sensors dropped; the heater
+    power held as ZOH or FOH; the housing's initial temperature and std given."""
+    text = imu6_text(q=0.002, hold=hold, initial="{ value = 30.0, fixed = true }",
+                     initial_std=0.5)
+    _, model, mm = load(tmp_path, text)
+    ts, U = chamber_inputs(mm, 400, 1.0, seed=4)
+    x0 = np_steady(mm["A"], mm["B"], U[0])
+    x0[mm["names"].index("housing")] = 30.0
+    Y = noisy_outputs(mm, U, 1.0, x0, seed=5)
+    rng = np.random.default_rng(6)
+    Y[rng.random(Y.shape) < 0.2] = np.nan  # ~20 % per sensor, independently
+    Y[[0, 50, 51, 300]] = np.nan  # whole rows, the first included
+    Y[1, :2] = np.nan
+    assert np.isnan(Y).all(axis=1).sum() >= 4 and (np.isnan(Y).sum(axis=1) == 1).sum() > 50
+    kf = run_filter(model, ts, U, Y)
+    ref = np_kalman(mm, U, Y, 1.0, x0)
+    assert_filter_matches(kf, ref)
+    # A dropped row adds nothing: its innovation and innovation std are reported as zero.
+    assert np.all(np.asarray(kf.innovations)[np.isnan(Y)] == 0.0)
+
+
+def test_holds_change_the_likelihood(tmp_path):
+    """Guard for the hold test above: ZOH and FOH give different filters on this data (so
+    matching the reference in both cases checks both discretizations)."""
+    _, m_zoh, mm = load(tmp_path, imu6_text(hold="zoh"), "zoh.toml")
+    _, m_foh, _ = load(tmp_path, imu6_text(hold="foh"), "foh.toml")
+    ts, U = chamber_inputs(mm, 100, 1.0, seed=4)
+    Y = noisy_outputs(mm, U, 1.0, np_steady(mm["A"], mm["B"], U[0]), seed=5)
+    a, b = float(run_filter(m_zoh, ts, U, Y).nll), float(run_filter(m_foh, ts, U, Y).nll)
+    assert abs(a - b) > 1.0
+
+
+def test_estimated_initial_per_run(tmp_path):
+    """A bare `initial` is a per-run estimate: `run_initial` replaces it as the initial mean."""
+    text = RTD2_TEXT.replace("initial_std = 0.3", "initial = 25.0\ninitial_std = 0.3")
+    spec, model, mm = load(tmp_path, text)
+    assert model.initial_nodes == (0,)
+    ts, U = chamber_inputs(mm, 200, 1.0, seed=7)
+    x0 = np_steady(mm["A"], mm["B"], U[0])
+    x0[0] = 18.5
+    Y = noisy_outputs(mm, U, 1.0, x0, seed=8)
+    kf = run_filter(model, ts, U, Y, run_initial=np.array([18.5]))
+    assert_filter_matches(kf, np_kalman(mm, U, Y, 1.0, x0))
+    # Without run_initial the model's own value (25 °C) is the mean.
+    x0_file = x0.copy()
+    x0_file[0] = 25.0
+    assert float(run_filter(model, ts, U, Y).nll) == pytest.approx(
+        np_kalman(mm, U, Y, 1.0, x0_file)["nll"], rel=RTOL)
+
+
+def test_kalman_nll_sums_runs_of_different_length_and_period(tmp_path):
+    """`kalman_nll` over a padded `Dataset`: runs of 250 samples at 1 s and 180 at 2 s, each
+    with its own initial temperature; padding must add nothing."""
+    text = imu6_text(q=0.001, initial="21.0", initial_std=0.4)
+    _, model, mm = load(tmp_path, text)
+    i_h = mm["names"].index("housing")
+    experiments, total = [], 0.0
+    for n, dt, seed, t0 in [(250, 1.0, 10, 23.0), (180, 2.0, 11, 19.0)]:
+        ts, U = chamber_inputs(mm, n, dt, seed)
+        x0 = np_steady(mm["A"], mm["B"], U[0])
+        x0[i_h] = t0
+        Y = noisy_outputs(mm, U, dt, x0, seed + 100)
+        Y[np.random.default_rng(seed).random(Y.shape) < 0.1] = np.nan
+        experiments.append(Experiment(ts, U, Y, name=f"run{dt:g}"))
+        total += np_kalman(mm, U, Y, dt, x0)["nll"]
+    data = Dataset.from_experiments(experiments)
+    got = float(kalman_nll(model, data, jnp.asarray([[23.0], [19.0]])))
+    assert got == pytest.approx(total, rel=RTOL)
+
+
+def test_rts_smoother_matches_numpy(tmp_path):
+    """Smoothed means and stds of every node (sensed or not) against the textbook pass."""
+    _, model, mm = load(tmp_path, imu6_text(q=0.003))
+    ts, U = chamber_inputs(mm, 200, 2.0, seed=12)
+    x0 = np_steady(mm["A"], mm["B"], U[0])
+    Y = noisy_outputs(mm, U, 2.0, x0, seed=13)
+    Y[np.random.default_rng(14).random(Y.shape) < 0.15] = np.nan
+    kf = run_filter(model, ts, U, Y)
+    ref = np_kalman(mm, U, Y, 2.0, x0)
+    m_s, s_s = rts_smoother(model, jnp.asarray(ts), kf)
+    m_ref, s_ref = np_rts(ref)
+    np.testing.assert_allclose(np.asarray(m_s), m_ref, rtol=1e-9, atol=1e-8)  # °C roundoff
+    np.testing.assert_allclose(np.asarray(s_s), s_ref, rtol=1e-6, atol=1e-10)  # via P⁻¹
+    # The smoother never knows less than the filter.
+    s_f = np.sqrt(np.diagonal(ref["P_filt"], axis1=1, axis2=2))
+    assert np.all(np.asarray(s_s) <= s_f * (1 + 1e-9))
+
+
+# ---------------------------------------------------------------------------------------------
+# Information criteria of a Kalman fit (spec §2)
+
+
+def test_kalman_fit_information_criteria(kalman_fit):
+    """aic = 2 n_params + 2 nll, bic = n_params ln N + 2 nll; n_params and N counted by hand:
+    4 conductances and capacitances, 1 estimated sensor noise (T_sheath's is fixed), 2
+    process noises; N = measured scalar samples."""
+    result, experiments = kalman_fit["result"], kalman_fit["experiments"]
+    n_params = 4 + 1 + 2
+    N = sum(int(np.isfinite(e.outputs).sum()) for e in experiments)
+    assert result.n_params == n_params
+    assert result.n_samples == N
+    assert result.aic == pytest.approx(2 * n_params + 2 * result.nll, rel=1e-12)
+    assert result.bic == pytest.approx(n_params * math.log(N) + 2 * result.nll, rel=1e-12)
+
+
+def test_kalman_fit_nll_is_the_filter_likelihood(kalman_fit, tmp_path):
+    """The reported -log L equals the NumPy filter run at the fitted values (read back from
+    the fitted model file with tomllib): the nll is the Kalman likelihood, without prior."""
+    result, experiments = kalman_fit["result"], kalman_fit["experiments"]
+    path = tmp_path / "fitted.toml"
+    tj.save_model(result.spec, path)
+    mm = model_matrices(path)
+    fitted_q = np.array([result.parameters[f"nodes.{n}.process_noise"]["value"]
+                         for n in mm["names"]])
+    np.testing.assert_allclose(mm["q"], fitted_q, rtol=1e-12)  # written to the file
+    total = 0.0
+    for e in experiments:
+        x0 = np_steady(mm["A"], mm["B"], e.inputs[0])
+        total += np_kalman(mm, e.inputs, e.outputs, e.dt, x0)["nll"]
+    assert result.nll == pytest.approx(total, rel=1e-9)  # roundoff; same definition
