@@ -282,7 +282,7 @@ def rtd2h_data(seed: int = 1, process_noise: bool = False):
     """Synthetic runs of the rtd2h truth (true noise: T_core 0.01 °C, T_sheath 0.02 °C), each
     from the steady state of its first input with the core `RTD2H_CORE_OFFSET` off it,
     simulated by the NumPy exact-hold recurrence (with `RTD2H_Q` process noise if asked).
-    Returns (ts, U, Y, x0) per run."""
+    Returns (ts, U, Y, x0, X) per run, X the true node temperatures."""
     mm = text_matrices(RTD2H_TEXT)
     rng = np.random.default_rng(seed)
     runs = []
@@ -290,8 +290,8 @@ def rtd2h_data(seed: int = 1, process_noise: bool = False):
         ts, U = rtd2h_inputs(n, dt, rng)
         x0 = np_steady(mm["A"], mm["B"], U[0]) + np.array([0.0, offset])
         Qd = np_van_loan(mm["A"], np.diag(RTD2H_Q ** 2), dt) if process_noise else None
-        _, Y = np_simulate(mm["A"], mm["B"], mm["Cy"], x0, U, dt, mm["holds"], Qd=Qd, rng=rng)
-        runs.append((ts, U, Y + rng.standard_normal(Y.shape) * mm["noise"], x0))
+        X, Y = np_simulate(mm["A"], mm["B"], mm["Cy"], x0, U, dt, mm["holds"], Qd=Qd, rng=rng)
+        runs.append((ts, U, Y + rng.standard_normal(Y.shape) * mm["noise"], x0, X))
     return runs
 
 
@@ -302,7 +302,7 @@ def rtd2h_spec(text: str = RTD2H_TEXT):
 def rtd2h_experiments(seed: int = 1, process_noise: bool = False):
     from thermojax._data import Experiment
 
-    return [Experiment(ts, U, Y, name=f"run{i}") for i, (ts, U, Y, _)
+    return [Experiment(ts, U, Y, name=f"run{i}") for i, (ts, U, Y, *_)
             in enumerate(rtd2h_data(seed, process_noise))]
 
 
@@ -314,3 +314,83 @@ def cached_fit(key, make):
     if key not in _FITS:
         _FITS[key] = make()
     return _FITS[key]
+
+
+def rtd2h_oe_fit():
+    """The output-error fit of the rtd2h runs (seed 1), shared by the test modules."""
+    from thermojax._fit import fit
+
+    def make():
+        experiments = rtd2h_experiments(1)
+        return {"result": fit(rtd2h_spec(), experiments), "experiments": experiments,
+                "truth": rtd2h_data(1)}
+
+    return cached_fit(("rtd2h", "output_error"), make)
+
+
+def rtd2h_kalman_fit():
+    """The Kalman fit of rtd2h runs simulated with process noise (seed 1)."""
+    from thermojax._fit import fit
+
+    def make():
+        experiments = rtd2h_experiments(1, process_noise=True)
+        return {"result": fit(rtd2h_spec(), experiments, likelihood="kalman"),
+                "experiments": experiments, "truth": rtd2h_data(1, process_noise=True)}
+
+    return cached_fit(("rtd2h", "kalman"), make)
+
+
+IMU6_RUNS = ((1500, 1.0), (1000, 1.0))
+
+
+def imu6_data(seed: int = 0):
+    """Two imu6 runs (configs/imu6.toml as the truth; sensors on housing, pcb and asic,
+    0.01 °C noise) at 1 s: a chamber ramp up and down with a 0.05/0.15 W ASIC power square
+    wave (ZOH), from steady state, by the NumPy exact-hold recurrence. (ts, U, Y, x0) per run."""
+    mm = model_matrices(CONFIGS / "imu6.toml")
+    rng = np.random.default_rng(seed)
+    runs = []
+    for n, dt in IMU6_RUNS:
+        ts = dt * np.arange(n)
+        T_ch = 25 + 20 * np.clip((ts - 100) / 600, 0, 1) - 15 * np.clip((ts - 900) / 400, 0, 1)
+        P = 0.05 + 0.1 * ((ts // 97) % 2)
+        U = np.stack([T_ch, P], axis=1)
+        x0 = np_steady(mm["A"], mm["B"], U[0])
+        _, Y = np_simulate(mm["A"], mm["B"], mm["Cy"], x0, U, dt, mm["holds"])
+        runs.append((ts, U, Y + rng.standard_normal(Y.shape) * mm["noise"], x0))
+    return runs
+
+
+def off_by_factor(spec, factor: float):
+    """`spec` with its free capacitances and conductances multiplied by `factor` and
+    `1/factor` alternately, in file order."""
+    import dataclasses
+
+    from thermojax._spec import Parameter
+
+    k = iter(range(1000))
+
+    def move(p):
+        return p if p.fixed else Parameter(p.value * factor ** (1 - 2 * (next(k) % 2)), False)
+
+    return spec.replace(
+        nodes=tuple(dataclasses.replace(n, capacitance=move(n.capacitance)) for n in spec.nodes),
+        links=tuple(dataclasses.replace(x, conductance=move(x.conductance)) for x in spec.links),
+        boundaries=tuple(dataclasses.replace(b, conductance=move(b.conductance))
+                         for b in spec.boundaries))
+
+
+def imu6_fit():
+    """The output-error fit of `imu6_data()` started 3x off (`off_by_factor(imu6, 3)`)."""
+    from thermojax._data import Experiment
+    from thermojax._fit import fit
+
+    def make():
+        data = imu6_data()
+        experiments = [Experiment(ts, U, Y, name=f"imu6_run{i}")
+                       for i, (ts, U, Y, _) in enumerate(data)]
+        start = off_by_factor(tj.load_model(CONFIGS / "imu6.toml"), 3.0)
+        return {"result": fit(start, experiments), "experiments": experiments, "truth": data,
+                "start": start}
+
+    return cached_fit(("imu6", "output_error"), make)

@@ -100,7 +100,7 @@ def _state(theta, problem: _Problem) -> FitState:
 
 def _oe_residuals(theta, problem: _Problem):
     s = _state(theta, problem)
-    r = output_error_residuals(s.model, problem.data, s.run_initial) / problem.sigma
+    r = output_error_residuals(s.model, problem.data, s.run_initial) / problem.sigma[None, None, :]
     prior = (theta - problem.prior_mean) * problem.prior_weight
     return r.reshape(-1), prior
 
