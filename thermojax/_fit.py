@@ -34,6 +34,7 @@ from ._likelihood import (kalman_nll, kalman_run, rts_smoother, ml_sigma, output
                           simulate_dataset)
 from ._metrics import fit_metrics
 from ._model import ThermalModel, model_to_spec
+from ._newton import TruncatedNewton, newton
 from ._parameters import FreeIndex, free_parameters, with_free_parameters
 from ._solver import TruncatedGaussNewton, gauss_newton
 from ._spec import ModelSpec
@@ -128,7 +129,12 @@ def _solve_oe(theta0, problem, solver, max_steps):
 
 @eqx.filter_jit
 def _solve_kalman(theta0, problem, solver, max_steps):
-    return optx.minimise(_kalman_loss, solver, theta0, problem, max_steps=max_steps, throw=False)
+    """(theta, steps, converged) from `newton` or an optimistix minimiser."""
+    if isinstance(solver, TruncatedNewton):
+        sol = newton(_kalman_loss, theta0, problem, solver)
+        return sol.value, sol.num_steps, sol.converged
+    sol = optx.minimise(_kalman_loss, solver, theta0, problem, max_steps=max_steps, throw=False)
+    return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
 
 
 @eqx.filter_jit
@@ -287,14 +293,14 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         k_template = state  # warm start from the output-error fit
         th0 = free_parameters(k_template, k_index)
         prior_mean = free_parameters(template, k_index)
+        k_solver = solver or TruncatedNewton()
+        weight = 0.0 if isinstance(k_solver, TruncatedNewton) else 1.0 / prior_log_std
         problem = _Problem(k_template, k_index, data, jnp.asarray(sigma), prior_mean,
-                           jnp.full_like(th0, 1.0 / prior_log_std))
-        say(f"Kalman likelihood: {len(k_names)} parameters, BFGS from the output-error fit")
-        sol = _solve_kalman(th0, problem, solver or optx.BFGS(rtol=1e-8, atol=1e-10), max_steps)
-        theta = sol.value
+                           jnp.full_like(th0, weight))
+        say(f"Kalman likelihood: {len(k_names)} parameters, started from the output-error fit")
+        theta, n_steps, converged = _solve_kalman(th0, problem, k_solver, max_steps)
         _check_finite(theta, th0, k_names)
-        n_steps = int(sol.stats["num_steps"])
-        converged = bool(sol.result == optx.RESULTS.successful)
+        n_steps, converged = int(n_steps), bool(converged)
         state = _state(theta, problem)
         problem_np = _Problem(k_template, k_index, data, jnp.asarray(sigma), prior_mean,
                               jnp.zeros_like(th0))
