@@ -68,6 +68,7 @@ def write_fit_outputs(result: FitResult, experiments, out: Path, runs: list[str]
     save_model(result.spec, out / "model.toml",
                header=f"fitted by thermojax ({result.likelihood}) from {', '.join(runs)}")
     report = fit_report(result, runs)
+    report.update(whiteness(result.spec.sensor_columns, experiments, result.predictions))
     if profiles:
         report["profile_intervals"] = json_safe(profiles)
     for r, (mean, std) in enumerate(result.smoothed):
@@ -82,6 +83,20 @@ def write_fit_outputs(result: FitResult, experiments, out: Path, runs: list[str]
         plot_fit(out / f"fit_run{r}.png", e.ts, e.outputs, pred, result.spec.sensor_columns,
                  title=f"run {r}: {Path(e.name).name}")
     return report
+
+
+def whiteness(columns, experiments, predictions) -> dict:
+    """Ljung-Box p-value of each column's free-run residual, runs pooled."""
+    from ._residual_analysis import ljung_box
+
+    out, lags = {}, None
+    for j, c in enumerate(columns):
+        res = [e.outputs[:, j] - p[:, j] for e, p in zip(experiments, predictions)]
+        _, p_value, lags = ljung_box(res)
+        out[c] = p_value
+    return json_safe({"whiteness_p": out, "whiteness_test": {
+        "test": "Ljung-Box", "lags": lags, "residuals": "free-run (output error)",
+        "pooling": "autocovariances summed over runs, each run about its own mean"}})
 
 
 def comparison_table(result: FitResult) -> str:
