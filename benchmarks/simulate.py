@@ -29,6 +29,11 @@ its large arrays (madvise); XLA's allocator does not. To compare the tools on eq
 allocator terms the script re-executes itself with `GLIBC_TUNABLES=glibc.malloc.hugetlb=1`
 (glibc >= 2.35: malloc then madvises huge pages too). `--no-hugepages` runs with the
 default allocator instead; see benchmarks/README.md for both.
+
+BLAS threads: `OPENBLAS_NUM_THREADS=1` unless already set. The NumPy loop's 256x6 @ 6x6
+products gain nothing from threads, and on this shared 2-core machine OpenBLAS's thread
+hand-offs slow it down (1.3-1.4x here); one thread is NumPy's and dlsim's best setting.
+XLA does not use OpenBLAS for its matrix products.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ from __future__ import annotations
 import os
 import sys
 
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 if "--no-hugepages" not in sys.argv and \
         "glibc.malloc.hugetlb" not in os.environ.get("GLIBC_TUNABLES", ""):
     _env = dict(os.environ)
@@ -96,6 +102,12 @@ def numpy_loop(Phi, B0, B1, C, D, x0s, U):
     PhiT, B0T, B1T, CT, DT_ = Phi.T.copy(), B0.T.copy(), B1.T.copy(), C.T.copy(), D.T.copy()
     Y = np.empty((n_samples, n_profiles, C.shape[0]))
     X = x0s.copy()
+    if not D.any():  # imu6: no feedthrough, so no `U[k] @ D.T` term per step
+        for k in range(n_samples - 1):
+            Y[k] = X @ CT
+            X = X @ PhiT + Ut[k] @ B0T + Ut[k + 1] @ B1T
+        Y[-1] = X @ CT
+        return Y
     for k in range(n_samples - 1):
         Y[k] = X @ CT + Ut[k] @ DT_
         X = X @ PhiT + Ut[k] @ B0T + Ut[k + 1] @ B1T
@@ -165,6 +177,7 @@ def main():
     print(f"machine: {os.cpu_count()} CPUs, jax {jax.__version__} on {jax.default_backend()}, "
           f"numpy {np.__version__}, scipy {scipy.__version__}; "
           f"malloc huge pages: {'on' if 'hugetlb' in os.environ.get('GLIBC_TUNABLES', '') else 'off'}; "
+          f"OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}; "
           f"load average at start {os.getloadavg()[0]:.1f}")
 
     network = tj.ThermalNetwork.from_spec(tj.load_model(ROOT / "configs" / "imu6.toml"))

@@ -29,14 +29,13 @@ import numpy as np
 import pytest
 import scipy.stats
 
-import thermojax as tj
 import thermojax._fit as fit_module
 from thermojax import InputError, read_telemetry, write_telemetry
 from thermojax._data import Experiment
 from thermojax._fit import _check_finite, fit
 
-from helpers import (CONFIGS, RTD2H_CORE_OFFSET, RTD2H_Q, RTD2H_TEXT, RTD2H_TRUTH, imu6_fit,
-                     model_matrices, np_simulate, np_steady, rtd2h_experiments, rtd2h_inputs,
+from helpers import (CONFIGS, RTD2H_CORE_OFFSET, RTD2H_NAMES, RTD2H_Q, RTD2H_TEXT, RTD2H_TRUTH,
+                     imu6_fit, model_matrices, np_simulate, np_steady, rtd2h_experiments, rtd2h_inputs,
                      rtd2h_kalman_fit, rtd2h_oe_fit, rtd2h_spec, text_matrices)
 
 IMU6_TRUTH = {
@@ -66,7 +65,7 @@ def gaussian_nll(residuals: list[np.ndarray], sigma: np.ndarray) -> float:
     """Spec §2 output error: Σ_j [N_j/2 log(2π σ_j²) + SSR_j/(2σ_j²)] over measured cells."""
     r = np.concatenate(residuals)
     ok = np.isfinite(r)
-    n, ssr = ok.sum(axis=0), np.where(ok, r, 0.0).__pow__(2).sum(axis=0)
+    n, ssr = ok.sum(axis=0), (np.where(ok, r, 0.0) ** 2).sum(axis=0)
     return float(np.sum(0.5 * n * np.log(2 * np.pi * sigma ** 2) + 0.5 * ssr / sigma ** 2))
 
 
@@ -341,8 +340,8 @@ def test_all_nan_sensor_column_in_the_api():
 
 def test_short_run_warns(oe):
     """Runs of 3 s and 4 s (600 and 400 samples at 5 and 10 ms) are shorter than the slowest
-    time constant (~5.7 s): a UserWarning names each run. (Same shapes as the main scenario,
-    so no new compilation.)"""
+    time constant (~5.7 s): a UserWarning names each run. (Same shapes and run names as the
+    main scenario, so no new compilation.)"""
     mm = text_matrices(RTD2H_TEXT)
     tau = 1 / np.min(-np.linalg.eigvals(mm["A"]).real)
     rng = np.random.default_rng(3)
@@ -351,13 +350,14 @@ def test_short_run_warns(oe):
         ts, U = rtd2h_inputs(n, dt, rng)
         _, Y = np_simulate(mm["A"], mm["B"], mm["Cy"], np_steady(mm["A"], mm["B"], U[0]), U, dt,
                            mm["holds"])
-        runs.append(Experiment(ts, U, Y + 0.01 * rng.standard_normal(Y.shape), name=f"short{i}"))
+        runs.append(Experiment(ts, U, Y + 0.01 * rng.standard_normal(Y.shape),
+                               name=RTD2H_NAMES[i]))
         assert ts[-1] < tau
     with pytest.warns(UserWarning) as record:
         fit(rtd2h_spec(), runs)
     messages = [str(w.message) for w in record]
-    for i in range(2):
-        assert any(m.startswith(f"short{i}: the run lasts") and "shorter than the slowest time "
+    for name in RTD2H_NAMES:
+        assert any(m.startswith(f"{name}: the run lasts") and "shorter than the slowest time "
                    "constant" in m for m in messages), messages
 
 

@@ -29,7 +29,7 @@ from thermojax._likelihood import kalman_nll, kalman_run, rts_smoother
 from thermojax._model import ThermalModel
 
 from helpers import (CONFIGS, model_matrices, np_discretize, np_simulate, np_steady,
-                     np_van_loan)
+                     np_van_loan, rtd2h_kalman_fit)
 
 # float64 throughout; the reference's quad_vec Van Loan integral is good to ~1e-12
 # relative, and the two filters differ only by roundoff in a few hundred steps.
@@ -319,12 +319,18 @@ def test_rts_smoother_matches_numpy(tmp_path):
 # Information criteria of a Kalman fit (spec §2)
 
 
+@pytest.fixture(scope="module")
+def kalman_fit():
+    return rtd2h_kalman_fit()
+
+
+@pytest.mark.slow  # the Kalman fit compiles its likelihood, Hessian and smoother (~1 min)
 def test_kalman_fit_information_criteria(kalman_fit):
     """aic = 2 n_params + 2 nll, bic = n_params ln N + 2 nll; n_params and N counted by hand:
     4 conductances and capacitances, 1 estimated sensor noise (T_sheath's is fixed), 2
-    process noises; N = measured scalar samples."""
+    process noises, 2 per-run initial core temperatures; N = measured scalar samples."""
     result, experiments = kalman_fit["result"], kalman_fit["experiments"]
-    n_params = 4 + 1 + 2
+    n_params = 4 + 1 + 2 + 2
     N = sum(int(np.isfinite(e.outputs).sum()) for e in experiments)
     assert result.n_params == n_params
     assert result.n_samples == N
@@ -332,9 +338,12 @@ def test_kalman_fit_information_criteria(kalman_fit):
     assert result.bic == pytest.approx(n_params * math.log(N) + 2 * result.nll, rel=1e-12)
 
 
+@pytest.mark.slow
 def test_kalman_fit_nll_is_the_filter_likelihood(kalman_fit, tmp_path):
     """The reported -log L equals the NumPy filter run at the fitted values (read back from
-    the fitted model file with tomllib): the nll is the Kalman likelihood, without prior."""
+    the fitted model file with tomllib; the per-run initial core temperatures from the
+    report): the nll is the Kalman likelihood, without the prior. The estimated process
+    noise must be in the file although the model file left it out."""
     result, experiments = kalman_fit["result"], kalman_fit["experiments"]
     path = tmp_path / "fitted.toml"
     tj.save_model(result.spec, path)
@@ -343,7 +352,8 @@ def test_kalman_fit_nll_is_the_filter_likelihood(kalman_fit, tmp_path):
                          for n in mm["names"]])
     np.testing.assert_allclose(mm["q"], fitted_q, rtol=1e-12)  # written to the file
     total = 0.0
-    for e in experiments:
+    for r, e in enumerate(experiments):
         x0 = np_steady(mm["A"], mm["B"], e.inputs[0])
+        x0[1] = result.parameters[f"runs.{r}.nodes.core.initial"]["value"]
         total += np_kalman(mm, e.inputs, e.outputs, e.dt, x0)["nll"]
     assert result.nll == pytest.approx(total, rel=1e-9)  # roundoff; same definition

@@ -31,7 +31,8 @@ from ._data import Dataset, Experiment
 from ._errors import InputError
 from ._identifiability import Identifiability, identifiability
 from ._likelihood import (kalman_nll, kalman_run, rts_smoother, ml_sigma, output_error_nll, output_error_residuals,
-                          simulate_dataset)
+                          output_error_sensitivities, simulate_dataset)
+from ._sensitivity import dataset_outputs
 from ._metrics import fit_metrics
 from ._model import ThermalModel, model_to_spec
 from ._newton import TruncatedNewton, newton
@@ -116,15 +117,66 @@ def _oe_flat(theta, problem: _Problem):
     return jnp.concatenate(_oe_residuals(theta, problem))
 
 
-@eqx.filter_jit
+def _model_of(theta, problem: _Problem):
+    s = _state(theta, problem)
+    return s.model, s.run_initial
+
+
+def _oe_flat_fast(theta, problem: _Problem):
+    """`_oe_flat` through the blocked maps of `_sensitivity` (equal to roundoff; one
+    discretization per run with a fast-compiling matrix exponential)."""
+    model, run_initial = _model_of(theta, problem)
+    y = dataset_outputs(model, problem.data, run_initial)
+    r = jnp.where(problem.data.mask, problem.data.outputs - y, 0.0) / problem.sigma
+    prior = (theta - problem.prior_mean) * problem.prior_weight
+    return jnp.concatenate([r.reshape(-1), prior])
+
+
+def _oe_flat_jacobian(theta, problem: _Problem):
+    """`(_oe_flat(theta, problem), its Jacobian, the predictions)`, by forward sensitivities
+    (`output_error_sensitivities`): equal to `jax.jacfwd(_oe_flat)` to roundoff, at a
+    fraction of its cost. The predictions are the free-run outputs (runs, times, outputs)."""
+    r, J, y = output_error_sensitivities(lambda t: _model_of(t, problem), theta, problem.data)
+    sigma = problem.sigma[None, None, :]
+    r = (r / sigma).reshape(-1)
+    J = (J / sigma[..., None]).reshape(-1, theta.shape[0])
+    prior = (theta - problem.prior_mean) * problem.prior_weight
+    return (jnp.concatenate([r, prior]), jnp.concatenate([J, jnp.diag(problem.prior_weight)]),
+            y)
+
+
 def _solve_oe(theta0, problem, solver, max_steps):
-    """(theta, steps, converged) from `gauss_newton` or an optimistix least-squares solver."""
+    """`(theta, steps, converged, _OEEvaluation at theta)` from `gauss_newton` or an
+    optimistix least-squares solver.
+
+    A `TruncatedGaussNewton`'s settings are passed as arrays, so that fits with other
+    tolerances or dampings (warm-started passes) reuse one compilation.
+    """
     if isinstance(solver, TruncatedGaussNewton):
-        sol = gauss_newton(_oe_flat, theta0, problem, solver)
-        return sol.value, sol.num_steps, sol.converged
+        solver = jax.tree.map(lambda x: jnp.asarray(x, float), solver)
+    return _solve_oe_jit(theta0, problem, solver, max_steps)
+
+
+class _OEEvaluation(eqx.Module):
+    """What the fit reports need at the solution, from the solver's last evaluation."""
+
+    residuals: jax.Array  # weighted, data rows only, (runs, times, outputs)
+    jacobian: jax.Array  # weighted, data rows only, (runs * times * outputs, params)
+    predictions: jax.Array  # (runs, times, outputs)
+
+
+@eqx.filter_jit
+def _solve_oe_jit(theta0, problem, solver, max_steps):
+    n = problem.data.outputs.size
+    shape = problem.data.outputs.shape
+    if isinstance(solver, TruncatedGaussNewton):
+        sol = gauss_newton(_oe_flat_fast, theta0, problem, solver, jac=_oe_flat_jacobian)
+        return sol.value, sol.num_steps, sol.converged, _OEEvaluation(
+            sol.residuals[:n].reshape(shape), sol.jacobian[:n], sol.aux)
     sol = optx.least_squares(_oe_residuals, solver, theta0, problem, max_steps=max_steps,
                              throw=False)
-    return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+    return (sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
+            _oe_evaluate(sol.value, problem))
 
 
 @eqx.filter_jit
@@ -138,11 +190,6 @@ def _solve_kalman(theta0, problem, solver, max_steps):
 
 
 @eqx.filter_jit
-def _oe_jacobian(theta, problem):
-    return jax.jacfwd(lambda t: _oe_residuals(t, problem)[0])(theta)
-
-
-@eqx.filter_jit
 def _kalman_hessian(theta, problem):
     return jax.hessian(lambda t: _kalman_loss(t, problem))(theta)
 
@@ -151,6 +198,11 @@ def _kalman_hessian(theta, problem):
 def _kalman_nll_only(theta, problem):
     s = _state(theta, problem)
     return kalman_nll(s.model, problem.data, s.run_initial)
+
+
+# Compiled once per structure: called eagerly, `simulate_dataset` would trace (and its
+# scans compile) anew on every fit.
+_simulate_jit = eqx.filter_jit(simulate_dataset)
 
 
 @eqx.filter_jit
@@ -257,20 +309,18 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     theta0 = free_parameters(template, index)
     starts = [theta0] + _perturbed_starts(theta0, oe_names, n_starts - 1, seed)
     best = None
+    mask = np.asarray(data.mask)
     for s_i, start in enumerate(starts):
-        theta, n_steps, ok, sig = _fit_output_error(start, theta0, template, index, data, sigma,
-                                                    fixed_sigma, solver if likelihood ==
-                                                    "output_error" else None, max_steps,
-                                                    prior_log_std, say)
-        problem = _Problem(template, index, data, jnp.asarray(sig), theta0,
-                           jnp.full_like(theta0, 1.0 / prior_log_std))
-        res = np.asarray(_oe_raw(theta, problem))
-        nll = float(output_error_nll(res, np.asarray(data.mask), sig))
+        theta, n_steps, ok, sig, sol, used = _fit_output_error(
+            start, theta0, template, index, data, sigma, fixed_sigma,
+            solver if likelihood == "output_error" else None, max_steps, prior_log_std, say)
+        res = np.asarray(sol.residuals) * used
+        nll = _np_output_error_nll(res, mask, sig)
         if n_starts > 1:
             say(f"start {s_i + 1}/{len(starts)}: -log L = {nll:.2f}")
         if best is None or (np.isfinite(nll) and nll < best[4]):
-            best = (theta, n_steps, ok, sig, nll)
-    theta, n_steps, converged, sigma, nll = best
+            best = (theta, n_steps, ok, sig, nll, sol, used)
+    theta, n_steps, converged, sigma, nll, oe_solution, sigma_used = best
     _check_finite(theta, theta0, oe_names)
     state = _state(theta, _Problem(template, index, data, jnp.asarray(sigma), theta0, theta0))
     state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model, jnp.log(jnp.asarray(sigma))),
@@ -279,7 +329,10 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     if likelihood == "output_error":
         problem = _Problem(template, index, data, jnp.asarray(sigma), theta0,
                            jnp.zeros_like(theta0))
-        J = np.asarray(_oe_jacobian(theta, problem))
+        # The last pass's Jacobian at theta, re-weighted to the final stds.
+        p = len(sigma)
+        J = np.asarray(oe_solution.jacobian).reshape(-1, p, len(theta0))
+        J = (J * (sigma_used / sigma)[None, :, None]).reshape(-1, len(theta0))
         info = J.T @ J
         free_names = oe_names
         # Estimated noise stds are parameters too (ML: std(σ) = σ / sqrt(2 N)).
@@ -328,7 +381,10 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     corr = cov / d[:, None] / d[None, :]
 
-    preds = np.asarray(simulate_dataset(state.model, data, state.run_initial))
+    if likelihood == "output_error":
+        preds = np.asarray(oe_solution.predictions)
+    else:
+        preds = np.asarray(_simulate_jit(state.model, data, state.run_initial))
     preds_list = [preds[r, :n] for r, n in enumerate(data.lengths)]
     n_params = len(free_names) + len(noise_params)
     n_samples = int(np.asarray(data.mask).sum())
@@ -388,7 +444,7 @@ def profile_interval(result: FitResult, name: str, level: float = 0.95, max_refi
     def excess(value: float) -> float:
         pinned = _Problem(problem.template, problem.index, problem.data, problem.sigma,
                           theta_hat.at[j].set(value), pin)
-        theta, _, _ = _solve_oe(theta_hat.at[j].set(value), pinned, TruncatedGaussNewton(), 100)
+        theta = _solve_oe(theta_hat.at[j].set(value), pinned, TruncatedGaussNewton(), 100)[0]
         chi = 2 * float(gauss_newton_cost(theta, problem))
         return chi - base - threshold
 
@@ -429,33 +485,65 @@ def gauss_newton_cost(theta, problem):
     return 0.5 * jnp.sum(r ** 2)
 
 
+# Damping of the first step of a warm-started pass (relative to the largest squared
+# singular value): the start is the previous pass's optimum, moved only by re-weighting.
+_WARM_DAMPING = 1e-9
+
+
 def _fit_output_error(start, theta0, template, index, data, sigma, fixed_sigma, solver,
                       max_steps, prior_log_std, say, outer=4):
-    """Levenberg-Marquardt on weighted residuals, re-weighting estimated stds to their ML
-    values until they settle (a few outer passes; each reuses the compilation)."""
+    """Truncated Gauss-Newton on weighted residuals, re-weighting estimated stds to their
+    ML values until they settle (a few outer passes, each warm-started from the last and
+    reusing the compilation).
+
+    Returns `(theta, steps, converged, sigma, evaluation, sigma_used)`: `evaluation` (an
+    `_OEEvaluation`) holds the residuals, Jacobian and predictions at `theta`, weighted by
+    `sigma_used`, the stds of the last pass (`sigma` are their ML update)."""
     solver = solver or TruncatedGaussNewton()
     theta, total, ok = start, 0, False
     sig = np.asarray(sigma, float)
+    mask = np.asarray(data.mask)
     for it in range(outer):
         problem = _Problem(template, index, data, jnp.asarray(sig), theta0,
                            jnp.zeros_like(theta0))
         if theta.shape[0]:
-            theta, steps, ok = _solve_oe(theta, problem, solver, max_steps)
+            theta, steps, ok, *evaluation = _solve_oe(theta, problem, solver, max_steps)
         else:  # nothing physical to move (a Kalman fit of the noise alone)
-            steps, ok = 0, True
+            steps, ok, evaluation = 0, True, []
+        sol = evaluation[0] if evaluation else _oe_evaluate(theta, problem)
         total += int(steps)
         ok = bool(ok)
+        used = sig
         if fixed_sigma.all():
             break
-        res = np.asarray(_oe_raw(theta, problem))
-        new = np.where(fixed_sigma, sig, np.maximum(np.asarray(ml_sigma(res, np.asarray(
-            data.mask))), 1e-12))
+        res = np.asarray(sol.residuals) * sig
+        n = np.maximum(mask.sum(axis=(0, 1)), 1)
+        new = np.where(fixed_sigma, sig, np.maximum(np.sqrt((res ** 2).sum(axis=(0, 1)) / n),
+                                                    1e-12))
         say(f"output error pass {it + 1}: noise std {np.array2string(new, precision=4)}")
         if np.all(np.abs(np.log(new / sig)) < 1e-3):
             sig = new
             break
         sig = new
-    return theta, total, ok, sig
+        if isinstance(solver, TruncatedGaussNewton):
+            solver = eqx.tree_at(lambda t: t.initial_damping, solver,
+                                 min(float(solver.initial_damping), _WARM_DAMPING))
+    return theta, total, ok, sig, sol, used
+
+
+@eqx.filter_jit
+def _oe_evaluate(theta, problem) -> _OEEvaluation:
+    """Weighted data residuals (runs, times, outputs), Jacobian and predictions at `theta`."""
+    n = problem.data.outputs.size
+    r, J, y = _oe_flat_jacobian(theta, problem)
+    return _OEEvaluation(r[:n].reshape(problem.data.outputs.shape), J[:n], y)
+
+
+def _np_output_error_nll(residuals, mask, sigma) -> float:
+    """`output_error_nll` in NumPy (no compilation)."""
+    n = mask.sum(axis=(0, 1))
+    ssr = (residuals ** 2).sum(axis=(0, 1))
+    return float(np.sum(0.5 * n * (np.log(2 * np.pi) + 2 * np.log(sigma)) + 0.5 * ssr / sigma ** 2))
 
 
 def _perturbed_starts(theta0, names, n, seed):

@@ -95,8 +95,13 @@ def identifiability(info: np.ndarray, names: list[str], spec: ModelSpec,
     w, U = np.linalg.eigh(info)
     keep = w > max(1e-12 * max(w.max(), 1e-300), 1.0 / max_log_std ** 2 * 1e-6)
     cov = (U[:, keep] / w[keep]) @ U[:, keep].T
+    # An initial temperature on a dropped (null) direction has no finite std, although the
+    # pseudo-inverse gives it a small one: flag it like a log parameter of such a direction.
+    null = U[:, ~keep]
+    on_null = (np.abs(null) > 0.2 * np.max(np.abs(null), axis=0)).any(axis=1) if null.size \
+        else np.zeros(k, bool)
     for i in ini:
-        if not (np.sqrt(max(cov[i, i], 0)) < max_initial_std):
+        if on_null[i] or not (np.sqrt(max(cov[i, i], 0)) < max_initial_std):
             bad.add(names[i])
             directions.append({"parameters": [names[i]], "dimension": 1,
                                "directions": [{"combination": {names[i]: 1.0}, "log_std": None}],
