@@ -19,7 +19,10 @@ All outputs are checked against each other (1e-9 relative) before any timing. Un
 the 885 MB output array once (NumPy fill of a warm buffer).
 
 Usage:  python benchmarks/simulate.py [--profiles 256] [--hours 4] [--repeats 5]
-                                      [--dlsim-profiles 4] [--no-hugepages]
+                                      [--dlsim-profiles 4] [--scan-repeats 2] [--no-hugepages]
+
+For reference it also times the step-by-step `lax.scan` that `ExactHold` used before
+(same jit + vmap; `--scan-repeats 0` skips it).
 
 Memory: about 4 GB at peak (inputs 0.6 GB, two output copies 0.9 GB each, XLA temps).
 
@@ -95,6 +98,22 @@ def make_profiles(n_profiles: int, n_samples: int, seed: int = 0) -> np.ndarray:
     return out
 
 
+class StepScan(tj.AbstractSimulator):
+    """The step-by-step `lax.scan` that `ExactHold` ran before it was blocked (for reference)."""
+
+    def run(self, system, x0, inputs, ts):
+        disc = tj.discretize(system, ts[1] - ts[0])
+        drive = inputs[:-1] @ disc.B0.T + inputs[1:] @ disc.B1.T
+
+        def step(x, b):
+            x = disc.Phi @ x + b
+            return x, x
+
+        _, rest = jax.lax.scan(step, x0, drive, unroll=8)
+        states = jnp.concatenate([x0[None, :], rest], axis=0)
+        return tj.Solution(ts, states, states @ disc.C.T + inputs @ disc.D.T)
+
+
 def numpy_loop(Phi, B0, B1, C, D, x0s, U):
     """Time loop vectorized over profiles; returns outputs (samples, profiles, outputs)."""
     n_profiles, n_samples, _ = U.shape
@@ -166,6 +185,8 @@ def main():
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--numpy-repeats", type=int, default=3)
     ap.add_argument("--dlsim-profiles", type=int, default=4)
+    ap.add_argument("--scan-repeats", type=int, default=2,
+                    help="time the old step-by-step lax.scan too (0: skip)")
     ap.add_argument("--no-hugepages", action="store_true")
     args = ap.parse_args()
 
@@ -197,8 +218,8 @@ def main():
     U_dev = jnp.asarray(U)
 
     @eqx.filter_jit
-    def tj_outputs(network, U, ts):
-        return jax.vmap(lambda u: tj.simulate(network, u, ts).outputs)(U)
+    def tj_outputs(network, U, ts, simulator=tj.ExactHold()):
+        return jax.vmap(lambda u: tj.simulate(network, u, ts, simulator=simulator).outputs)(U)
 
     t0 = time.perf_counter()
     compiled = tj_outputs.lower(network, U_dev, ts).compile()
@@ -217,10 +238,21 @@ def main():
           f"{err_dl_np:.1e} ({n_dl} profiles)")
     if max(err_np, err_dl, err_dl_np) > 1e-9:
         raise SystemExit("outputs disagree by more than 1e-9: not timing.")
+    if args.scan_repeats:
+        scan_compiled = tj_outputs.lower(network, U_dev, ts, StepScan()).compile()
+        Y_scan = scan_compiled(network, U_dev, ts, StepScan())
+        err_scan = rel_diff(np.asarray(Y_scan).transpose(1, 0, 2), Y_np)
+        print(f"agreement: step-by-step lax.scan vs NumPy {err_scan:.1e}")
+        if err_scan > 1e-9:
+            raise SystemExit("outputs disagree by more than 1e-9: not timing.")
+        del Y_scan
     del Y_tj, Y_np, Y_dl
 
     # --- timing --------------------------------------------------------------------------------
     tj_wall, tj_cpu, _ = best_of(lambda: compiled(network, U_dev, ts), args.repeats)
+    if args.scan_repeats:
+        scan_wall, scan_cpu, _ = best_of(lambda: scan_compiled(network, U_dev, ts, StepScan()),
+                                         args.scan_repeats)
     np_wall, np_cpu, _ = best_of(lambda: numpy_loop(Phi, B0, B1, C, D, x0s, U),
                                  args.numpy_repeats)
     dl_times = []
@@ -236,18 +268,23 @@ def main():
 
     rate = lambda s: units / s  # noqa: E731
     print()
-    print(f"{'tool':<44} {'time (s)':>10} {'unit-steps/s':>14} {'thermojax is':>13}")
-    print("-" * 84)
+    print(f"{'tool':<48} {'time (s)':>10} {'unit-steps/s':>14} {'thermojax is':>13}")
+    print("-" * 88)
     rows = [
         ("thermojax  jit(vmap(simulate)), best of %d" % args.repeats, tj_wall),
         ("NumPy loop over time, vectorized, best of %d" % args.numpy_repeats, np_wall),
         ("scipy.signal.dlsim loop (%d profiles, extrap.)" % n_dl, dl_wall),
     ]
+    if args.scan_repeats:
+        rows.append(("(old ExactHold: lax.scan per step, best of %d)" % args.scan_repeats,
+                     scan_wall))
     for name, s in rows:
-        print(f"{name:<44} {s:>10.3f} {rate(s):>14.3e} {s / tj_wall:>12.1f}x")
-    print("-" * 84)
-    print(f"thermojax compile (lower + compile, once): {compile_s:.2f} s; "
-          f"process CPU time per call: thermojax {tj_cpu:.2f} s, NumPy {np_cpu:.2f} s")
+        print(f"{name:<48} {s:>10.3f} {rate(s):>14.3e} {s / tj_wall:>12.1f}x")
+    print("-" * 88)
+    print(f"thermojax compile (lower + compile, once): {compile_s:.2f} s")
+    print(f"process CPU time per call (all threads): thermojax {tj_cpu:.2f} s, NumPy {np_cpu:.2f} s "
+          f"({np_cpu / tj_cpu:.1f}x)" + (f", step-by-step scan {scan_cpu:.2f} s"
+                                         if args.scan_repeats else ""))
     print(f"targets: >= 50x dlsim: {'met' if dl_wall / tj_wall >= 50 else 'MISSED'} "
           f"({dl_wall / tj_wall:.0f}x); >= 3x NumPy: "
           f"{'met' if np_wall / tj_wall >= 3 else 'MISSED'} ({np_wall / tj_wall:.2f}x)")

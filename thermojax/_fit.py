@@ -79,6 +79,9 @@ class FitResult:
     smoothed: list[tuple[np.ndarray, np.ndarray]] = field(repr=False, default_factory=list)
     theta: np.ndarray | None = field(repr=False, default=None)
     problem: "_Problem | None" = field(repr=False, default=None)
+    # Output error with the default solver: residual evaluations at trial points (each
+    # of the `n_steps` iterations also evaluates residuals and Jacobian once).
+    n_evaluations: int | None = None
 
 
 # ---------------------------------------------------------------------------
@@ -127,22 +130,22 @@ def _oe_flat_fast(theta, problem: _Problem):
     discretization per run with a fast-compiling matrix exponential)."""
     model, run_initial = _model_of(theta, problem)
     y = dataset_outputs(model, problem.data, run_initial)
-    r = jnp.where(problem.data.mask, problem.data.outputs - y, 0.0) / problem.sigma
+    r = jnp.where(problem.data.mask, problem.data.outputs - y, 0.0) / problem.sigma[None, None, :]
     prior = (theta - problem.prior_mean) * problem.prior_weight
     return jnp.concatenate([r.reshape(-1), prior])
 
 
 def _oe_flat_jacobian(theta, problem: _Problem):
-    """`(_oe_flat(theta, problem), its Jacobian, the predictions)`, by forward sensitivities
-    (`output_error_sensitivities`): equal to `jax.jacfwd(_oe_flat)` to roundoff, at a
-    fraction of its cost. The predictions are the free-run outputs (runs, times, outputs)."""
-    r, J, y = output_error_sensitivities(lambda t: _model_of(t, problem), theta, problem.data)
-    sigma = problem.sigma[None, None, :]
-    r = (r / sigma).reshape(-1)
-    J = (J / sigma[..., None]).reshape(-1, theta.shape[0])
+    """`(_oe_flat(theta, problem), its Jacobian transposed (params, rows), the predictions)`,
+    by forward sensitivities (`output_error_sensitivities`): equal to `jax.jacfwd(_oe_flat)`
+    to roundoff, at a fraction of its cost. The predictions are the free-run outputs
+    (runs, times, outputs)."""
+    r, Jt, y = output_error_sensitivities(lambda t: _model_of(t, problem), theta, problem.data)
+    r = (r / problem.sigma[None, None, :]).reshape(-1)
+    Jt = (Jt / problem.sigma[None, None, None, :]).reshape(theta.shape[0], -1)
     prior = (theta - problem.prior_mean) * problem.prior_weight
-    return (jnp.concatenate([r, prior]), jnp.concatenate([J, jnp.diag(problem.prior_weight)]),
-            y)
+    return (jnp.concatenate([r, prior]),
+            jnp.concatenate([Jt, jnp.diag(problem.prior_weight)], axis=1), y)
 
 
 def _solve_oe(theta0, problem, solver, max_steps):
@@ -161,8 +164,9 @@ class _OEEvaluation(eqx.Module):
     """What the fit reports need at the solution, from the solver's last evaluation."""
 
     residuals: jax.Array  # weighted, data rows only, (runs, times, outputs)
-    jacobian: jax.Array  # weighted, data rows only, (runs * times * outputs, params)
+    gram: jax.Array  # JᵀJ of each output's weighted data rows, (outputs, params, params)
     predictions: jax.Array  # (runs, times, outputs)
+    num_evaluations: jax.Array | None = None  # residual evaluations at trial points
 
 
 @eqx.filter_jit
@@ -172,7 +176,8 @@ def _solve_oe_jit(theta0, problem, solver, max_steps):
     if isinstance(solver, TruncatedGaussNewton):
         sol = gauss_newton(_oe_flat_fast, theta0, problem, solver, jac=_oe_flat_jacobian)
         return sol.value, sol.num_steps, sol.converged, _OEEvaluation(
-            sol.residuals[:n].reshape(shape), sol.jacobian[:n], sol.aux)
+            sol.residuals[:n].reshape(shape), _gram(sol.jacobian_t[:, :n], shape[-1]), sol.aux,
+            sol.num_evaluations)
     sol = optx.least_squares(_oe_residuals, solver, theta0, problem, max_steps=max_steps,
                              throw=False)
     return (sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
@@ -311,7 +316,7 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     best = None
     mask = np.asarray(data.mask)
     for s_i, start in enumerate(starts):
-        theta, n_steps, ok, sig, sol, used = _fit_output_error(
+        theta, n_steps, ok, sig, sol, used, evals = _fit_output_error(
             start, theta0, template, index, data, sigma, fixed_sigma,
             solver if likelihood == "output_error" else None, max_steps, prior_log_std, say)
         res = np.asarray(sol.residuals) * used
@@ -319,8 +324,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         if n_starts > 1:
             say(f"start {s_i + 1}/{len(starts)}: -log L = {nll:.2f}")
         if best is None or (np.isfinite(nll) and nll < best[4]):
-            best = (theta, n_steps, ok, sig, nll, sol, used)
-    theta, n_steps, converged, sigma, nll, oe_solution, sigma_used = best
+            best = (theta, n_steps, ok, sig, nll, sol, used, evals)
+    theta, n_steps, converged, sigma, nll, oe_solution, sigma_used, n_evals = best
     _check_finite(theta, theta0, oe_names)
     state = _state(theta, _Problem(template, index, data, jnp.asarray(sigma), theta0, theta0))
     state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model, jnp.log(jnp.asarray(sigma))),
@@ -329,11 +334,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     if likelihood == "output_error":
         problem = _Problem(template, index, data, jnp.asarray(sigma), theta0,
                            jnp.zeros_like(theta0))
-        # The last pass's Jacobian at theta, re-weighted to the final stds.
-        p = len(sigma)
-        J = np.asarray(oe_solution.jacobian).reshape(-1, p, len(theta0))
-        J = (J * (sigma_used / sigma)[None, :, None]).reshape(-1, len(theta0))
-        info = J.T @ J
+        # JᵀJ at theta from the last pass, re-weighted to the final stds.
+        info = np.einsum("j,jab->ab", (sigma_used / sigma) ** 2, np.asarray(oe_solution.gram))
         free_names = oe_names
         # Estimated noise stds are parameters too (ML: std(σ) = σ / sqrt(2 N)).
         n_meas = np.asarray(data.mask).sum(axis=(0, 1))
@@ -403,6 +405,7 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         n_params=n_params, n_samples=n_samples, rmse=metrics["rmse"],
         fit_percent=metrics["fit_percent"], per_run=metrics["per_run"], identifiability=ident,
         n_steps=n_steps, converged=converged, message=message,
+        n_evaluations=n_evals if likelihood == "output_error" else None,
         wall_time_s=time.perf_counter() - t_start, predictions=preds_list, smoothed=smoothed,
         theta=np.asarray(theta), problem=problem)
 
@@ -496,11 +499,11 @@ def _fit_output_error(start, theta0, template, index, data, sigma, fixed_sigma, 
     ML values until they settle (a few outer passes, each warm-started from the last and
     reusing the compilation).
 
-    Returns `(theta, steps, converged, sigma, evaluation, sigma_used)`: `evaluation` (an
+    Returns `(theta, steps, converged, sigma, evaluation, sigma_used, evaluations)`: `evaluation` (an
     `_OEEvaluation`) holds the residuals, Jacobian and predictions at `theta`, weighted by
     `sigma_used`, the stds of the last pass (`sigma` are their ML update)."""
     solver = solver or TruncatedGaussNewton()
-    theta, total, ok = start, 0, False
+    theta, total, ok, evals = start, 0, False, 0
     sig = np.asarray(sigma, float)
     mask = np.asarray(data.mask)
     for it in range(outer):
@@ -512,6 +515,8 @@ def _fit_output_error(start, theta0, template, index, data, sigma, fixed_sigma, 
             steps, ok, evaluation = 0, True, []
         sol = evaluation[0] if evaluation else _oe_evaluate(theta, problem)
         total += int(steps)
+        if sol.num_evaluations is not None:
+            evals += int(sol.num_evaluations)
         ok = bool(ok)
         used = sig
         if fixed_sigma.all():
@@ -528,15 +533,23 @@ def _fit_output_error(start, theta0, template, index, data, sigma, fixed_sigma, 
         if isinstance(solver, TruncatedGaussNewton):
             solver = eqx.tree_at(lambda t: t.initial_damping, solver,
                                  min(float(solver.initial_damping), _WARM_DAMPING))
-    return theta, total, ok, sig, sol, used
+    return theta, total, ok, sig, sol, used, evals
 
 
 @eqx.filter_jit
 def _oe_evaluate(theta, problem) -> _OEEvaluation:
     """Weighted data residuals (runs, times, outputs), Jacobian and predictions at `theta`."""
     n = problem.data.outputs.size
-    r, J, y = _oe_flat_jacobian(theta, problem)
-    return _OEEvaluation(r[:n].reshape(problem.data.outputs.shape), J[:n], y)
+    r, Jt, y = _oe_flat_jacobian(theta, problem)
+    shape = problem.data.outputs.shape
+    return _OEEvaluation(r[:n].reshape(shape), _gram(Jt[:, :n], shape[-1]), y)
+
+
+def _gram(Jt, p):
+    """`JᵀJ` of each output's rows (rows ordered run, time, output), from the transposed
+    Jacobian: (p, params, params)."""
+    Jt = Jt.reshape(Jt.shape[0], -1, p)
+    return jnp.einsum("akj,bkj->jab", Jt, Jt)
 
 
 def _np_output_error_nll(residuals, mask, sigma) -> float:

@@ -49,14 +49,14 @@ def output_error_residuals(model, data: Dataset, run_initial=None, simulator=Exa
 def output_error_sensitivities(params_to_model, theta, data: Dataset):
     """`output_error_residuals` at `theta` and their Jacobian in `theta`, by forward sensitivities.
 
-    `params_to_model(theta) -> (model, run_initial)`. Returns `(r, J, y)`: residuals and
-    Jacobian shaped (runs, times, outputs) and (runs, times, outputs, params), zero where
-    nothing was measured, and the free-run outputs `y` (runs, times, outputs). The
-    simulator is `ExactHold()`, to roundoff (see `_sensitivity`).
+    `params_to_model(theta) -> (model, run_initial)`. Returns `(r, Jt, y)`: residuals
+    (runs, times, outputs) and their Jacobian, transposed: (params, runs, times, outputs),
+    both zero where nothing was measured, and the free-run outputs `y` (runs, times,
+    outputs). The simulator is `ExactHold()`, to roundoff (see `_sensitivity`).
     """
     y, dy = output_sensitivities(params_to_model, theta, data)
     r = jnp.where(data.mask, data.outputs - y, 0.0)
-    return r, jnp.where(data.mask[..., None], -dy, 0.0), y
+    return r, jnp.where(data.mask, -dy, 0.0), y
 
 
 def output_error_nll(residuals, mask, sigma: Float[Array, " outputs"]) -> Float[Array, ""]:

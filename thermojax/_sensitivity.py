@@ -43,11 +43,16 @@ _SEQ_MAX = 128  # at most this many steps are left to a sequential scan
 
 
 def _powers_minus_identity(D, k):
-    """`P^j - I`, `j = 0..k`, given `D = P - I`, each accurate relative to its own size."""
-    out = [jnp.zeros_like(D)]
-    for _ in range(k):
-        out.append(out[-1] + D + D @ out[-1])
-    return jnp.stack(out)
+    """`P^j - I`, `j = 0..k`, given `D = P - I`, each accurate relative to its own size
+    (`D_(j+1) = D_j + D + D D_j`; see `_simulate._powers_minus_identity`). A scan, not an
+    unrolled loop: the same values, a third of the compile time under `jax.jvp`."""
+
+    def step(out, _):
+        out = out + D + D @ out
+        return out, out
+
+    _, out = jax.lax.scan(step, jnp.zeros_like(D), None, length=k)
+    return jnp.concatenate([jnp.zeros_like(D)[None], out])
 
 
 def _lag_index(L):
@@ -68,7 +73,7 @@ def block_maps(Phi, B0, B1, C, D, L: int = _BLOCK):
     eye = jnp.eye(n, dtype=Phi.dtype)
     Bz = B0 + Phi @ B1
     dpows = _powers_minus_identity(Phi - eye, L)
-    pows = dpows + eye
+    pows = dpows + eye[None]
     PB = pows[:L] @ Bz  # (L, n, m): Phi^k Bz
     lag, real = _lag_index(L)
     CPB = jnp.einsum("pa,kam->kpm", C, PB)
@@ -133,7 +138,7 @@ def run_outputs(maps, z0, u, L: int = _BLOCK):
 
 
 def run_sensitivities(maps, z0, dmaps, dz0, u, L: int = _BLOCK):
-    """Outputs (T, p) of one run and their tangents (T, p, P) along `P` directions.
+    """Outputs (T, p) of one run and their tangents (P, T, p) along `P` directions.
 
     `dmaps`, `dz0`: the tangents of `maps` and `z0`, each with a leading axis of `P`.
     """
@@ -154,8 +159,7 @@ def run_sensitivities(maps, z0, dmaps, dz0, u, L: int = _BLOCK):
     dstarts = recurrence(DL, drive.reshape(-1, P, n), dz0)  # (nb, P, n)
     dy = (w @ jnp.transpose(dO, (2, 0, 1)).reshape(Lm + n, P * L * p)).reshape(-1, P, L * p)
     dy = dy + dstarts @ O[:, Lm:].T
-    dy = jnp.transpose(dy.reshape(-1, P, L, p), (0, 2, 3, 1)).reshape(-1, p, P)[:T]
-    return y, dy
+    return y, jnp.transpose(dy, (1, 0, 2)).reshape(P, -1, p)[:, :T]
 
 
 # Padé [13/13] coefficients (Higham 2005), as in `jax.scipy.linalg.expm`.
@@ -303,7 +307,8 @@ def dataset_outputs(model, data, run_initial=None):
 
 
 def output_sensitivities(params_to_model, theta, data):
-    """Free-run outputs (runs, T, p) of every run and their Jacobian (runs, T, p, P) in `theta`.
+    """Free-run outputs (runs, T, p) of every run and their Jacobian in `theta`, transposed:
+    (P, runs, T, p).
 
     `params_to_model(theta) -> (model, run_initial)`.
     """
@@ -317,4 +322,5 @@ def output_sensitivities(params_to_model, theta, data):
     (maps, z0), (dmaps, dz0) = jax.vmap(lambda v: jax.jvp(maps_of, (theta,), (v,)),
                                         out_axes=(None, 1))(jnp.eye(theta.shape[0],
                                                                     dtype=theta.dtype))
-    return jax.vmap(run_sensitivities)(maps, z0, dmaps, dz0, data.inputs.astype(theta.dtype))
+    return jax.vmap(run_sensitivities, out_axes=(0, 1))(maps, z0, dmaps, dz0,
+                                                        data.inputs.astype(theta.dtype))

@@ -40,8 +40,8 @@ from jaxtyping import Array, Bool, Float, Int
 class GaussNewtonSolution(eqx.Module):
     """What `gauss_newton` returns: the parameters, and how the solve went.
 
-    `residuals`, `jacobian` and `aux` are those of the last Jacobian evaluation, taken
-    at `value` (the solver always ends on an evaluation at its final point).
+    `residuals`, `jacobian_t` and `aux` are those of the last Jacobian evaluation,
+    taken at `value` (the solver always ends on an evaluation at its final point).
     """
 
     value: Float[Array, " params"]
@@ -50,7 +50,7 @@ class GaussNewtonSolution(eqx.Module):
     converged: Bool[Array, ""]  # the identifiable part's predicted decrease fell below tolerance
     num_truncated: Int[Array, ""]  # directions left out at the last step
     residuals: Float[Array, " rows"]
-    jacobian: Float[Array, "rows params"]
+    jacobian_t: Float[Array, "params rows"]  # the Jacobian, transposed
     aux: object = None  # what `jac` returned besides residuals and Jacobian, at `value`
     num_evaluations: Int[Array, ""] = None  # residual evaluations (trial points)
 
@@ -101,10 +101,11 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
     acceleration, damped Levenberg-Marquardt style (Nielsen's update of the damping
     `λ`) and capped.
 
-    `jac(theta, args) -> (r, J, aux)` supplies the residuals `r = fn(theta, args)`,
-    their Jacobian `J` and anything else wanted at the solution (`aux`, e.g. the
-    model's predictions), e.g. from forward sensitivities; default `jax.jacfwd(fn)`
-    with `aux = None`.
+    `jac(theta, args) -> (r, Jt, aux)` supplies the residuals `r = fn(theta, args)`,
+    their Jacobian *transposed*, `Jt` (params, rows: the layout in which `JᵀJ`, `Jᵀr`
+    and `J v` all read memory contiguously), and anything else wanted at the solution
+    (`aux`, e.g. the model's predictions), e.g. from forward sensitivities; default
+    `jax.jacfwd(fn)` with `aux = None`.
 
     Each iteration takes one Jacobian and the eigendecomposition of `JᵀJ` (the SVD of
     `J`: `J = U diag(s) Vᵀ`, `JᵀJ = V diag(s²) Vᵀ`, `Uᵀr = diag(1/s) Vᵀ Jᵀr`); trial
@@ -115,7 +116,7 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
     if jac is None:
         def jac(theta, args):
             J, r = jax.jacfwd(lambda t: (fn(t, args),) * 2, has_aux=True)(theta)
-            return r, J, None
+            return r, J.T, None
 
     accel = solver.acceleration
     r_like, J_like, aux_like = jax.eval_shape(jac, theta0, args)
@@ -132,15 +133,15 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
 
     def outer_body(c):
         theta, k, lam = c["theta"], c["k"], c["lam"]
-        r, J, aux = jac(theta, args)
+        r, Jt, aux = jac(theta, args)
         cost = sq(r)
-        mu, V = jnp.linalg.eigh(J.T @ J)
+        mu, V = jnp.linalg.eigh(Jt @ Jt.T)
         s = jnp.sqrt(jnp.maximum(mu, 0.0))
         keep = s > solver.min_singular_value
         s_safe = jnp.where(keep, s, 1.0)
 
         def project(x):  # Uᵀ x on the kept directions
-            return jnp.where(keep, (V.T @ (J.T @ x)) / s_safe, 0.0)
+            return jnp.where(keep, (V.T @ (Jt @ x)) / s_safe, 0.0)
 
         Ur = project(r)
         done = (0.5 * jnp.sum(Ur ** 2) < solver.tol) & jnp.isfinite(cost)
@@ -174,7 +175,7 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
             r_pt = fn(point, args)
             if accel:
                 def after_probe(_):
-                    r_vv = (2.0 / _ACCEL_H) * ((r_pt - r) / _ACCEL_H - J @ v)
+                    r_vv = (2.0 / _ACCEL_H) * ((r_pt - r) / _ACCEL_H - v @ Jt)
                     a = -(V @ (f * project(r_vv)))
                     curved = (2.0 * jnp.linalg.norm(a) > solver.max_acceleration
                               * jnp.linalg.norm(v)) | ~jnp.all(jnp.isfinite(a))
@@ -218,14 +219,14 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
             "finished": ~better,
             "converged": done,
             "n_out": jnp.sum(~keep),
-            "cost": cost, "r": r, "J": J, "aux": aux, "n_eval": t["n_eval"],
+            "cost": cost, "r": r, "Jt": Jt, "aux": aux, "n_eval": t["n_eval"],
         }
 
     false = jnp.zeros((), bool)
     init = {"theta": theta0, "k": jnp.zeros((), int), "lam": jnp.ones(()), "finished": false,
             "converged": false, "n_out": jnp.zeros((), int), "cost": jnp.zeros(()),
-            "r": zeros(r_like), "J": zeros(J_like), "aux": jax.tree.map(zeros, aux_like),
+            "r": zeros(r_like), "Jt": zeros(J_like), "aux": jax.tree.map(zeros, aux_like),
             "n_eval": jnp.zeros((), int)}
     c = jax.lax.while_loop(outer_cond, outer_body, init)
     return GaussNewtonSolution(c["theta"], c["cost"], c["k"], c["converged"], c["n_out"],
-                               c["r"], c["J"], c["aux"], c["n_eval"])
+                               c["r"], c["Jt"], c["aux"], c["n_eval"])

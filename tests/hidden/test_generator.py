@@ -107,8 +107,8 @@ def _inputs(ts, kind="ramp10", seed=0, **kw):
 
 @pytest.mark.parametrize("path", [CHAIN3, RTD2, IMU6], ids=lambda p: p.stem)
 def test_linear_matches_expm(path):
-    ts = np.arange(1201.0)
-    raw = _inputs(ts, "ramp10", lead_s=60.0, dwell_s=300.0, p_die_slot_s=30.0)
+    ts = np.arange(601.0)
+    raw = _inputs(ts, "ramp10", lead_s=30.0, dwell_s=120.0, p_die_slot_s=30.0)
     inputs = {"T_chamber": raw["T_chamber"], "T_fluid": raw["T_chamber"], "P_die": raw["P_die"],
               "P_asic": raw["P_die"]}
     doc = tomllib.loads(path.read_text())
@@ -121,8 +121,8 @@ def test_linear_matches_expm(path):
 def test_linear_matches_expm_jittered_sampling_and_holds():
     """Irregular sample times, and a power held zoh vs foh, both exact."""
     rng = np.random.default_rng(3)
-    ts = np.cumsum(np.r_[0.0, rng.uniform(0.5, 1.5, 900)])
-    raw = _inputs(ts, "steps", step_every_s=120.0, p_die_slot_s=45.0)
+    ts = np.cumsum(np.r_[0.0, rng.uniform(0.5, 1.5, 400)])
+    raw = _inputs(ts, "steps", step_every_s=100.0, p_die_slot_s=45.0)
     inputs = {"T_chamber": raw["T_chamber"], "P_die": raw["P_die"]}
     for hold in ("zoh", "foh"):
         doc = tomllib.loads(CHAIN3.read_text())
@@ -133,15 +133,15 @@ def test_linear_matches_expm_jittered_sampling_and_holds():
             np.testing.assert_allclose(y[col], ref[col], rtol=0, atol=1e-8, err_msg=(hold, col))
 
 
-@pytest.mark.parametrize("path", [CHAIN3, RTD2, IMU6], ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", [CHAIN3, IMU6], ids=lambda p: p.stem)
 def test_linear_matches_thermojax(path):
     import equinox as eqx
 
     import thermojax as tj
 
     spec = tj.load_model(path)
-    ts = np.arange(1201.0)
-    raw = _inputs(ts, "ramp10", seed=1, lead_s=60.0, dwell_s=300.0, p_die_slot_s=30.0)
+    ts = np.arange(601.0)
+    raw = _inputs(ts, "ramp10", seed=1, lead_s=30.0, dwell_s=120.0, p_die_slot_s=30.0)
     raw.update(T_fluid=raw["T_chamber"], P_asic=raw["P_die"])
     U = np.column_stack([raw[c] for c in spec.input_columns])
     sol = eqx.filter_jit(tj.simulate)(tj.ThermalNetwork.from_spec(spec), U, ts)
@@ -212,8 +212,8 @@ def _structural_cases():
 @pytest.mark.parametrize("name", list(_structural_cases()))
 def test_linear_effects_build_the_network_they_describe(name):
     effects, plain = _structural_cases()[name]
-    ts = np.arange(901.0)
-    inputs = _inputs(ts, "ramp10", seed=2, lead_s=60.0, dwell_s=200.0, p_die_slot_s=30.0,
+    ts = np.arange(601.0)
+    inputs = _inputs(ts, "ramp10", seed=2, lead_s=30.0, dwell_s=120.0, p_die_slot_s=30.0,
                      p_aux_slot_s=60.0, mount_every_s=200.0)
     doc = _chain3(effects)
     y = g.simulate_truth(doc, ts, inputs, noise=False, holds={"P_aux": "zoh"})
@@ -296,7 +296,7 @@ _EFFECTS = {
 
 
 def _two_inputs(ts):
-    raw = _inputs(ts, "ramp10", seed=4, lead_s=30.0, dwell_s=120.0, top=65.0, p_die_slot_s=20.0,
+    raw = _inputs(ts, "ramp10", seed=4, lead_s=20.0, dwell_s=60.0, top=55.0, p_die_slot_s=20.0,
                   air_every_s=45.0)
     return {"T_amb": raw["T_chamber"], "P": raw["P_die"] * 5, "v": raw["air_speed"]}
 
@@ -320,7 +320,7 @@ def _hand_solution(f, ts, inputs, holds, x0):
 
 @pytest.mark.parametrize("name", list(_EFFECTS))
 def test_nonlinear_effects_match_hand_written_odes(name):
-    ts = np.arange(361.0)
+    ts = np.arange(241.0)
     inputs = _two_inputs(ts)
     doc = copy.deepcopy(_TWO)
     doc["effects"] = [_EFFECTS[name]]
@@ -398,7 +398,7 @@ def test_viscoelastic_bias():
     """Bias = static polynomial + k (T - eps), with eps the node through a lag of tau."""
     doc = copy.deepcopy(_TWO)
     doc["effects"] = [dict(kind="viscoelastic", where=["n", "bias"], time_constant=50.0, k=0.2)]
-    ts = np.arange(361.0)
+    ts = np.arange(241.0)
     inputs = _two_inputs(ts)
     y, (X, names) = g.simulate_truth(doc, ts, inputs, noise=False, return_states=True)
     Tn, Tm = X[:, names.index("n")], X[:, names.index("m")]
@@ -437,7 +437,7 @@ def test_analytic_jacobian_matches_finite_differences():
 
 def test_noise_is_white_with_the_sensor_std():
     ts = np.arange(4001.0)
-    raw = _inputs(ts, "soak")
+    raw = _inputs(ts, "soak", p_die=0.0)
     doc = _chain3()
     for s in doc["sensors"]:
         s["noise"] = 0.05
@@ -561,10 +561,18 @@ def _noise(case, col):
     return float(case["noise"])
 
 
+_BELIEVED: dict = {}  # believed-model runs shared by the cases with the same model and runs
+
+
 def _effect_rms(name, horizon_s=None, runs=None):
     case = g.load_case(name)
     tr = g.generate_case(name, 0, horizon_s=horizon_s, noise=False, runs=runs)
-    be = g.generate_case(name, 0, horizon_s=horizon_s, noise=False, runs=runs, model="believed")
+    key = (case.get("believed_path"), repr(case["runs"]), repr(case["truth"].get("biases")),
+           repr(case.get("extra_columns")), horizon_s, repr(runs))
+    if key not in _BELIEVED:
+        _BELIEVED[key] = g.generate_case(name, 0, horizon_s=horizon_s, noise=False, runs=runs,
+                                         model="believed")
+    be = _BELIEVED[key]
     return case, {col: float(np.sqrt(np.mean(np.concatenate(
         [(a[1][col] - b[1][col]) ** 2 for a, b in zip(tr, be)])))) for col in case["output_columns"]}
 
