@@ -189,6 +189,8 @@ class _Network:
             a, b, col = where
             path = self._path(a, b)[1]
             path["cin"], path["coef"] = col, p["coefficient"]
+        elif kind in ("sensor_lag", "sensor_offset", "sensor_gain") and where[0] not in self.sensors:
+            raise ValueError(f"{kind}: '{where[0]}' is not a sensor column")
         elif kind == "sensor_lag":
             self.sensors[where[0]]["lag"] = p["time_constant"]
         elif kind == "sensor_offset":
@@ -208,8 +210,9 @@ class _Network:
     def _compile(self) -> None:
         n = self.n = len(self.names)
         idx = {name: i for i, name in enumerate(self.names)}
-        for name in [x for s in self.sensors.values() for x in [s["node"]]] + \
-                [b["temperature"] for b in self.biases.values()] + [s["node"] for s in self.strains]:
+        for name in [*(s["node"] for s in self.sensors.values()),
+                     *(b["temperature"] for b in self.biases.values()),
+                     *(s["node"] for s in self.strains)]:
             if name not in idx:
                 raise ValueError(f"unknown node '{name}'")
         cols: list[str] = []
@@ -241,7 +244,6 @@ class _Network:
         self.Eb[np.arange(L)[is_link], self.pb_node[is_link]] = 1.0
         self.is_link = is_link
         # Heat inputs.
-        self.Hm = np.zeros((n, 0))
         hcols, hgain = [], []
         for h in self.heats:
             hcols.append(col(h["col"]))
