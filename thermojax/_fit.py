@@ -155,8 +155,16 @@ def _solve_oe(theta0, problem, solver, max_steps):
     A `TruncatedGaussNewton`'s settings are passed as arrays, so that fits with other
     tolerances or dampings (warm-started passes) reuse one compilation.
     """
+    global _CPU_OPTIONS_OK
     if isinstance(solver, TruncatedGaussNewton):
         solver = jax.tree.map(lambda x: jnp.asarray(x, float), solver)
+    if _CPU_OPTIONS_OK and jax.default_backend() == "cpu":
+        try:
+            return _solve_oe_jit_cpu(theta0, problem, solver, max_steps)
+        except Exception as err:  # an XLA without these options: compile with the defaults
+            if "compile option" not in str(err):
+                raise
+            _CPU_OPTIONS_OK = False
     return _solve_oe_jit(theta0, problem, solver, max_steps)
 
 
@@ -169,8 +177,7 @@ class _OEEvaluation(eqx.Module):
     num_evaluations: jax.Array | None = None  # residual evaluations at trial points
 
 
-@eqx.filter_jit
-def _solve_oe_jit(theta0, problem, solver, max_steps):
+def _solve_oe_impl(theta0, problem, solver, max_steps):
     n = problem.data.outputs.size
     shape = problem.data.outputs.shape
     if isinstance(solver, TruncatedGaussNewton):
@@ -182,6 +189,15 @@ def _solve_oe_jit(theta0, problem, solver, max_steps):
                              throw=False)
     return (sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
             _oe_evaluate(sol.value, problem))
+
+
+# The fit's program is many small kernels (6 x 6 and 10 x 10 matrix algebra) around a few
+# large products. XLA's CPU fusion emitters (MLIR) take ~40 % longer to compile it than
+# the classic LLVM emitters, which run it as fast; the first fit is mostly compilation.
+_CPU_COMPILE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+_CPU_OPTIONS_OK = True
+_solve_oe_jit = eqx.filter_jit(_solve_oe_impl)
+_solve_oe_jit_cpu = eqx.filter_jit(_solve_oe_impl, compiler_options=_CPU_COMPILE_OPTIONS)
 
 
 @eqx.filter_jit
@@ -540,8 +556,13 @@ def _fit_output_error(start, theta0, template, index, data, sigma, fixed_sigma, 
 def _oe_evaluate(theta, problem) -> _OEEvaluation:
     """Weighted data residuals (runs, times, outputs), Jacobian and predictions at `theta`."""
     n = problem.data.outputs.size
-    r, Jt, y = _oe_flat_jacobian(theta, problem)
     shape = problem.data.outputs.shape
+    if theta.shape[0] == 0:  # nothing free (a Kalman fit of the noise alone): no Jacobian
+        model, run_initial = _model_of(theta, problem)
+        y = dataset_outputs(model, problem.data, run_initial)
+        r = _oe_flat_fast(theta, problem)
+        return _OEEvaluation(r[:n].reshape(shape), jnp.zeros((shape[-1], 0, 0)), y)
+    r, Jt, y = _oe_flat_jacobian(theta, problem)
     return _OEEvaluation(r[:n].reshape(shape), _gram(Jt[:, :n], shape[-1]), y)
 
 
