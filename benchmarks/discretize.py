@@ -1,4 +1,4 @@
-"""Discretization accuracy and speed: thermojax vs scipy.signal.cont2discrete vs control.sample_system.
+"""Discretization accuracy and speed: thermojax vs scipy cont2discrete vs control.sample_system.
 
 Model: the six-node IMU network (configs/imu6.toml), time constants ~0.1 s to ~300 s,
 sampled at dt = 0.01, 0.1, 1, 10, 60 s. Every method starts from the same float64
@@ -129,7 +129,8 @@ def main():
     ss = control.ss(A, B, C, D)
     tau = np.asarray(network.time_constants())
     print(f"time constants {tau.min():.3g} .. {tau.max():.3g} s; "
-          f"||A dt||_1 = {np.linalg.norm(A, 1) * DTS[0]:.3g} .. {np.linalg.norm(A, 1) * DTS[-1]:.3g}")
+          f"||A dt||_1 = {np.linalg.norm(A, 1) * DTS[0]:.3g} .. "
+          f"{np.linalg.norm(A, 1) * DTS[-1]:.3g}")
 
     disc_jit = jax.jit(lambda s, dt: tj.discretize(s, dt))
     modal_jit = jax.jit(lambda s, dt: tj.discretize(s, dt, tj.Modal()))
