@@ -155,16 +155,8 @@ def _solve_oe(theta0, problem, solver, max_steps):
     A `TruncatedGaussNewton`'s settings are passed as arrays, so that fits with other
     tolerances or dampings (warm-started passes) reuse one compilation.
     """
-    global _CPU_OPTIONS_OK
     if isinstance(solver, TruncatedGaussNewton):
         solver = jax.tree.map(lambda x: jnp.asarray(x, float), solver)
-    if _CPU_OPTIONS_OK and jax.default_backend() == "cpu":
-        try:
-            return _solve_oe_jit_cpu(theta0, problem, solver, max_steps)
-        except Exception as err:  # an XLA without these options: compile with the defaults
-            if "compile option" not in str(err):
-                raise
-            _CPU_OPTIONS_OK = False
     return _solve_oe_jit(theta0, problem, solver, max_steps)
 
 
@@ -177,7 +169,8 @@ class _OEEvaluation(eqx.Module):
     num_evaluations: jax.Array | None = None  # residual evaluations at trial points
 
 
-def _solve_oe_impl(theta0, problem, solver, max_steps):
+@eqx.filter_jit
+def _solve_oe_jit(theta0, problem, solver, max_steps):
     n = problem.data.outputs.size
     shape = problem.data.outputs.shape
     if isinstance(solver, TruncatedGaussNewton):
@@ -189,15 +182,6 @@ def _solve_oe_impl(theta0, problem, solver, max_steps):
                              throw=False)
     return (sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
             _oe_evaluate(sol.value, problem))
-
-
-# The fit's program is many small kernels (6 x 6 and 10 x 10 matrix algebra) around a few
-# large products. XLA's CPU fusion emitters (MLIR) take ~40 % longer to compile it than
-# the classic LLVM emitters, which run it as fast; the first fit is mostly compilation.
-_CPU_COMPILE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
-_CPU_OPTIONS_OK = True
-_solve_oe_jit = eqx.filter_jit(_solve_oe_impl)
-_solve_oe_jit_cpu = eqx.filter_jit(_solve_oe_impl, compiler_options=_CPU_COMPILE_OPTIONS)
 
 
 @eqx.filter_jit
@@ -327,7 +311,7 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
 
     # -- output error, with the estimated noise stds iterated to their ML values
     index = FreeIndex(oe_mask)
-    theta0 = free_parameters(template, index)
+    theta0 = _free_parameters_np(template, index)
     starts = [theta0] + _perturbed_starts(theta0, oe_names, n_starts - 1, seed)
     best = None
     mask = np.asarray(data.mask)
@@ -343,8 +327,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
             best = (theta, n_steps, ok, sig, nll, sol, used, evals)
     theta, n_steps, converged, sigma, nll, oe_solution, sigma_used, n_evals = best
     _check_finite(theta, theta0, oe_names)
-    state = _state(theta, _Problem(template, index, data, jnp.asarray(sigma), theta0, theta0))
-    state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model, jnp.log(jnp.asarray(sigma))),
+    state = _with_free_parameters_np(template, index, theta)
+    state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model, jnp.asarray(np.log(sigma))),
                      state.run_initial)
 
     if likelihood == "output_error":
@@ -602,12 +586,56 @@ def _check_finite(theta, theta0, names):
                      "units, fix it from design data, or give the data more excitation.")
 
 
-def _check_runs(spec: ModelSpec, experiments: list[Experiment]) -> None:
-    from ._network import ThermalNetwork
+def _slowest_time_constant(spec: ModelSpec) -> float:
+    """`max(ThermalNetwork.from_spec(spec).time_constants())` in NumPy (s; inf when a node
+    has no path to a boundary): eager JAX would compile a dozen small programs per fit."""
+    idx = {n: i for i, n in enumerate(spec.node_names)}
+    c = np.array([n.capacitance.value for n in spec.nodes], float)
+    K = np.zeros((len(c), len(c)))
+    for link in spec.links:
+        i, j = (idx[x] for x in link.between)
+        g = link.conductance.value
+        K[i, i] += g
+        K[j, j] += g
+        K[i, j] -= g
+        K[j, i] -= g
+    for b in spec.boundaries:
+        K[idx[b.node], idx[b.node]] += b.conductance.value
+    sq = np.sqrt(c)
+    S = K / sq[:, None] / sq[None, :]
+    with np.errstate(divide="ignore"):
+        return float(np.max(1.0 / np.linalg.eigvalsh(0.5 * (S + S.T))))
 
+
+def _free_parameters_np(tree, index: FreeIndex) -> jax.Array:
+    """`free_parameters(tree, index)` by NumPy indexing (no eager JAX compilations)."""
+    leaves = jax.tree.leaves(eqx.filter(tree, eqx.is_array))
+    parts = [np.ravel(np.asarray(leaf))[np.array(ix, dtype=int)]
+             for leaf, ix in zip(leaves, index.per_leaf)]
+    return jnp.asarray(np.concatenate(parts) if parts else np.zeros((0,)))
+
+
+def _with_free_parameters_np(tree, index: FreeIndex, theta):
+    """`with_free_parameters(tree, index, theta)` by NumPy indexing."""
+    dynamic, static = eqx.partition(tree, eqx.is_array)
+    leaves, treedef = jax.tree.flatten(dynamic)
+    theta = np.asarray(theta)
+    out, offset = [], 0
+    for leaf, ix in zip(leaves, index.per_leaf):
+        a = np.array(leaf)
+        if ix:
+            flat = a.reshape(-1)
+            flat[np.array(ix, dtype=int)] = theta[offset:offset + len(ix)]
+            a = flat.reshape(a.shape)
+        out.append(jnp.asarray(a))
+        offset += len(ix)
+    return eqx.combine(jax.tree.unflatten(treedef, out), static)
+
+
+def _check_runs(spec: ModelSpec, experiments: list[Experiment]) -> None:
     if not experiments:
         raise InputError("no runs given; pass at least one --data file.", field="--data")
-    slowest = float(np.max(np.asarray(ThermalNetwork.from_spec(spec).time_constants())))
+    slowest = _slowest_time_constant(spec)
     for e in experiments:
         measured = np.isfinite(e.outputs)
         if not measured.any():

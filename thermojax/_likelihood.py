@@ -12,6 +12,8 @@ Dropped samples (NaN in the CSV, `mask` False) contribute nothing.
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -23,7 +25,7 @@ from ._model import ThermalModel
 from ._sensitivity import output_sensitivities
 from ._simulate import ExactHold
 
-LOG_2PI = float(jnp.log(2 * jnp.pi))
+LOG_2PI = math.log(2 * math.pi)
 
 
 def simulate_dataset(model: ThermalModel, data: Dataset, run_initial=None,
@@ -56,7 +58,7 @@ def output_error_sensitivities(params_to_model, theta, data: Dataset):
     """
     y, dy = output_sensitivities(params_to_model, theta, data)
     r = jnp.where(data.mask, data.outputs - y, 0.0)
-    return r, jnp.where(data.mask, -dy, 0.0), y
+    return r, jnp.where(data.mask[None], -dy, 0.0), y
 
 
 def output_error_nll(residuals, mask, sigma: Float[Array, " outputs"]) -> Float[Array, ""]:

@@ -127,14 +127,38 @@ def _blocked_inputs(u, L):
     return u.reshape(nb, L * m)
 
 
-def run_outputs(maps, z0, u, L: int = _BLOCK):
-    """Outputs (T, p) of one run from its `block_maps` and initial `z0 = x0 - B1 u[0]`."""
+def run_primal(maps, z0, u, L: int = _BLOCK):
+    """Outputs (T, p) of one run from its `block_maps` and initial `z0 = x0 - B1 u[0]`,
+    and the blocks' `[inputs, start]` rows `w` (nb, L m + n) that the tangents reuse."""
     DL, N, O = maps
     T = u.shape[0]
     ub = _blocked_inputs(u, L)
     starts = recurrence(DL, (ub @ N.T)[:, None, :], z0[None, :])[:, 0, :]
-    y = jnp.concatenate([ub, starts], axis=1) @ O.T
-    return y.reshape(-1, O.shape[0] // L)[:T]
+    w = jnp.concatenate([ub, starts], axis=1)
+    return (w @ O.T).reshape(-1, O.shape[0] // L)[:T], w
+
+
+def run_outputs(maps, z0, u, L: int = _BLOCK):
+    """Outputs (T, p) of one run from its `block_maps` and initial `z0 = x0 - B1 u[0]`."""
+    return run_primal(maps, z0, u, L)[0]
+
+
+def run_tangents(maps, dmaps, dz0, w, T: int, L: int = _BLOCK):
+    """Output tangents (P, T, p) of one run along `P` directions, given the tangents of
+    its maps and initial state (leading axis `P`) and `w` from `run_primal`."""
+    DL, N, O = maps
+    dDL, dN, dO = dmaps
+    n = DL.shape[0]
+    P = dz0.shape[0]
+    Lm = O.shape[1] - n
+    p = O.shape[0] // L
+    # Tangent block starts: s'[b+1] = Phi^L s'[b] + (dDL s[b] + dN u[b]).
+    drive = w @ jnp.concatenate([jnp.transpose(dN, (2, 0, 1)).reshape(Lm, P * n),
+                                 jnp.transpose(dDL, (2, 0, 1)).reshape(n, P * n)], axis=0)
+    dstarts = recurrence(DL, drive.reshape(-1, P, n), dz0)  # (nb, P, n)
+    dy = (w @ jnp.transpose(dO, (2, 0, 1)).reshape(Lm + n, P * L * p)).reshape(-1, P, L * p)
+    dy = dy + dstarts @ O[:, Lm:].T
+    return jnp.transpose(dy, (1, 0, 2)).reshape(P, -1, p)[:, :T]
 
 
 def run_sensitivities(maps, z0, dmaps, dz0, u, L: int = _BLOCK):
@@ -142,24 +166,8 @@ def run_sensitivities(maps, z0, dmaps, dz0, u, L: int = _BLOCK):
 
     `dmaps`, `dz0`: the tangents of `maps` and `z0`, each with a leading axis of `P`.
     """
-    DL, N, O = maps
-    dDL, dN, dO = dmaps
-    n = DL.shape[0]
-    T, m = u.shape
-    P = dz0.shape[0]
-    Lm = O.shape[1] - n
-    p = O.shape[0] // L
-    ub = _blocked_inputs(u, L)  # (nb, L m)
-    starts = recurrence(DL, (ub @ N.T)[:, None, :], z0[None, :])[:, 0, :]  # (nb, n)
-    w = jnp.concatenate([ub, starts], axis=1)  # (nb, L m + n)
-    y = (w @ O.T).reshape(-1, p)[:T]
-    # Tangent block starts: s'[b+1] = Phi^L s'[b] + (dDL s[b] + dN u[b]).
-    drive = w @ jnp.concatenate([jnp.transpose(dN, (2, 0, 1)).reshape(Lm, P * n),
-                                 jnp.transpose(dDL, (2, 0, 1)).reshape(n, P * n)], axis=0)
-    dstarts = recurrence(DL, drive.reshape(-1, P, n), dz0)  # (nb, P, n)
-    dy = (w @ jnp.transpose(dO, (2, 0, 1)).reshape(Lm + n, P * L * p)).reshape(-1, P, L * p)
-    dy = dy + dstarts @ O[:, Lm:].T
-    return y, jnp.transpose(dy, (1, 0, 2)).reshape(P, -1, p)[:, :T]
+    y, w = run_primal(maps, z0, u, L)
+    return y, run_tangents(maps, dmaps, dz0, w, u.shape[0], L)
 
 
 # Padé [13/13] coefficients (Higham 2005), as in `jax.scipy.linalg.expm`.
@@ -306,11 +314,15 @@ def dataset_outputs(model, data, run_initial=None):
     return jax.vmap(run_outputs)(maps, z0, data.inputs.astype(z0.dtype))
 
 
-def output_sensitivities(params_to_model, theta, data):
-    """Free-run outputs (runs, T, p) of every run and their Jacobian in `theta`, transposed:
-    (P, runs, T, p).
+def output_sensitivity_parts(params_to_model, theta, data):
+    """Free-run outputs (runs, T, p) of every run, and a function computing their Jacobian
+    in `theta`, transposed: (P, runs, T, p).
 
-    `params_to_model(theta) -> (model, run_initial)`.
+    `params_to_model(theta) -> (model, run_initial)`. The small part (discretization and
+    block maps, with their tangents along every parameter) is computed here; the large
+    part of the Jacobian only when the returned function is called, so that a caller can
+    put it under `lax.cond` and have one copy of the small part's code serve residual
+    and Jacobian evaluations alike (it costs a fraction of a millisecond).
     """
 
     def maps_of(t):
@@ -322,5 +334,18 @@ def output_sensitivities(params_to_model, theta, data):
     (maps, z0), (dmaps, dz0) = jax.vmap(lambda v: jax.jvp(maps_of, (theta,), (v,)),
                                         out_axes=(None, 1))(jnp.eye(theta.shape[0],
                                                                     dtype=theta.dtype))
-    return jax.vmap(run_sensitivities, out_axes=(0, 1))(maps, z0, dmaps, dz0,
-                                                        data.inputs.astype(theta.dtype))
+    u = data.inputs.astype(theta.dtype)
+    y, w = jax.vmap(run_primal)(maps, z0, u)
+
+    def jacobian_t():
+        return jax.vmap(lambda m, dm, dz, w_: run_tangents(m, dm, dz, w_, u.shape[1]),
+                        out_axes=1)(maps, dmaps, dz0, w)
+
+    return y, jacobian_t
+
+
+def output_sensitivities(params_to_model, theta, data):
+    """Free-run outputs (runs, T, p) of every run and their Jacobian in `theta`, transposed:
+    (P, runs, T, p). `params_to_model(theta) -> (model, run_initial)`."""
+    y, jacobian_t = output_sensitivity_parts(params_to_model, theta, data)
+    return y, jacobian_t()
