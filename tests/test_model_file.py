@@ -276,8 +276,9 @@ def test_full_model_reads_every_feature():
     assert [(h.input, h.gain, h.hold) for h in spec.heat_inputs] == [
         ("P_die", Parameter(1.0, True), "zoh"), ("P_heater", Parameter(0.9), "zoh"),
         ("P_die", Parameter(1.0, True), "zoh")]  # an absent gain is a known 1
-    assert spec.input_columns == ("T_chamber", "P_die", "P_heater")
-    assert spec.input_holds == ("foh", "zoh", "zoh")
+    # the columns effects read are inputs too, after the boundaries' and heat inputs'
+    assert spec.input_columns == ("T_chamber", "P_die", "P_heater", "P_fan", "T_wall", "v_air")
+    assert spec.input_holds == ("foh", "zoh", "zoh", "foh", "foh", "foh")
     assert spec.sensors[0].noise == Parameter(0.01, True) and spec.sensors[1].noise is None
     assert [e.kind for e in spec.effects] == [
         "extra_node", "radiation", "extra_node", "conductance_temperature",

@@ -16,6 +16,7 @@ standard errors, and it is left out of every reported likelihood.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import warnings
@@ -38,7 +39,8 @@ from ._model import ThermalModel, model_to_spec
 from ._newton import TruncatedNewton, newton
 from ._parameters import FreeIndex, free_parameters, with_free_parameters
 from ._solver import TruncatedGaussNewton, gauss_newton
-from ._spec import ModelSpec
+from ._spec import EFFECT_KINDS, ModelSpec
+from .effects import lower_effects, raise_effects
 
 LIKELIHOODS = ("output_error", "kalman")
 
@@ -55,6 +57,7 @@ class FitResult:
     """A fitted model with its evidence. Values are physical (J/K, W/K, °C, °C/√s)."""
 
     spec: ModelSpec  # the fitted model, as a file would hold it
+    lowered_spec: ModelSpec  # the same with structural effects as plain entries (`model`'s)
     model: ThermalModel
     state: FitState
     likelihood: str
@@ -240,6 +243,13 @@ def _masks(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
         ([False] * len(nodes), [f"nodes.{n}.initial" for n in nodes]),
         ([False] * len(nodes), [f"nodes.{n}.initial_std" for n in nodes]),
     ]
+    effects = {(e.kind, e.where): e for e in spec.effects}
+    net_masks.append((
+        [not (p in effects[(t.kind, t.where)].parameters
+              and effects[(t.kind, t.where)].parameters[p].fixed)
+         for t in model.effect_terms for p in t.parameters],
+        [f"effects.{t.kind}.{'-'.join(t.where)}.{p}" for t in model.effect_terms
+         for p in t.parameters]))
     init_free = [not spec.nodes[i].initial.fixed for i in model.initial_nodes]
     run_mask = np.array([init_free] * n_runs, dtype=bool).reshape(n_runs, len(init_free))
     run_names = [[f"runs.{r}.nodes.{nodes[i]}.initial" for i in model.initial_nodes]
@@ -250,7 +260,8 @@ def _masks(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
             eqx.tree_at(lambda n: (n.log_capacitance, n.log_conductance,
                                    n.log_boundary_conductance, n.log_heat_gain),
                         model.network, tuple(arrays[:4])),
-            arrays[4], arrays[5], arrays[6], arrays[7], model.initial_nodes),
+            arrays[4], arrays[5], arrays[6], arrays[7], model.initial_nodes, arrays[8],
+            model.effect_terms),
         run_mask)
     names = [nm for _, nms in net_masks for nm in nms] + [nm for row in run_names for nm in row]
     flat_mask = np.concatenate([*arrays, run_mask.reshape(-1)])
@@ -258,7 +269,38 @@ def _masks(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
     return template_mask, free_names
 
 
+def _reorder_inputs(experiments, columns, order):
+    """Experiments with their input columns rearranged from `columns` to `order` (a
+    lowered spec lists the same columns, maybe in another order)."""
+    if tuple(columns) == tuple(order):
+        return experiments
+    idx = [list(columns).index(c) for c in order]
+    return [dataclasses.replace(e, inputs=e.inputs[:, idx]) for e in experiments]
+
+
+def _raise_names(parameters: dict, lowered) -> dict:
+    """Report entries under the original model's names: a structural effect's parameter
+    by its effect name (`effects.<kind>.<where>.<parameter>`), and nothing of the helper
+    entries lowering made (a sensor element's fixed mass)."""
+    renames = lowered.renames()
+    new_nodes = set(lowered.spec.node_names) - set(lowered.original.node_names)
+    out = {}
+    for name, entry in parameters.items():
+        if name in renames:
+            target, scale, power = renames[name]
+            v = scale * entry["value"] ** power
+            sd = None if entry["std"] is None else abs(power) * v * entry["std"] / entry["value"]
+            out[target] = {**entry, "value": v, "std": sd}
+        elif not new_nodes & set(name.replace("-", ".").split(".")):
+            out[name] = entry
+    return out
+
+
 def _is_log(name: str) -> bool:
+    """Whether the optimizer moves this parameter's log (positive parameters)."""
+    if name.startswith("effects."):
+        parts = name.split(".")
+        return parts[-1] in EFFECT_KINDS[parts[1]].positive
     return not name.endswith(".initial")
 
 
@@ -294,6 +336,9 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
                          field="--likelihood")
     t_start = time.perf_counter()
     say = progress or (lambda _msg: None)
+    original, lowered = spec, lower_effects(spec)
+    spec = lowered.spec
+    experiments = _reorder_inputs(experiments, original.input_columns, spec.input_columns)
     _check_runs(spec, experiments)
     data = Dataset.from_experiments(experiments)
     model = ThermalModel.from_spec(spec)
@@ -398,8 +443,11 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
                     for r, n in enumerate(data.lengths)]
     message = "converged" if converged else f"stopped after {n_steps} steps without converging"
     say(f"fit done: -log L = {nll:.2f}, {n_params} parameters, {message}")
+    parameters = _raise_names(parameters, lowered)
+    renames = lowered.renames()
+    free_names = [renames[n][0] if n in renames else n for n in free_names]
     return FitResult(
-        spec=fitted_spec, model=state.model, state=state, likelihood=likelihood,
+        spec=raise_effects(lowered, fitted_spec), lowered_spec=fitted_spec, model=state.model, state=state, likelihood=likelihood,
         parameters=parameters, correlation=corr, free_names=free_names, nll=nll,
         aic=2 * n_params + 2 * nll, bic=n_params * math.log(n_samples) + 2 * nll,
         n_params=n_params, n_samples=n_samples, rmse=metrics["rmse"],

@@ -22,6 +22,7 @@ from jaxtyping import Array, Float
 from ._data import Dataset
 from ._discretize import discretize, discretize_process_noise
 from ._model import ThermalModel
+from ._nonlinear import dataset_outputs_nonlinear, etd2_step, initial_state_nonlinear
 from ._sensitivity import output_sensitivities
 from ._simulate import ExactHold
 
@@ -31,11 +32,14 @@ LOG_2PI = math.log(2 * math.pi)
 def simulate_dataset(model: ThermalModel, data: Dataset, run_initial=None,
                      simulator: ExactHold = ExactHold()) -> Float[Array, "runs times outputs"]:
     """Free-run outputs of every run, each from its own initial state."""
-    system = model.network.linear_system()
+    if model.is_nonlinear:
+        return dataset_outputs_nonlinear(model, data, run_initial)
+    system = model.linear_system()
+    offset = model.output_offset()
 
     def one(ts, u, r0):
         x0 = model.initial_state(system, u[0], r0)
-        return simulator.run(system, x0, u, ts).outputs
+        return simulator.run(system, x0, u, ts).outputs + offset[None, :]
 
     if run_initial is None:
         return jax.vmap(lambda ts, u: one(ts, u, None))(data.ts, data.inputs)
@@ -93,14 +97,16 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanO
     as their `hold` says; the initial mean is the model's initial state, the
     initial covariance `diag(initial_std²)`.
     """
-    system = model.network.linear_system()
+    system = model.linear_system()
     dt = ts[1] - ts[0]
-    disc = discretize(system, dt)
+    transition = _transition(model, system, dt)
     _, Qd = discretize_process_noise(system.A, jnp.diag(model.process_noise ** 2), dt)
     R = jnp.diag(model.noise ** 2)
     C = system.C
     n, p = system.n_states, C.shape[0]
-    m0 = model.initial_state(system, u[0], run_initial)
+    m0 = (initial_state_nonlinear(model, system, u[0], run_initial) if model.is_nonlinear
+          else model.initial_state(system, u[0], run_initial))
+    offset = model.output_offset()
     P0 = jnp.diag(model.initial_std ** 2)
     u_next = jnp.concatenate([u[1:], u[-1:]], axis=0)
     eye_n, eye_p = jnp.eye(n), jnp.eye(p)
@@ -111,7 +117,7 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanO
         Cm = C * mask_k[:, None]
         both = mask_k[:, None] & mask_k[None, :]
         S = jnp.where(both, Cm @ P @ Cm.T + R, eye_p)
-        e = jnp.where(mask_k, y_k - C @ m, 0.0)
+        e = jnp.where(mask_k, y_k - C @ m - offset, 0.0)
         L = jnp.linalg.cholesky(S)
         w = jax.scipy.linalg.solve_triangular(L, e, lower=True)
         logdet = 2 * jnp.sum(jnp.log(jnp.diag(L)))
@@ -122,13 +128,27 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanO
         IKC = eye_n - K @ Cm
         P_f = IKC @ P @ IKC.T + K @ jnp.where(both, R, 0.0) @ K.T
         P_f = 0.5 * (P_f + P_f.T)
-        m_next = disc.Phi @ m_f + disc.B0 @ u_k + disc.B1 @ u_k1
-        P_next = disc.Phi @ P_f @ disc.Phi.T + Qd
+        m_next, F = transition(m_f, u_k, u_k1)
+        P_next = F @ P_f @ F.T + Qd
         out = (nll, e, jnp.sqrt(jnp.diag(S)) * mask_k, m_f, P_f, m, P)
         return (m_next, 0.5 * (P_next + P_next.T)), out
 
     _, (nll, e, s, m_f, P_f, m_p, P_p) = jax.lax.scan(step, (m0, P0), (u, u_next, y, mask))
     return KalmanOutput(jnp.sum(nll), e, s, m_f, P_f, m_p, P_p)
+
+
+def _transition(model, system, dt):
+    """`f(m, u_k, u_k1) -> (mean at the next sample, its Jacobian in m)`: exact for a
+    linear model; ETD2 (`_nonlinear`) and its Jacobian (an extended Kalman filter) for
+    a model with nonlinear effects."""
+    if model.is_nonlinear:
+        step = etd2_step(model, system, dt)
+
+        def f(m, u_k, u_k1):
+            return step(m, u_k, u_k1), jax.jacfwd(step)(m, u_k, u_k1)
+        return f
+    disc = discretize(system, dt)
+    return lambda m, u_k, u_k1: (disc.Phi @ m + disc.B0 @ u_k + disc.B1 @ u_k1, disc.Phi)
 
 
 def kalman_nll(model: ThermalModel, data: Dataset, run_initial=None) -> Float[Array, ""]:
@@ -144,7 +164,8 @@ def kalman_nll(model: ThermalModel, data: Dataset, run_initial=None) -> Float[Ar
 
 def rts_smoother(model: ThermalModel, ts, kf: KalmanOutput):
     """Rauch-Tung-Striebel smoothed means and stds of every node: ((times, states), (times, states))."""
-    system = model.network.linear_system()
+    system = model.linear_system()
+    # With nonlinear effects the gain uses the linear part's Φ: they are small corrections.
     Phi = discretize(system, ts[1] - ts[0]).Phi
 
     def back(carry, inp):

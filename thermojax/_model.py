@@ -34,9 +34,19 @@ class ThermalModel(eqx.Module):
     initial: Float[Array, " nodes"]
     initial_std: Float[Array, " nodes"]
     initial_nodes: tuple[int, ...] = eqx.field(static=True)
+    # Term effects (offsets, gains, nonlinear heat flows): their parameters, logs where
+    # positive, and their static descriptions (`effects.Term`).
+    effect_values: Float[Array, " effect_parameters"] = None
+    effect_terms: tuple = eqx.field(static=True, default=())
 
     @classmethod
     def from_spec(cls, spec: ModelSpec) -> "ThermalModel":
+        """Build from a model file's values. Structural effects must have been lowered
+        (`effects.lower_effects`); this lowers them if not."""
+        from .effects import KINDS, lower_effects
+
+        if any(not KINDS[e.kind].is_term and e.kind != "viscoelastic" for e in spec.effects):
+            spec = lower_effects(spec).spec
         noise = [s.noise.value if s.noise is not None else DEFAULT_NOISE for s in spec.sensors]
         q = [n.process_noise.value if n.process_noise is not None else DEFAULT_PROCESS_NOISE
              for n in spec.nodes]
@@ -44,10 +54,86 @@ class ThermalModel(eqx.Module):
         init = [n.initial.value if n.initial is not None else 0.0 for n in spec.nodes]
         std = [n.initial_std if n.initial_std is not None else DEFAULT_INITIAL_STD
                for n in spec.nodes]
+        terms, values = [], []
+        for e in spec.effects:
+            kind = KINDS[e.kind]
+            if not kind.is_term:
+                continue
+            term = kind.term(spec, e, len(values))
+            first = kind.initial_parameters(spec, e.where) if set(e.parameters) != set(
+                term.parameters) else {}
+            for name, log in zip(term.parameters, term.logs):
+                v = e.parameters[name].value if name in e.parameters else first[name]
+                values.append(float(np.log(v)) if log else float(v))
+            terms.append(term)
         return cls(ThermalNetwork.from_spec(spec), jnp.log(jnp.asarray(noise, float)),
                    jnp.log(jnp.asarray(q, float)), jnp.asarray(init, float),
                    jnp.asarray(std, float),
-                   tuple(i for i, n in enumerate(spec.nodes) if n.initial is not None))
+                   tuple(i for i, n in enumerate(spec.nodes) if n.initial is not None),
+                   jnp.asarray(values, float).reshape(-1), tuple(terms))
+
+    @property
+    def is_nonlinear(self) -> bool:
+        from .effects import KINDS
+
+        return any(KINDS[t.kind].nonlinear for t in self.effect_terms)
+
+    def effect_parameter_values(self) -> list[float]:
+        """Physical values of `effect_values`, in term order."""
+        v = np.asarray(self.effect_values)
+        out = []
+        for t in self.effect_terms:
+            for j, log in enumerate(t.logs):
+                out.append(float(np.exp(v[t.slot + j])) if log else float(v[t.slot + j]))
+        return out
+
+    def _output_affine(self):
+        """Per-sensor `(scale, offset)` of the readings: `y = scale · T + offset`."""
+        from .effects import KINDS
+
+        p = len(self.network.topology.sensor_nodes)
+        scale, offset = jnp.ones(p), jnp.zeros(p)
+        for t in self.effect_terms:
+            got = KINDS[t.kind].output(t, self.effect_values)
+            if got is not None:
+                scale = scale.at[t.sensor].add(got[0])
+                offset = offset.at[t.sensor].add(got[1])
+        return scale, offset
+
+    def output_offset(self) -> Float[Array, " sensors"]:
+        """Constant added to every reading (°C): sensor offsets and gain terms."""
+        return self._output_affine()[1]
+
+    def linear_system(self):
+        """The network's linear system with the sensors' gains in its output matrix."""
+        system = self.network.linear_system()
+        if not self.effect_terms:
+            return system
+        scale = self._output_affine()[0]
+        return eqx.tree_at(lambda s: s.C, system, system.C * scale[:, None])
+
+    def nonlinear_rate(self, system, x, u) -> Float[Array, " nodes"]:
+        """`N(x, u)` (°C/s): the nonlinear terms' part of `dx/dt = A x + B u + N(x, u)`."""
+        from .effects import KINDS
+
+        net = self.network
+        heat = jnp.zeros_like(x)
+        factors = []
+        for t in self.effect_terms:
+            kind = KINDS[t.kind]
+            h = kind.heat(t, self.effect_values, x, u, net)
+            if h is not None:
+                heat = heat + h
+            if hasattr(kind, "capacitance_factor"):
+                factors.append(kind.capacitance_factor(t, self.effect_values, x))
+        rate = heat / system.capacitance
+        if factors:
+            f = system.A @ x + system.B @ u + rate
+            scale = jnp.ones_like(x)
+            for i, s in factors:
+                scale = scale.at[i].multiply(s)
+            rate = f / scale - system.A @ x - system.B @ u
+        return rate
 
     @property
     def noise(self) -> Float[Array, " sensors"]:
@@ -91,5 +177,15 @@ def model_to_spec(model: ThermalModel, spec: ModelSpec, process_noise: bool = Fa
                   for h, g in zip(spec.heat_inputs, np.asarray(net.heat_gain)))
     sensors = tuple(dataclasses.replace(s, noise=upd(s.noise, sd))
                     for s, sd in zip(spec.sensors, np.asarray(model.noise)))
+    values = iter(model.effect_parameter_values())
+    by_place = {(t.kind, t.where): t for t in model.effect_terms}
+    effects = []
+    for e in spec.effects:
+        term = by_place.get((e.kind, e.where))
+        if term is not None:
+            e = dataclasses.replace(e, parameters={
+                **e.parameters, **{p: upd(e.parameters.get(p), next(values))
+                                   for p in term.parameters}})
+        effects.append(e)
     return spec.replace(nodes=nodes, links=links, boundaries=bounds, heat_inputs=heats,
-                        sensors=sensors)
+                        sensors=sensors, effects=tuple(effects))

@@ -163,27 +163,46 @@ class _Reader:
         if "where" not in e:
             self.fail("missing required key 'where'.", "effects", i, "where")
         params = {k: self.param(v, "effects", i, k) for k, v in e.items()
-                  if k not in ("kind", "where", "name")}
+                  if k not in ("kind", "where", "name", "hold")}
         name = e.get("name")
+        hold = e.get("hold")
+        if hold is not None and hold not in ("foh", "zoh"):
+            self.fail(f"hold must be \"foh\" or \"zoh\", got {hold!r}.", "effects", i, "hold")
         return Effect(kind=self.string(e["kind"], "effects", i, "kind"),
                       where=self.names(e["where"], "effects", i, "where"),
                       parameters=params,
-                      name=None if name is None else self.string(name, "effects", i, "name"))
+                      name=None if name is None else self.string(name, "effects", i, "name"),
+                      hold=hold)
 
     def bias(self, e: dict, i: int) -> Bias:
-        self.keys(e, "biases", i, ("column", "temperature"), ("order", "gradients", "rates", "noise"))
+        self.keys(e, "biases", i, ("column", "temperature"),
+                  ("order", "gradients", "rates", "noise", "coefficients"))
         grads = e.get("gradients", [])
         if not isinstance(grads, list) or not all(isinstance(g, list) for g in grads):
             self.fail("gradients is a list of node pairs, [[\"a\", \"b\"]].", "biases", i, "gradients")
         order = e.get("order", 3)
         if isinstance(order, bool) or not isinstance(order, int):
             self.fail(f"order must be an integer, got {order!r}.", "biases", i, "order")
+        rates = self.names(e.get("rates", []), "biases", i, "rates")
+        coefs = None
+        if "coefficients" in e:
+            c = e["coefficients"]
+            if not isinstance(c, list):
+                self.fail(f"coefficients is a list of numbers, got {c!r}.", "biases", i,
+                          "coefficients")
+            coefs = tuple(self.number(v, "biases", i, "coefficients") for v in c)
+            n = order + 1 + len(grads) + len(rates)
+            if len(coefs) != n:
+                self.fail(f"coefficients needs {n} numbers (order + 1 polynomial terms, then one "
+                          f"per gradient, then one per rate), got {len(coefs)}.", "biases", i,
+                          "coefficients")
         return Bias(column=self.string(e["column"], "biases", i, "column"),
                     temperature=self.string(e["temperature"], "biases", i, "temperature"),
                     order=order,
                     gradients=tuple(self.names(g, "biases", i, "gradients") for g in grads),
-                    rates=self.names(e.get("rates", []), "biases", i, "rates"),
-                    noise=self.opt_param(e, "noise", "biases", i))
+                    rates=rates,
+                    noise=self.opt_param(e, "noise", "biases", i),
+                    coefficients=coefs)
 
 
 # ---------------------------------------------------------------------------
@@ -219,6 +238,8 @@ def dump_model(spec: ModelSpec, header: str = "") -> str:
         out += ["", "[[effects]]", f"kind = {_str(e.kind)}", f"where = {_list(e.where)}"]
         if e.name is not None:
             out.append(f"name = {_str(e.name)}")
+        if e.hold is not None:
+            out.append(f"hold = {_str(e.hold)}")
         out += [f"{k} = {_param(p)}" for k, p in e.parameters.items()]
     for b in spec.biases:
         out += ["", "[[biases]]", f"column = {_str(b.column)}",
@@ -227,6 +248,8 @@ def dump_model(spec: ModelSpec, header: str = "") -> str:
                 f"rates = {_list(b.rates)}"]
         if b.noise is not None:
             out.append(f"noise = {_param(b.noise)}")
+        if b.coefficients is not None:
+            out.append(f"coefficients = [{', '.join(_num(c) for c in b.coefficients)}]")
     return "\n".join(out) + "\n"
 
 

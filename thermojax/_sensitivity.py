@@ -291,7 +291,7 @@ def dataset_maps(model, data, run_initial, L: int = _BLOCK):
 
     The sample period of each run is `ts[1] - ts[0]`, as `ExactHold` takes it.
     """
-    system = model.network.linear_system()
+    system = model.linear_system()
     if data.ts.shape[1] > 1:
         dts = data.ts[:, 1] - data.ts[:, 0]
     else:
@@ -310,8 +310,12 @@ def dataset_maps(model, data, run_initial, L: int = _BLOCK):
 
 def dataset_outputs(model, data, run_initial=None):
     """Free-run outputs (runs, T, p) of every run: `simulate_dataset` by the blocked maps."""
+    if model.is_nonlinear:
+        from ._nonlinear import dataset_outputs_nonlinear
+
+        return dataset_outputs_nonlinear(model, data, run_initial)
     maps, z0 = dataset_maps(model, data, run_initial)
-    return jax.vmap(run_outputs)(maps, z0, data.inputs.astype(z0.dtype))
+    return jax.vmap(run_outputs)(maps, z0, data.inputs.astype(z0.dtype)) + model.output_offset()[None, None, :]
 
 
 def output_sensitivity_parts(params_to_model, theta, data):
@@ -325,21 +329,33 @@ def output_sensitivity_parts(params_to_model, theta, data):
     and Jacobian evaluations alike (it costs a fraction of a millisecond).
     """
 
+    if params_to_model(theta)[0].is_nonlinear:  # ETD2 scan, differentiated forward
+        from ._nonlinear import dataset_outputs_nonlinear
+
+        def outputs(t):
+            model, run_initial = params_to_model(t)
+            return dataset_outputs_nonlinear(model, data, run_initial)
+
+        y = outputs(theta)
+        return y, lambda: jnp.moveaxis(jax.jacfwd(outputs)(theta), -1, 0)
+
     def maps_of(t):
         model, run_initial = params_to_model(t)
-        return dataset_maps(model, data, run_initial)
+        return dataset_maps(model, data, run_initial), model.output_offset()
 
     # Tangents along every parameter, (runs, P, ...); the primal does not depend on the
     # direction, so it is computed once.
-    (maps, z0), (dmaps, dz0) = jax.vmap(lambda v: jax.jvp(maps_of, (theta,), (v,)),
-                                        out_axes=(None, 1))(jnp.eye(theta.shape[0],
-                                                                    dtype=theta.dtype))
+    ((maps, z0), offset), ((dmaps, dz0), doffset) = jax.vmap(
+        lambda v: jax.jvp(maps_of, (theta,), (v,)), out_axes=(None, (1, 0)))(
+        jnp.eye(theta.shape[0], dtype=theta.dtype))
     u = data.inputs.astype(theta.dtype)
     y, w = jax.vmap(run_primal)(maps, z0, u)
+    y = y + offset[None, None, :]
 
     def jacobian_t():
-        return jax.vmap(lambda m, dm, dz, w_: run_tangents(m, dm, dz, w_, u.shape[1]),
-                        out_axes=1)(maps, dmaps, dz0, w)
+        dy = jax.vmap(lambda m, dm, dz, w_: run_tangents(m, dm, dz, w_, u.shape[1]),
+                      out_axes=1)(maps, dmaps, dz0, w)
+        return dy + doffset[:, None, None, :]
 
     return y, jacobian_t
 

@@ -82,6 +82,7 @@ class Effect:
     where: tuple[str, ...]
     parameters: dict[str, Parameter] = field(default_factory=dict)
     name: str | None = None  # the new node's name (extra_node only)
+    hold: str | None = None  # hold of a column the effect brings in ("foh" when None)
 
     @property
     def key(self) -> str:
@@ -98,6 +99,9 @@ class Bias:
     gradients: tuple[tuple[str, str], ...] = ()
     rates: tuple[str, ...] = ()
     noise: Parameter | None = None
+    # fitted linear coefficients: poly0..polyN, then gradients, then rates (file order);
+    # viscoelastic k's live on their effects. None: not fitted yet.
+    coefficients: tuple[float, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -120,19 +124,26 @@ class ModelSpec:
 
     @property
     def input_columns(self) -> tuple[str, ...]:
-        """Distinct input columns (boundaries first, then heat inputs), in file order."""
-        cols: list[str] = []
-        for entry in (*self.boundaries, *self.heat_inputs):
-            if entry.input not in cols:
-                cols.append(entry.input)
-        return tuple(cols)
+        """Distinct input columns (boundaries first, then heat inputs, then the columns
+        effects read), in file order."""
+        return tuple(self._column_holds())
 
     @property
     def input_holds(self) -> tuple[str, ...]:
-        holds = {}
+        return tuple(self._column_holds().values())
+
+    def _column_holds(self) -> dict[str, str]:
+        holds: dict[str, str] = {}
         for entry in (*self.boundaries, *self.heat_inputs):
             holds.setdefault(entry.input, entry.hold)
-        return tuple(holds[c] for c in self.input_columns)
+        nodes = set(self.node_names) | {e.name for e in self.effects if e.name}
+        sensors = set(self.sensor_columns) | {b.column for b in self.biases}
+        for e in self.effects:
+            if e.kind in _READS_COLUMNS:
+                for w in e.where:
+                    if w not in nodes and w not in sensors:
+                        holds.setdefault(w, e.hold or "foh")
+        return holds
 
     @property
     def boundary_columns(self) -> tuple[str, ...]:
@@ -148,6 +159,11 @@ class ModelSpec:
 
     def replace(self, **changes) -> "ModelSpec":
         return dataclasses.replace(self, **changes)
+
+
+# Kinds whose `where` may name an input column beyond the first place.
+_READS_COLUMNS = ("extra_node", "radiation", "conductance_temperature", "heat_source",
+                  "boundary", "conductance_input")
 
 
 # ---------------------------------------------------------------------------
@@ -173,7 +189,8 @@ EFFECT_KINDS: dict[str, EffectKind] = {
     "conductance_temperature": EffectKind(where=(("node", "node_or_input"),),
                                           parameters=("alpha",), positive=()),
     "capacitance_temperature": EffectKind(where=(("node",),), parameters=("beta",), positive=()),
-    "heat_source": EffectKind(where=(("input", "node"),), parameters=("gain",), positive=()),
+    "heat_source": EffectKind(where=(("input", "node"),), parameters=("gain",),
+                              positive=("gain",)),
     "boundary": EffectKind(where=(("input", "node"),), parameters=("conductance",),
                            positive=("conductance",)),
     "conductance_input": EffectKind(where=(("node", "node_or_input", "input"),),

@@ -1,0 +1,332 @@
+"""The human-readable side of `thermojax investigate`: `report.md` and its figures.
+
+Pure NumPy/matplotlib (no JAX). It reads the `report.json` dict of spec §5 and, per
+step, the run traces of the model fitted at that step, and tells the story: what was
+found, why the loop stopped, how the error fell, and per step the ranked candidates,
+the evidence for the effect added, and what the residual still looks like.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ._diagnostics import diagnose_traces, diagnostic_plots
+
+_TOP = 8  # candidates shown per step
+
+_STOPPED = {
+    "residuals_white": "the residuals became white (nothing systematic is left to explain)",
+    "no_supported_candidate": "no candidate effect passed the significance rule",
+    "max_steps": "the step limit was reached",
+}
+
+
+def _num(x, fmt: str = ".4g") -> str:
+    """A number for a table cell; a dash for None or a non-number."""
+    if isinstance(x, bool) or x is None:
+        return "–"
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    if not math.isfinite(v):
+        return "–"
+    if fmt == "p":
+        return "< 1e-300" if v < 1e-300 else f"{v:.2g}"
+    return f"{v:{fmt}}"
+
+
+def _cell(x) -> str:
+    return str(x).replace("|", "\\|").replace("\n", " ")
+
+
+def _where(where) -> str:
+    if where is None:
+        return ""
+    if isinstance(where, (list, tuple)):
+        return "–".join(str(w) for w in where)
+    return str(where)
+
+
+def _effect(e) -> str:
+    """`kind (a–b)` for an effect or candidate dict, or a `[kind, where]` pair."""
+    if e is None:
+        return "nothing"
+    if isinstance(e, (list, tuple)):
+        kind, where = (e[0], e[1]) if len(e) >= 2 else (e[0] if e else "?", None)
+    else:
+        kind, where = e.get("kind", "?"), e.get("where")
+    w = _where(where)
+    return f"{kind} ({w})" if w else str(kind)
+
+
+def _sentence(text) -> str:
+    text = str(text).strip()
+    return text if text.endswith((".", "!", "?")) else text + "."
+
+
+def _yes_no(x) -> str:
+    return "–" if x is None else ("yes" if x else "no")
+
+
+def _matching_candidate(previous: dict, added: dict) -> dict | None:
+    """The candidate of the previous step that was added (spec: the first one; matched
+    by kind and place when possible)."""
+    cands = previous.get("candidates") or []
+    for c in cands:
+        if c.get("kind") == added.get("kind") and _where(c.get("where")) == _where(added.get("where")):
+            return c
+    return cands[0] if cands else None
+
+
+def _evidence(i: int, step: dict, previous: dict, report: dict, columns) -> str:
+    """One paragraph: why the effect added at step `i` was added and what it bought."""
+    added = step.get("added")
+    if not added:
+        return "Nothing was added at this step."
+    c = _matching_candidate(previous, added) or {}
+    parts = [f"**Added {_effect(added)}**"]
+    ev = []
+    if c.get("score") is not None:
+        ev.append(f"evidence score {_num(c['score'])}"
+                  + (f" ({c['method']})" if c.get("method") else ""))
+    if c.get("delta_bic") is not None:
+        ev.append(f"Δ BIC {_num(c['delta_bic'], '+.4g')}")
+    if c.get("p_value") is not None:
+        pv = _num(c["p_value"], "p")
+        ev.append(f"p {pv}" if pv.startswith("<") else f"p = {pv}")
+    if c.get("supported") is not None:
+        ev.append("supported" if c["supported"] else "not supported")
+    if ev:
+        parts.append(": " + ", ".join(ev))
+    rule = report.get("significance_rule")
+    if rule and c.get("supported"):
+        parts.append(f" under the rule “{rule}”")
+    parts.append(".")
+    ties = c.get("tied_with") or []
+    if ties:
+        parts.append(" The data could not tell it apart from "
+                     + ", ".join(_effect(t) for t in ties) + ".")
+    if previous.get("separation"):
+        parts.append(f" What would separate them: {_sentence(previous['separation'])}")
+    if c.get("note"):
+        parts.append(f" Note: {_sentence(c['note'])}")
+    params = added.get("parameters") or {}
+    if params:
+        parts.append(" Fitted: " + ", ".join(f"{k} = {_num(v)}" for k, v in params.items()) + ".")
+    before, after = previous.get("rmse") or {}, step.get("rmse") or {}
+    changes = [f"{col} {_num(before.get(col))} → {_num(after.get(col))}" for col in columns
+               if col in before or col in after]
+    if changes:
+        parts.append(" RMSE: " + "; ".join(changes) + ".")
+    return "".join(parts)
+
+
+def _candidate_table(cands: list[dict]) -> list[str]:
+    lines = ["| # | candidate | score | Δ BIC | p-value | supported | tied with | method | note |",
+             "|---|---|---:|---:|---:|---|---|---|---|"]
+    for k, c in enumerate(cands[:_TOP], 1):
+        ties = ", ".join(_effect(t) for t in (c.get("tied_with") or [])) or "–"
+        lines.append("| " + " | ".join(_cell(v) for v in (
+            k, _effect(c), _num(c.get("score")), _num(c.get("delta_bic"), "+.4g"),
+            _num(c.get("p_value"), "p"), _yes_no(c.get("supported")), ties,
+            c.get("method") or "–", c.get("note") or "")) + " |")
+    if len(cands) > _TOP:
+        lines.append(f"\n({len(cands) - _TOP} more candidates not shown; all are in report.json.)")
+    return lines
+
+
+def _error_chart(path: Path, steps: list[dict], columns, noise: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 3.6))
+    x = np.arange(len(steps))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for j, c in enumerate(columns):
+        color = colors[j % len(colors)]
+        y = np.array([float(s.get("rmse", {}).get(c)) if isinstance(s.get("rmse", {}).get(c),
+                      (int, float)) else np.nan for s in steps])
+        y[~(y > 0)] = np.nan
+        if np.isfinite(y).any():
+            ax.plot(x, y, "o-", color=color, label=c)
+        sd = noise.get(c)
+        if isinstance(sd, (int, float)) and sd > 0:
+            ax.axhline(sd, color=color, ls="--", lw=0.8)
+    ax.set_yscale("log")
+    ax.set_xticks(x)
+    ax.set_xticklabels(["start" if not s.get("added") else
+                        f"+{s['added'].get('kind', '?')}" for s in steps],
+                       rotation=30, ha="right", fontsize=8)
+    ax.set_xlabel("step")
+    ax.set_ylabel("free-run RMSE")
+    ax.set_title("error per step" + (" (dashed: noise std)" if noise else ""), fontsize=9)
+    ax.grid(alpha=0.3, which="both")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def write_investigation_report(out_dir, report: dict, step_traces: list, columns: list[str],
+                               input_names: list[str], boundary_inputs=()) -> Path:
+    """Write `report.md` (and its PNGs, plus `diagnostics.json`) into `out_dir`.
+
+    **Arguments:**
+
+    - `out_dir`: folder, created if needed.
+    - `report`: the `investigate` `report.json` dict (spec §5); optional keys used
+      when present: `noise` (column -> std), `significance_rule`, `likelihood`,
+      `unexplained`, `steps[*].wall_time_s`, `steps[*].separation`, and in candidates
+      `p_value`, `supported`, `method`, `note`.
+    - `step_traces`: `step_traces[i]` the run traces (see `_diagnostics`) of the
+      model fitted at step `i`; a missing entry just leaves that step without plots.
+    - `columns`, `input_names`, `boundary_inputs`: as `diagnose_traces` takes them.
+
+    **Returns:** the path of `report.md`.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    steps = list(report.get("steps") or [])
+    noise = {k: v for k, v in (report.get("noise") or {}).items() if v is not None}
+    first, last = (steps[0] if steps else {}), (steps[-1] if steps else {})
+
+    diagnoses, plots = [], []
+    for i in range(len(steps)):
+        traces = step_traces[i] if i < len(step_traces) else None
+        if traces:
+            diagnoses.append(diagnose_traces(columns, traces, input_names, boundary_inputs))
+            plots.append(diagnostic_plots(out, f"step{i}", columns, traces, input_names,
+                                          boundary_inputs))
+        else:
+            diagnoses.append(None)
+            plots.append(None)
+    (out / "diagnostics.json").write_text(json.dumps(
+        {"steps": diagnoses}, indent=1, allow_nan=False, ensure_ascii=False))
+    _error_chart(out / "error_by_step.png", steps or [{}], columns, noise)
+
+    added = [(i, s["added"]) for i, s in enumerate(steps) if s.get("added")]
+    md = ["# Investigation report", ""]
+
+    # Summary
+    md += ["## Summary", ""]
+    if added:
+        md.append(f"Starting from the given model, the investigation added {len(added)} "
+                  f"effect{'s' if len(added) > 1 else ''}, in this order: "
+                  + "; ".join(f"{_effect(a)} (step {i})" for i, a in added) + ".")
+    else:
+        md.append("The investigation added no effect to the given model.")
+    stopped = report.get("stopped_because")
+    if stopped:
+        md.append(f"It stopped because {_STOPPED.get(stopped, stopped)} (`{stopped}`).")
+    if report.get("likelihood"):
+        md.append(f"Likelihood: `{report['likelihood']}`.")
+    if report.get("significance_rule"):
+        md.append(f"A candidate counts as supported when: {report['significance_rule']}.")
+    md.append("")
+    md += ["| column | start RMSE | final RMSE | noise std | final / noise | final whiteness p |",
+           "|---|---:|---:|---:|---:|---:|"]
+    for c in columns:
+        r0, r1 = (first.get("rmse") or {}).get(c), (last.get("rmse") or {}).get(c)
+        sd = noise.get(c)
+        ratio = (r1 / sd) if isinstance(r1, (int, float)) and isinstance(sd, (int, float)) \
+            and sd > 0 else None
+        md.append("| " + " | ".join(_cell(v) for v in (
+            c, _num(r0), _num(r1), _num(sd), _num(ratio, ".3g"),
+            _num((last.get("whiteness_p") or {}).get(c), "p"))) + " |")
+    md.append("")
+    if noise:
+        close = [c for c in columns if isinstance((last.get("rmse") or {}).get(c), (int, float))
+                 and c in noise and noise[c] > 0 and last["rmse"][c] <= 1.2 * noise[c]]
+        if close:
+            md.append("The final model's error is within 20 % of the measurement noise for "
+                      + ", ".join(close) + ".")
+        far = [c for c in columns if c in noise and c not in close
+               and isinstance((last.get("rmse") or {}).get(c), (int, float))]
+        if far:
+            md.append("Still above the noise: " + ", ".join(far) + ".")
+    if "unexplained" in report:
+        u = report.get("unexplained")
+        md.append(f"Left unexplained: {u}" if u else "Nothing is flagged as left unexplained.")
+    if report.get("final_model"):
+        md.append(f"Final model: [`{report['final_model']}`]({report['final_model']}).")
+    md.append("")
+    md += ["![free-run RMSE per step](error_by_step.png)", ""]
+
+    # Overview table
+    md += ["## Steps", ""]
+    head = ["step", "added", "parameters", "−log L", "AIC", "BIC"] + [f"RMSE {c}" for c in columns]
+    timed = any("wall_time_s" in s for s in steps)
+    if timed:
+        head.append("wall time, s")
+    md += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for i, s in enumerate(steps):
+        row = [i, _effect(s.get("added")) if s.get("added") else "start", _num(s.get("n_params")),
+               _num(s.get("nll")), _num(s.get("aic")), _num(s.get("bic"))]
+        row += [_num((s.get("rmse") or {}).get(c)) for c in columns]
+        if timed:
+            row.append(_num(s.get("wall_time_s"), ".3g"))
+        md.append("| " + " | ".join(_cell(v) for v in row) + " |")
+    md.append("")
+
+    # Per step
+    for i, s in enumerate(steps):
+        title = "the given model" if i == 0 and not s.get("added") \
+            else f"added {_effect(s.get('added'))}"
+        md += [f"## Step {i}: {title}", ""]
+        if i > 0:
+            md += [_evidence(i, s, steps[i - 1], report, columns), ""]
+        pl, dg = plots[i], diagnoses[i]
+        if pl:
+            if i > 0 and plots[i - 1]:
+                md += ["Measured against model, before (previous step) and after this step:", "",
+                       f"![before: step {i - 1}]({plots[i - 1]['fit']})",
+                       f"![after: step {i}]({pl['fit']})", ""]
+            else:
+                md += ["Measured against model:", "", f"![step {i}]({pl['fit']})", ""]
+        md += ["### Residual whiteness", ""]
+        wp = s.get("whiteness_p") or {}
+        md += ["| column | whiteness p (report) | Ljung-Box p (traces) | lags | white |",
+               "|---|---:|---:|---:|---|"]
+        for c in columns:
+            lb = ((dg or {}).get("columns", {}).get(c) or {}).get("ljung_box") or {}
+            md.append("| " + " | ".join(_cell(v) for v in (
+                c, _num(wp.get(c), "p"), _num(lb.get("p"), "p"), _num(lb.get("lags"), ".0f"),
+                _yes_no(lb.get("white")))) + " |")
+        md.append("")
+        if dg:
+            md.append("Lags as stated; runs pooled by summing per-run autocovariances, each run "
+                      "about its own mean (a lag never straddles two runs).")
+            md.append("")
+            if dg["findings"]:
+                md += ["What the residual shows:", ""] + [f"- {f}" for f in dg["findings"]] + [""]
+        if pl:
+            md += [f"Diagnostics: [autocorrelation]({pl['acf']}), "
+                   f"[cross-correlation with inputs]({pl['xcorr']}), "
+                   f"[cumulated periodogram]({pl['periodogram']}), "
+                   f"[residual by phase]({pl['phases']}).", ""]
+            md += [f"![residual by chamber phase]({pl['phases']})", ""]
+        else:
+            md += ["(No run traces for this step: no plots.)", ""]
+        cands = s.get("candidates") or []
+        md += ["### Candidates", ""]
+        if cands:
+            md.append("Ranked by evidence score (larger is stronger); Δ BIC = BIC after − BIC "
+                      "before; the first, if supported, is added at the next step.")
+            md.append("")
+            md += _candidate_table(cands) + [""]
+            if s.get("separation"):
+                md += [f"What would separate the tied candidates: {_sentence(s['separation'])}", ""]
+        else:
+            md += ["No candidate was evaluated at this step.", ""]
+
+    path = out / "report.md"
+    path.write_text("\n".join(md) + "\n", encoding="utf-8")
+    return path

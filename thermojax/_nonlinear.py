@@ -1,0 +1,101 @@
+"""Simulation of a model with nonlinear effects: exponential time differencing (ETD2).
+
+`dx/dt = A x + B u(t) + N(x, u)`: the linear part is integrated exactly (as for a
+linear model: stiff node time constants cost nothing), the small nonlinear rate `N`
+(radiation, temperature-dependent conductance and capacitance, input-dependent
+conductance) is taken linear in time over each sample interval, between its value
+at the interval's start and a predicted value at its end (Cox & Matthews 2002,
+ETD2RK). Both integrals are the first-order-hold input matrices of the system
+`(A, I)`, so one matrix exponential of the augmented system gives every matrix:
+
+    x̃       = Φ x_k + B0 u_k + B1 u_k+1 + (G0 + G1) N(x_k, u_k)
+    x_k+1   = Φ x_k + B0 u_k + B1 u_k+1 + G0 N(x_k, u_k) + G1 N(x̃, u_k+1⁻)
+
+(`u_k+1⁻`: a zero-order-hold input keeps its value `u_k` up to the interval's end).
+The local error is third order in the sample period times the rate of change of `N`.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._discretize import discretize
+from ._system import LinearSystem
+
+
+def _augmented(system: LinearSystem) -> LinearSystem:
+    n = system.n_states
+    return LinearSystem(system.A, jnp.concatenate([system.B, jnp.eye(n)], axis=1), system.C,
+                        jnp.zeros((system.C.shape[0], system.B.shape[1] + n)),
+                        holds=(*system.holds, *("foh",) * n), capacitance=system.capacitance)
+
+
+def nonlinear_steady_state(model, system: LinearSystem, u0, iterations: int = 8):
+    """The equilibrium of the nonlinear model at a constant input `u0` (°C), by Newton's
+    method from the linear equilibrium."""
+    x = system.steady_state(u0)
+
+    def residual(x):
+        return system.A @ x + system.B @ u0 + model.nonlinear_rate(system, x, u0)
+
+    def newton(x, _):
+        return x - jnp.linalg.solve(jax.jacfwd(residual)(x), residual(x)), None
+
+    return jax.lax.scan(newton, x, None, length=iterations)[0]
+
+
+def initial_state_nonlinear(model, system, u0, run_initial=None):
+    """As `ThermalModel.initial_state`, from the nonlinear equilibrium."""
+    x0 = nonlinear_steady_state(model, system, u0)
+    if model.initial_nodes:
+        idx = np.array(model.initial_nodes)
+        x0 = x0.at[idx].set(model.initial[idx] if run_initial is None else run_initial)
+    return x0
+
+
+def etd2_step(model, system: LinearSystem, dt):
+    """`step(x_k, u_k, u_k1) -> x_k+1` over one sample period `dt` (s)."""
+    m = system.B.shape[1]
+    disc = discretize(_augmented(system), dt)
+    Phi = disc.Phi
+    B0, G0 = disc.B0[:, :m], disc.B0[:, m:]
+    B1, G1 = disc.B1[:, :m], disc.B1[:, m:]
+    zoh = np.array([h == "zoh" for h in system.holds], dtype=bool)
+
+    def step(x, u_k, u_k1):
+        u_end = jnp.where(zoh, u_k, u_k1)
+        linear = Phi @ x + B0 @ u_k + B1 @ u_k1
+        n_k = model.nonlinear_rate(system, x, u_k)
+        x_pred = linear + (G0 + G1) @ n_k
+        return linear + G0 @ n_k + G1 @ model.nonlinear_rate(system, x_pred, u_end)
+
+    return step
+
+
+def simulate_run_nonlinear(model, system: LinearSystem, ts, u, x0):
+    """States (T, n) of one run by ETD2 from `x0`; the sample period is `ts[1] - ts[0]`."""
+    step = etd2_step(model, system, ts[1] - ts[0])
+    u_next = jnp.concatenate([u[1:], u[-1:]], axis=0)
+    return jax.lax.scan(lambda x, inp: (step(x, *inp), x), x0, (u, u_next))[1]
+
+
+def dataset_states_nonlinear(model, data, run_initial=None):
+    """Node temperatures (runs, T, n) of every run of a `Dataset`."""
+    system = model.linear_system()
+
+    def one(ts, u, r0):
+        x0 = initial_state_nonlinear(model, system, u[0], r0)
+        return simulate_run_nonlinear(model, system, ts, u, x0)
+
+    if run_initial is None:
+        return jax.vmap(lambda ts, u: one(ts, u, None))(data.ts, data.inputs)
+    return jax.vmap(one)(data.ts, data.inputs, run_initial)
+
+
+def dataset_outputs_nonlinear(model, data, run_initial=None):
+    """Free-run readings (runs, T, p) of every run."""
+    system = model.linear_system()
+    x = dataset_states_nonlinear(model, data, run_initial)
+    return x @ system.C.T + model.output_offset()[None, None, :]

@@ -1,0 +1,223 @@
+"""The abstract effect: what one kind of missing physics (spec §3) contributes to a model.
+
+An effect kind is a stateless object. It enters a model in one of two ways:
+
+- *structural* kinds (`extra_node`, `heat_source`, `boundary`, `sensor_lag`) are
+  lowered into plain nodes, links, boundaries and heat inputs (`lower`), so the
+  model stays linear and keeps its exact discretization and fast Jacobians;
+- *term* kinds keep a few parameters of their own in the model (`ThermalModel.effect_values`)
+  and add either a heat flow (`heat`, W, for the nonlinear kinds) or an affine
+  change of a sensor's reading (`output`, for offsets and gains).
+
+Every kind also knows where it can act (`places`), a physical first guess of its
+parameters (`initial_parameters`) and the direction in which it would first move
+the outputs of a fitted model (`score_direction`), which the candidate search uses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .._errors import InputError
+from .._spec import EFFECT_KINDS, Effect, ModelSpec, Parameter
+
+T_REF = 25.0  # °C, reference temperature of every temperature coefficient
+KELVIN = 273.15
+
+
+@dataclass(frozen=True)
+class ParameterLink:
+    """An effect parameter carried by a lowered spec's parameter:
+    `effect value = scale * lowered value ** power`."""
+
+    effect_parameter: str
+    lowered: str  # dotted report name in the lowered spec, e.g. "links.a-b.conductance"
+    scale: float = 1.0
+    power: float = 1.0
+
+
+@dataclass(frozen=True)
+class Term:
+    """A term effect as the model holds it: static indices, parameters in `effect_values`.
+
+    `slot`: index of the first parameter in `ThermalModel.effect_values`; `logs`: per
+    parameter, whether the stored value is its log (positive parameters).
+    `a`, `b`: node indices (`b` = -1 when the second place is an input column);
+    `column_b`: input index of `b` when it is a column; `column`: the input index of a
+    third place (`conductance_input`); `path`: ("link" | "boundary", index) of the
+    conductance a temperature or input coefficient modulates; `sensor`: sensor index.
+    """
+
+    kind: str
+    where: tuple[str, ...]
+    parameters: tuple[str, ...]
+    logs: tuple[bool, ...]
+    slot: int
+    a: int = -1
+    b: int = -1
+    column_b: int = -1
+    column: int = -1
+    path: tuple[str, int] = ("", -1)
+    sensor: int = -1
+
+
+class AbstractEffect:
+    """One kind of the vocabulary. Subclasses set `kind` and override what applies."""
+
+    kind: str = ""
+    nonlinear: bool = False  # adds a state-dependent heat flow (no exact discretization)
+
+    @property
+    def parameters(self) -> tuple[str, ...]:
+        return EFFECT_KINDS[self.kind].parameters
+
+    @property
+    def positive(self) -> tuple[str, ...]:
+        return EFFECT_KINDS[self.kind].positive
+
+    # -- structure ---------------------------------------------------------------------
+    def lower(self, spec: ModelSpec, effect: Effect) -> tuple[ModelSpec, list[ParameterLink]]:
+        """Structural kinds: `spec` with the effect written as plain entries, and where
+        each effect parameter now lives. Term kinds return `spec` unchanged."""
+        return spec, []
+
+    @property
+    def is_term(self) -> bool:
+        return False
+
+    def term(self, spec: ModelSpec, effect: Effect, slot: int) -> Term:
+        """Term kinds: the static description of the effect in `spec` (lowered)."""
+        raise NotImplementedError
+
+    def heat(self, term: Term, values, T, u, network):
+        """Extra heat flow into every node (W), (nodes,), for nonlinear kinds."""
+        return None
+
+    def output(self, term: Term, values):
+        """`(scale, offset)` of the sensor's reading `scale · T + offset`, or None."""
+        return None
+
+    # -- candidates --------------------------------------------------------------------
+    def places(self, spec: ModelSpec, columns: dict[str, str]) -> list[tuple[str, ...]]:
+        """Every `where` the topology allows. `columns` maps each data column the model
+        does not use to its role guess ("temperature" or "power")."""
+        return []
+
+    def initial_parameters(self, spec: ModelSpec, where: tuple[str, ...]) -> dict[str, float]:
+        """A physical first guess of every parameter at this place."""
+        raise NotImplementedError
+
+    def score_direction(self, ctx, where: tuple[str, ...]):
+        """How the effect first moves the model at its null value (no effect):
+        `("heat", w)` with `w` (runs, T, nodes) W injected into the nodes, or
+        `("output", d)` with `d` (runs, T, outputs) added to the readings, per unit of
+        the effect's leading parameter. `ctx` is a `ScoreContext` (`_candidates`)."""
+        raise NotImplementedError
+
+
+def fail(spec: ModelSpec, effect: Effect, message: str) -> None:
+    i = spec.effects.index(effect) if effect in spec.effects else 0
+    raise InputError(message, file=spec.source, field=f"effects[{i}].where")
+
+
+def param(effect: Effect, name: str, default: float) -> Parameter:
+    return effect.parameters.get(name, Parameter(default))
+
+
+def path_between(spec: ModelSpec, a: str, b: str):
+    """`("link", i)` for the link a–b (either order) or `("boundary", i)` for node a's
+    boundary to column b; None if there is none."""
+    for i, link in enumerate(spec.links):
+        if set(link.between) == {a, b}:
+            return "link", i
+    for i, bd in enumerate(spec.boundaries):
+        if bd.node == a and bd.input == b:
+            return "boundary", i
+    return None
+
+
+def conduction_paths(spec: ModelSpec) -> list[tuple[str, str]]:
+    """Every link `(a, b)` and every boundary `(node, column)`, in file order."""
+    return [tuple(k.between) for k in spec.links] + [(b.node, b.input) for b in spec.boundaries]
+
+
+def total_capacitance(spec: ModelSpec) -> float:
+    return float(sum(n.capacitance.value for n in spec.nodes))
+
+
+def unique_name(spec: ModelSpec, stem: str) -> str:
+    names = set(spec.node_names)
+    name, i = stem, 2
+    while name in names:
+        name, i = f"{stem}_{i}", i + 1
+    return name
+
+
+def lowpass(x: np.ndarray, dt: float, tau: float) -> np.ndarray:
+    """First-order lag (time constant `tau`, s) of signals sampled every `dt` s along
+    axis 0, exact for a piecewise-linear input, started at rest at the first sample."""
+    from scipy.signal import lfilter
+
+    a = np.exp(-dt / tau)
+    c = tau / dt * (1 - a)  # y[k+1] = a y[k] + (c - a) x[k] + (1 - c) x[k+1]
+    x0 = x[:1]
+    return x0 + lfilter([1 - c, c - a], [1.0, -a], x - x0, axis=0)
+
+
+class PathEffect(AbstractEffect):
+    """Shared plumbing of the kinds acting between `a` and `b` (a node, or an input column
+    of a boundary of `a`): indices, the far temperature, and the path's conductance."""
+
+    nonlinear = True
+
+    @property
+    def is_term(self):
+        return True
+
+    def term(self, spec, effect, slot):
+        a, b = effect.where[:2]
+        nodes = spec.node_names
+        cols = spec.input_columns
+        path = path_between(spec, a, b) or ("", -1)
+        third = cols.index(effect.where[2]) if len(effect.where) > 2 else -1
+        return Term(self.kind, effect.where, self.parameters,
+                    tuple(p in self.positive for p in self.parameters), slot,
+                    a=nodes.index(a), b=nodes.index(b) if b in nodes else -1,
+                    column_b=cols.index(b) if b not in nodes else -1, column=third, path=path)
+
+    @staticmethod
+    def far(term: Term, T, u):
+        """Temperature (°C) at the `b` end."""
+        return T[term.b] if term.b >= 0 else u[term.column_b]
+
+    @staticmethod
+    def path_conductance(term: Term, network):
+        kind, i = term.path
+        return network.conductance[i] if kind == "link" else network.boundary_conductance[i]
+
+    @staticmethod
+    def into_a(term: Term, flow, T):
+        """Heat `flow` (W) into `a`, and out of `b` when `b` is a node: (nodes,)."""
+        import jax.numpy as jnp
+
+        h = jnp.zeros_like(T).at[term.a].add(flow)
+        return h.at[term.b].add(-flow) if term.b >= 0 else h
+
+    def places(self, spec, columns):
+        return conduction_paths(spec)
+
+    def path_value(self, spec, where) -> float:
+        kind, i = path_between(spec, *where[:2])
+        return (spec.links[i].conductance.value if kind == "link"
+                else spec.boundaries[i].conductance.value)
+
+    @staticmethod
+    def split(ctx, where, flow):
+        """Score direction of a heat `flow` (runs, T) into `a` and out of node `b`."""
+        w = np.zeros_like(ctx.T)
+        w[..., ctx.node(where[0])] = flow
+        if ctx.is_node(where[1]):
+            w[..., ctx.node(where[1])] -= flow
+        return w
