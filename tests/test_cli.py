@@ -322,7 +322,7 @@ def test_simulate_bad_model_subprocess(tmp_path):
 
 def test_demo(capsys, tmp_path):  # about 6 s: not `slow`
     out = tmp_path / "demo"
-    rc, stdout, err = run(capsys, "demo", "--out", str(out))
+    rc, stdout, err = run(capsys, "demo", "--quick", "--out", str(out))
     assert rc == 0, err
     csv, png = out / "imu6_calibration.csv", out / "imu6_calibration.png"
     assert csv.is_file() and png.is_file()

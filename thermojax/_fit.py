@@ -309,7 +309,7 @@ def _is_log(name: str) -> bool:
 
 def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "output_error",
         solver=None, max_steps: int = 200, prior_log_std: float = 3.0, n_starts: int = 1,
-        seed: int = 0, progress=None) -> FitResult:
+        seed: int = 0, progress=None, holdout: int | None = None) -> FitResult:
     """Fit the free parameters of `spec` to several runs at once.
 
     **Arguments:**
@@ -328,6 +328,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     - `n_starts`: more than 1 adds starts perturbed by a log-normal factor
       (std 0.5); the best likelihood wins.
     - `progress`: optional callable taking a one-line string.
+    - `holdout`: index of a run left out of the likelihood (its measurements are masked;
+      it is still simulated, so `predictions` hold its out-of-sample prediction).
 
     **Returns:** a `FitResult`.
     """
@@ -341,6 +343,9 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     experiments = _reorder_inputs(experiments, original.input_columns, spec.input_columns)
     _check_runs(spec, experiments)
     data = Dataset.from_experiments(experiments)
+    data = dataclasses.replace(data, names=())  # names are for reports: no recompilation
+    if holdout is not None:
+        data = dataclasses.replace(data, mask=data.mask.at[holdout].set(False))
     model = ThermalModel.from_spec(spec)
     k = len(model.initial_nodes)
     run_initial = jnp.broadcast_to(model.initial[np.array(model.initial_nodes, dtype=int)],
@@ -718,3 +723,54 @@ def _add_fixed_parameters(parameters: dict, spec: ModelSpec, model: ThermalModel
     for name, p, v in entries:
         if name not in parameters and p is not None and p.fixed:
             parameters[name] = {"value": float(v), "std": None, "free": False}
+
+
+# ---------------------------------------------------------------------------
+# Evaluations of a fitted model, for diagnosis
+
+
+def output_error_at(result: FitResult, experiments: list[Experiment]):
+    """The output-error problem at a fit's values: `(data, weights, residuals, jacobian)`,
+    `weights` (runs, T, p) = 1/σ where measured (σ the fitted noise stds), `residuals`
+    (N,) weighted and flattened, `jacobian` (N, P) in the fit's free physical parameters.
+    `experiments` in the input order of `result.lowered_spec`."""
+    spec = result.lowered_spec
+    data = Dataset.from_experiments(experiments)
+    data = dataclasses.replace(data, names=())
+    model = ThermalModel.from_spec(spec)
+    template = FitState(model, jnp.asarray(result.state.run_initial))
+    mask, _ = _masks(spec, model, data.n_runs, "output_error")
+    index = FreeIndex(mask)
+    theta = _free_parameters_np(template, index)
+    sigma = np.asarray(model.noise)
+    problem = _Problem(template, index, data, jnp.asarray(sigma), theta, jnp.zeros_like(theta))
+    n = data.outputs.size
+    weights = np.asarray(data.mask) / sigma[None, None, :]
+    if theta.shape[0] == 0:
+        r = np.asarray(_oe_flat_fast_jit(theta, problem))[:n]
+        return data, weights, r, np.zeros((n, 0))
+    r, Jt, _ = _oe_flat_jacobian_jit(theta, problem)
+    return data, weights, np.asarray(r)[:n], np.asarray(Jt)[:, :n].T
+
+
+_oe_flat_jacobian_jit = eqx.filter_jit(_oe_flat_jacobian)
+_oe_flat_fast_jit = eqx.filter_jit(_oe_flat_fast)
+
+
+@eqx.filter_jit
+def _innovations(model, data: Dataset, run_initial):
+    def one(ts, u, y, mask, r0):
+        kf = kalman_run(model, ts, u, y, mask, r0)
+        return kf.innovations / jnp.where(mask, kf.innovation_std, 1.0)
+
+    return jax.vmap(one)(data.ts, data.inputs, data.outputs, data.mask, run_initial)
+
+
+def standardized_innovations(result: FitResult) -> list[np.ndarray]:
+    """Kalman fits: each run's one-step innovations over their std, (T, p), NaN where
+    nothing was measured."""
+    data = result.problem.data
+    e = np.asarray(_innovations(result.model, data, result.state.run_initial))
+    mask = np.asarray(data.mask)
+    return [np.where(mask[r, :len(p)], e[r, :len(p)], np.nan)
+            for r, p in enumerate(result.predictions)]

@@ -114,6 +114,19 @@ def cmd_demo(args) -> int:
     print(f"  proof mass minus MEMS die:             {grad.min():+.4f} .. {grad.max():+.4f} K")
     print(f"wrote {csv}")
     print(f"wrote {png}")
+    if args.quick:
+        return 0
+    from ._demo import run_demo
+
+    print("\nThe missing-physics story: a three-node sensor module (housing, board, die) "
+          "in a chamber. The believed model (thermojax/data/chain3.toml) misses two effects; "
+          "the data are two chamber ramps with the die dissipating switched power. "
+          "`investigate` fits, diagnoses, adds the best supported effect and refits until "
+          "nothing systematic is left.")
+    report = run_demo(out, progress=_progress)
+    _print_story(report)
+    print(f"the report is {out / 'investigation' / 'report.md'} "
+          f"(with {out / 'investigation' / 'report.json'} and plots)")
     return 0
 
 
@@ -171,6 +184,81 @@ def _add_fit(sub):
     p.set_defaults(func=cmd_fit)
 
 
+def _read_runs(paths: list[str]):
+    from ._telemetry import read_telemetry
+
+    return [read_telemetry(p) for p in paths]
+
+
+def cmd_diagnose(args) -> int:
+    from . import io
+    from ._diagnose import diagnose
+
+    spec = io.load_model(_resolve_model(args.model))
+    report = diagnose(spec, _read_runs(args.data), likelihood=args.likelihood, out=Path(args.out),
+                      progress=_progress)
+    print(f"{'rank':>4}  {'kind':<24} {'where':<34} {'score':>10} {'p':>9}  supported")
+    for i, c in enumerate(report["candidates"][:12]):
+        print(f"{i + 1:>4}  {c['kind']:<24} {'-'.join(c['where']):<34} {c['score']:>10.1f} "
+              f"{c['p_value']:>9.2g}  {'yes' if c['supported'] else 'no'}")
+    print(f"wrote {Path(args.out) / 'report.json'}, {Path(args.out) / 'report.md'} and plots")
+    return 0
+
+
+def cmd_investigate(args) -> int:
+    from . import io
+    from ._investigate import investigate
+
+    spec = io.load_model(_resolve_model(args.model))
+    out = Path(args.out)
+    report = investigate(spec, _read_runs(args.data), likelihood=args.likelihood, out=out,
+                         max_steps=args.max_steps, resume=not args.restart, progress=_progress)
+    _print_story(report)
+    print(f"wrote {out / 'report.json'}, {out / 'model_final.toml'} and {out / 'report.md'}")
+    return 0
+
+
+def _print_story(report: dict) -> None:
+    for i, step in enumerate(report["steps"]):
+        added = step["added"]
+        what = "start" if added is None else f"+ {added['kind']} {added['where']}"
+        rmse = ", ".join(f"{c} {v:.4g}" for c, v in step["rmse"].items())
+        print(f"  step {i}: {what:<48} RMSE {rmse}")
+    print(f"  stopped because: {report['stopped_because']}")
+    if report.get("unexplained"):
+        print(f"  {report['unexplained']}")
+
+
+def _add_diagnose(sub):
+    p = sub.add_parser("diagnose", help="rank candidate effects for a model",
+                       description="Fit a model to one or more runs and rank every candidate "
+                       "effect of the vocabulary (spec §3) at every place the model allows, "
+                       "data columns it does not use included, without changing the model. "
+                       "Writes DIR/report.json, DIR/report.md and diagnostic plots.")
+    p.add_argument("--model", required=True, help="model TOML file or built-in model name")
+    p.add_argument("--data", required=True, action="append", help="telemetry CSV (repeatable)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error")
+    p.set_defaults(func=cmd_diagnose)
+
+
+def _add_investigate(sub):
+    p = sub.add_parser("investigate", help="find and add the missing physics, step by step",
+                       description="Run the missing-physics loop: fit, diagnose, add the best "
+                       "supported effect, refit, repeat until the residuals are white or no "
+                       "candidate is supported. Writes DIR/report.json, DIR/model_final.toml, "
+                       "DIR/report.md and plots. An interrupted run resumes from its last "
+                       "finished step when started again with the same inputs.")
+    p.add_argument("--model", required=True, help="model TOML file or built-in model name")
+    p.add_argument("--data", required=True, action="append", help="telemetry CSV (repeatable)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error")
+    p.add_argument("--max-steps", type=int, default=4, help="most effects to add (default 4)")
+    p.add_argument("--restart", action="store_true",
+                   help="ignore a checkpoint in DIR and start from the given model")
+    p.set_defaults(func=cmd_investigate)
+
+
 def cmd_run(args) -> int:
     from ._runner import run_config
 
@@ -213,9 +301,13 @@ def _add_simulate(sub):
 
 def _add_demo(sub):
     p = sub.add_parser("demo", help="end-to-end demo on built-in data",
-                       description="Run the end-to-end demo on built-in data and write a CSV "
-                       "and plots.")
+                       description="Run the end-to-end demo on built-in data: the six-node IMU "
+                       "through the calibration schedule, then the missing-physics story "
+                       "(`investigate` finding the effects a believed model lacks) with its "
+                       "report. A few minutes on two cores.")
     p.add_argument("--out", default="thermojax_demo", help="output folder (default thermojax_demo)")
+    p.add_argument("--quick", action="store_true",
+                   help="only the simulation part (the IMU through the calibration schedule)")
     p.set_defaults(func=cmd_demo)
 
 
@@ -227,6 +319,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_simulate(sub)
     _add_fit(sub)
+    _add_diagnose(sub)
+    _add_investigate(sub)
     _add_run(sub)
     _add_demo(sub)
     return parser

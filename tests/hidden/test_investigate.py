@@ -1,0 +1,108 @@
+"""The hidden-effect suite: `investigate` on data from the independent generator.
+
+Each case's data come from `generator.py` (its own Radau integration at 1e-10, no
+thermojax code); the tool sees only the believed model and the CSV files. Runs are
+cut to `HORIZON_S` to keep the suite fast; the full-length runs are in
+`benchmarks/investigate.py`.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from thermojax.cli import main
+
+from . import generator as g
+
+HORIZON_S = 2400.0
+EFFECT_CASES = [c for c in g.case_names() if c not in ("null", "out_of_vocabulary")]
+
+
+def _run(case, tmp_path, likelihood="output_error"):
+    files = g.write_case(case, tmp_path / "data", seed=0, horizon_s=HORIZON_S)
+    out = tmp_path / "out"
+    argv = ["investigate", "--model", str(files["model"]), "--out", str(out),
+            "--likelihood", likelihood]
+    for p in files["data"]:
+        argv += ["--data", str(p)]
+    assert main(argv) == 0
+    report = json.loads((out / "report.json").read_text())
+    return g.load_case(case), report, out
+
+
+def _noise(case) -> dict:
+    out = {s["column"]: float(case["noise"]) for s in case["believed"]["sensors"]}
+    for b in case["believed"].get("biases", []):
+        out[b["column"]] = float(b["noise"]["value"] if isinstance(b["noise"], dict)
+                                 else b["noise"])
+    return out
+
+
+def _same_place(kind, a, b) -> bool:
+    a, b = list(a), list(b)
+    if kind in ("radiation", "conductance_temperature", "extra_node") and len(a) == 2 and \
+            set(a) == set(b):
+        return True
+    return a == b
+
+
+def _check_report_keys(report):
+    assert report["schema"] == 1 and report["thermojax_version"]
+    assert report["stopped_because"] in ("residuals_white", "no_supported_candidate",
+                                         "max_steps")
+    assert report["final_model"] == "model_final.toml"
+    for step in report["steps"]:
+        for key in ("added", "n_params", "rmse", "nll", "aic", "bic", "whiteness_p",
+                    "candidates"):
+            assert key in step
+        scores = [c["score"] for c in step["candidates"]]
+        assert all(c["kind"] and isinstance(c["tied_with"], list) for c in step["candidates"])
+        # ranked best first among the refitted ones, which lead the list
+        refit = [c["score"] for c in step["candidates"] if c["method"] == "refit"]
+        assert refit == sorted(refit, reverse=True)
+        del scores
+    for prev, step in zip(report["steps"], report["steps"][1:]):
+        first = prev["candidates"][0]
+        assert step["added"]["kind"] == first["kind"] or any(
+            step["added"]["kind"] == c["kind"] and step["added"]["where"] == c["where"]
+            for c in prev["candidates"] if c["supported"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", EFFECT_CASES)
+def test_hidden_effect_is_found(case, tmp_path):
+    info, report, out = _run(case, tmp_path)
+    _check_report_keys(report)
+    expected = info["expected"]
+    steps = report["steps"]
+    assert len(steps) >= 2, f"nothing added; step 0 candidates: {steps[0]['candidates'][:3]}"
+    added = steps[1]["added"]
+    first = steps[0]["candidates"][0]
+    found = added["kind"] == expected["kind"] and _same_place(added["kind"], added["where"],
+                                                               expected["where"])
+    tie = any(k == expected["kind"] and _same_place(k, w, expected["where"])
+              for k, w in first["tied_with"])
+    assert found or tie, (added, first)
+    noise = _noise(info)
+    for col, rmse in steps[-1]["rmse"].items():
+        assert rmse <= 1.5 * noise[col], (col, rmse, noise[col])
+    assert (out / "model_final.toml").is_file() and (out / "report.md").is_file()
+
+
+@pytest.mark.slow
+def test_null_case_adds_nothing(tmp_path):
+    info, report, _ = _run("null", tmp_path)
+    _check_report_keys(report)
+    assert len(report["steps"]) == 1 and report["steps"][0]["added"] is None
+    assert report["stopped_because"] in ("residuals_white", "no_supported_candidate")
+
+
+@pytest.mark.slow
+def test_out_of_vocabulary_residual_is_not_reported_white(tmp_path):
+    info, report, _ = _run("out_of_vocabulary", tmp_path)
+    _check_report_keys(report)
+    assert report["stopped_because"] != "residuals_white"
+    assert min(report["steps"][-1]["whiteness_p"].values()) < 0.01
+    assert report["unexplained"]

@@ -1,0 +1,306 @@
+"""Candidate effects for a fitted model: enumerate, score, refit, rank.
+
+Every kind of the vocabulary is tried at every place the topology allows, data
+columns the model does not use included. Each candidate is first scored at no
+refitting cost by the *score test* (Rao's efficient score): at the fitted model
+the effect is absent (its parameter at the null value), and the derivative of the
+outputs along it, `d`, is known from the effect's physics (`score_direction`: a heat
+flow into nodes, propagated through the fitted network, or a change of a reading).
+With `J` the Jacobian of the fitted parameters and `r` the noise-weighted residuals,
+the part of `d` the fitted parameters cannot mimic is `d⊥ = (I − J J⁺) d`, and
+
+    S = (d⊥ᵀ r)² / (d⊥ᵀ d⊥)  ~  χ²₁ when the effect is absent.
+
+An effect whose parameter is positive (a mass, a radiation coefficient, a
+conductance, a lag) sits on the boundary of its parameter space when absent: its
+test is one-sided (Self & Liang 1987: half the χ²₁ tail, and nothing for a
+negative score). The best candidates are then refitted; their statistic becomes the
+likelihood ratio `2 (nll_before − nll_after)`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy import stats
+
+from ._data import Dataset
+from ._spec import EFFECT_KINDS, Effect, ModelSpec, Parameter
+from .effects import KINDS
+from .effects._base import lowpass, path_between
+
+
+@dataclass
+class Candidate:
+    """One effect at one place, with its evidence."""
+
+    kind: str
+    where: tuple[str, ...]
+    score: float  # χ² statistic: score test, or likelihood ratio once refitted
+    p_value: float
+    method: str = "score"  # "score" or "refit"
+    delta_bic: float | None = None
+    tied_with: list = field(default_factory=list)
+    supported: bool = False
+    parameters: dict | None = None  # fitted effect parameters (refit only)
+    note: str = ""
+    holdout_gain: float | None = None  # held-out −log L improvement (leave one run out)
+    result: object = field(default=None, repr=False)  # FitResult of the refit
+    direction: np.ndarray | None = field(default=None, repr=False)  # d⊥, unit norm
+
+    @property
+    def key(self) -> tuple[str, tuple[str, ...]]:
+        return self.kind, tuple(self.where)
+
+    def as_json(self) -> dict:
+        return {"kind": self.kind, "where": list(self.where), "score": _finite(self.score),
+                "delta_bic": _finite(self.delta_bic), "p_value": _finite(self.p_value),
+                "tied_with": [[k, list(w)] for k, w in self.tied_with],
+                "supported": bool(self.supported), "method": self.method,
+                "holdout_gain": _finite(self.holdout_gain), "parameters": self.parameters,
+                "note": self.note}
+
+
+def _finite(x):
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+# ---------------------------------------------------------------------------
+# Columns and places
+
+
+def column_role(name: str, values: np.ndarray) -> str:
+    """A guess of what an unused data column measures: "temperature", "power" or "other"."""
+    low = name.lower()
+    if low.startswith("t_") or "temp" in low or low.startswith("t") and low[1:2].isdigit():
+        return "temperature"
+    if low.startswith(("p_", "q_")) or "power" in low or "heat" in low:
+        return "power"
+    return "other"
+
+
+def column_hold(values: np.ndarray) -> str:
+    """"zoh" for a switched column (mostly unchanged between samples), else "foh"."""
+    v = np.asarray(values, float)
+    d = np.diff(v[np.isfinite(v)])
+    return "zoh" if d.size and np.mean(d == 0) > 0.5 else "foh"
+
+
+def enumerate_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str]
+                     ) -> list[tuple[str, tuple[str, ...]]]:
+    """Every `(kind, where)` the vocabulary allows on `spec` (its lowered form `lowered`),
+    except effects it already has and places on helper nodes lowering made."""
+    helpers = set(lowered.node_names) - set(spec.node_names) - {
+        e.name for e in spec.effects if e.kind == "extra_node"}
+    have = {(e.kind, tuple(e.where)) for e in spec.effects}
+    lagged = {e.where[0] for e in spec.effects if e.kind == "sensor_lag"}
+    out = []
+    for kind, impl in KINDS.items():
+        for where in impl.places(lowered, unused):
+            where = tuple(where)
+            if helpers & set(where) or (kind, where) in have:
+                continue
+            if kind == "sensor_lag" and where[0] in lagged:
+                continue
+            if kind in ("radiation", "conductance_temperature") and len(where) == 2 and \
+                    (kind, where[::-1]) in have:
+                continue
+            out.append((kind, where))
+    return out
+
+
+def new_effect(spec: ModelSpec, lowered: ModelSpec, kind: str, where, holds: dict[str, str]
+               ) -> Effect:
+    """The effect `kind` at `where` with its first-guess parameters, ready to add."""
+    impl = KINDS[kind]
+    params = {k: Parameter(float(v)) for k, v in impl.initial_parameters(lowered, where).items()}
+    if kind == "extra_node" and len(where) == 1:
+        params.pop("conductance_b", None)
+    name = None
+    if kind == "extra_node":
+        stem = "mass_" + "_".join(where)
+        names = set(lowered.node_names)
+        name, i = stem, 2
+        while name in names:
+            name, i = f"{stem}_{i}", i + 1
+    hold = next((holds[w] for w in where if w in holds), None)
+    return Effect(kind, tuple(where), params, name, hold)
+
+
+# ---------------------------------------------------------------------------
+# The score test
+
+
+class ScoreContext:
+    """The fitted model's reconstructed states and the data, for `score_direction`.
+
+    Arrays are (runs, T, ...) on the padded time grid of the `Dataset`."""
+
+    def __init__(self, spec: ModelSpec, model, data: Dataset, run_initial, columns: dict):
+        from ._nonlinear import dataset_states_nonlinear
+
+        self.spec = spec
+        self.names = list(spec.node_names)
+        x = np.asarray(_states_jit(model, data, run_initial))
+        system = model.linear_system()
+        A, B = np.asarray(system.A), np.asarray(system.B)
+        u = np.asarray(data.inputs)
+        self.T = x
+        self.dTdt = x @ A.T + u @ B.T
+        self.capacitance = np.asarray(system.capacitance)
+        self.y = np.asarray(x @ np.asarray(system.C).T)
+        self.dt = float(np.asarray(data.dt)[0])
+        self.dts = np.asarray(data.dt)
+        self.columns = columns
+        self.sensor_columns = list(spec.sensor_columns)
+        self.sensor_nodes = [self.names.index(s.node) for s in spec.sensors]
+        self.model = model
+
+    def node(self, name: str) -> int:
+        return self.names.index(name)
+
+    def is_node(self, name: str) -> bool:
+        return name in self.names
+
+    def sensor(self, column: str) -> int:
+        return self.sensor_columns.index(column)
+
+    def sensor_node(self, s: int) -> int:
+        return self.sensor_nodes[s]
+
+    def column(self, name: str) -> np.ndarray:
+        return self.columns[name]
+
+    def temperature(self, name: str) -> np.ndarray:
+        return self.T[..., self.node(name)] if self.is_node(name) else self.columns[name]
+
+    def is_heat_column(self, node: str, column: str) -> bool:
+        return any(h.node == node and h.input == column for h in self.spec.heat_inputs)
+
+    def lag(self, x: np.ndarray, tau: float) -> np.ndarray:
+        """First-order lag of (runs, T) signals along time, per run's sample period."""
+        return np.stack([lowpass(x[r], float(self.dts[r]), tau) for r in range(x.shape[0])])
+
+    def path_conductance(self, where) -> float:
+        kind, i = path_between(self.spec, where[0], where[1])
+        net = self.model.network
+        return float(np.asarray(net.conductance if kind == "link"
+                                else net.boundary_conductance)[i])
+
+
+@eqx.filter_jit
+def _states_jit(model, data, run_initial):
+    from ._nonlinear import dataset_states_nonlinear
+
+    return dataset_states_nonlinear(model, data, run_initial)
+
+
+@eqx.filter_jit
+def _heat_responses(model, data, W):
+    """Output responses (K, runs, T, p) of the fitted network to heat inputs W
+    (K, runs, T, n) W, each from the steady state of its first sample."""
+    from ._simulate import ExactHold
+    from ._system import LinearSystem
+
+    system = model.linear_system()
+    n = system.n_states
+    heat = LinearSystem(system.A, jnp.diag(1.0 / system.capacitance), system.C,
+                        jnp.zeros((system.C.shape[0], n)), holds=("foh",) * n,
+                        capacitance=system.capacitance)
+
+    def one(w, ts):
+        x0 = heat.steady_state(w[0])
+        return ExactHold().run(heat, x0, w, ts).outputs
+
+    return jax.vmap(lambda wk: jax.vmap(one)(wk, data.ts))(W)
+
+
+def score_candidates(result, data: Dataset, places, columns: dict, weights, residuals,
+                     jacobian) -> list[Candidate]:
+    """Score-test every `(kind, where)` in `places` at the fitted `result`.
+
+    `residuals` (N,) and `jacobian` (N, P): the noise-weighted output-error residuals
+    (data rows, (runs, T, p) flattened, zero where unmeasured) and their Jacobian in the
+    fitted parameters; `weights` (runs, T, p): 1/σ where measured, else 0.
+    """
+    ctx = ScoreContext(result.lowered_spec, result.model, data, result.state.run_initial,
+                       columns)
+    # The fitted parameters' column space, by a truncated SVD (unidentifiable directions
+    # carry no information either way).
+    U, s, _ = np.linalg.svd(jacobian, full_matrices=False)
+    U = U[:, s > 1e-8 * s[0]] if s.size else U
+    r = residuals
+
+    raw = []
+    for kind, where in places:
+        impl = KINDS[kind]
+        try:
+            how, dirs = impl.score_direction(ctx, where)
+        except (KeyError, ValueError, NotImplementedError, TypeError):
+            continue
+        raw.append((kind, where, how, dirs))
+    heat = [(i, j) for i, (_, _, how, dirs) in enumerate(raw) if how == "heat"
+            for j in range(len(dirs))]
+    responses = {}
+    if heat:
+        W = np.stack([raw[i][3][j] for i, j in heat])
+        out = np.asarray(_heat_responses(result.model, data, jnp.asarray(W)))
+        responses = {key: out[k] for k, key in enumerate(heat)}
+    cands = []
+    for i, (kind, where, how, dirs) in enumerate(raw):
+        best = None
+        for j, d in enumerate(dirs):
+            d = responses[(i, j)] if how == "heat" else d
+            dw = (np.asarray(d) * weights).reshape(-1)
+            if not np.all(np.isfinite(dw)):
+                continue
+            dp = dw - U @ (U.T @ dw)
+            norm2 = float(dp @ dp)
+            if norm2 <= 1e-12 * max(float(dw @ dw), 1e-300):
+                stat, u = 0.0, 0.0
+            else:
+                u = float(dp @ r)
+                stat = u * u / norm2
+            one_sided = EFFECT_KINDS[kind].parameters[0] in EFFECT_KINDS[kind].positive
+            if one_sided and u <= 0:
+                stat = 0.0
+            if best is None or stat > best[0]:
+                best = (stat, dp / math.sqrt(norm2) if norm2 > 0 else None, one_sided)
+        if best is None:
+            continue
+        stat, direction, one_sided = best
+        p = stats.chi2.sf(stat, 1) * (0.5 if one_sided else 1.0) * len(dirs)
+        cands.append(Candidate(kind, tuple(where), float(stat), float(min(1.0, p)),
+                               direction=direction))
+    cands.sort(key=lambda c: -c.score)
+    return cands
+
+
+def refit_p_value(kind: str, lr: float, n_new: int) -> float:
+    """p-value of a likelihood-ratio statistic for `n_new` added parameters, the leading
+    one on its boundary for positive kinds (½χ²(k−1) + ½χ²(k) mixture)."""
+    lr = max(lr, 0.0)
+    if EFFECT_KINDS[kind].parameters[0] in EFFECT_KINDS[kind].positive:
+        lo = stats.chi2.sf(lr, n_new - 1) if n_new > 1 else float(lr <= 0)
+        return float(0.5 * lo + 0.5 * stats.chi2.sf(lr, n_new))
+    return float(stats.chi2.sf(lr, n_new))
+
+
+def benjamini_hochberg(p_values, q: float) -> np.ndarray:
+    """Which hypotheses the Benjamini-Hochberg procedure rejects at false-discovery rate q."""
+    p = np.asarray(p_values, float)
+    m = p.size
+    if m == 0:
+        return np.zeros(0, bool)
+    order = np.argsort(p)
+    passed = p[order] <= q * np.arange(1, m + 1) / m
+    k = np.max(np.nonzero(passed)[0]) + 1 if passed.any() else 0
+    out = np.zeros(m, bool)
+    out[order[:k]] = True
+    return out

@@ -1,0 +1,56 @@
+"""`thermojax diagnose`: how a model fails, and which effects would fix it (unchanged model)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from ._diagnostics import diagnose_traces, diagnostic_plots
+from ._investigate import diagnose_step, evaluate, _json_safe, _noise, _version
+from ._spec import ModelSpec
+
+
+def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Path | None = None,
+             refits: int = 3, fdr: float = 0.05, progress=None) -> dict:
+    """Fit `spec`, describe its residuals and rank every candidate effect.
+
+    Returns the `report.json` dict: the fit's figures (`rmse`, `fit_percent`, `nll`,
+    `aic`, `bic`, `n_params`, `whiteness_p`), `candidates` ranked best first (as in
+    `investigate`), and `diagnostics` (residuals by run and chamber phase,
+    autocorrelation, cross-correlation with every input and its derivative, the
+    cumulated periodogram, and plain-English findings). With `out`, writes it with
+    `report.md` and the plots.
+    """
+    say = progress or (lambda _m: None)
+    step = evaluate(spec, runs, likelihood)
+    cands = diagnose_step(step, runs, likelihood, refits=refits, fdr=fdr, say=say)
+    columns = list(spec.sensor_columns) + [b.column for b in spec.biases]
+    inputs = list(spec.input_columns)
+    boundary = list(spec.boundary_columns)
+    rec = step.record
+    report = {
+        "schema": 1, "thermojax_version": _version(), "likelihood": likelihood,
+        **{k: rec[k] for k in ("rmse", "fit_percent", "nll", "aic", "bic", "n_params",
+                               "whiteness_p", "whiteness_lags", "parameters")},
+        "candidates": [c.as_json() for c in cands],
+        "diagnostics": diagnose_traces(columns, step.traces, inputs, boundary),
+        "noise": _noise(step),
+        "significance_rule": (
+            f"Benjamini-Hochberg at false-discovery rate {fdr} over all candidates "
+            "(one-sided boundary tests for positive effects) and Δ BIC < 0 after refitting"),
+    }
+    report = _json_safe(report)
+    if out is not None:
+        from ._investigation_report import write_investigation_report
+
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        report["plots"] = diagnostic_plots(out, "diagnose", columns, step.traces, inputs,
+                                           boundary)
+        (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
+        story = {"steps": [{**rec, "candidates": report["candidates"]}],
+                 "stopped_because": "diagnosis only", "likelihood": likelihood,
+                 "noise": report["noise"], "significance_rule": report["significance_rule"]}
+        write_investigation_report(out, _json_safe(story), [step.traces], columns, inputs,
+                                   boundary)
+    return report
