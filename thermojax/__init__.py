@@ -56,13 +56,20 @@ _LAZY = {
     "comparison_table": "._fit_report",
     "write_fit_outputs": "._fit_report",
     "perturbed": "._runner",
+    "Effect": "._spec",
+    "investigate": "._investigate",
+    "diagnose": "._diagnose",
+    "evaluate": "._investigate",
+    "fit_bias": "._bias",
+    "demo_runs": "._demo",
     "parameter_mask": "._parameters",
     "free_parameters": "._parameters",
     "with_free_parameters": "._parameters",
 }
 
 _JAX_MODULES = {"._network", "._system", "._discretize", "._simulate", "._parameters", "._fit",
-                "._data", "._model", "._solver", "._likelihood", "._fit_report", "._runner"}
+                "._data", "._model", "._solver", "._likelihood", "._fit_report", "._runner",
+                "._investigate", "._diagnose", "._demo"}
 
 __all__ = sorted(_LAZY)
 

@@ -165,9 +165,16 @@ def unused_columns(spec: ModelSpec, runs: list[Telemetry]) -> dict[str, str]:
 
 
 def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits: int = 3,
-                  fdr: float = 0.05, say=print, base_holdout=None) -> list[Candidate]:
-    """Rank every candidate effect for the model of `step` (which it leaves unchanged)."""
+                  fdr: float = 0.05, say=print, white_p: float | None = None
+                  ) -> list[Candidate]:
+    """Rank every candidate effect for the model of `step` (which it leaves unchanged).
+
+    With `white_p`, thermal candidates are only scored, not refitted, when every sensor's
+    residuals are already white at that level (the misfit is in a bias channel)."""
     spec, result = step.spec, step.result
+    if white_p is not None and all(
+            (step.record["whiteness_p"].get(c) or 0.0) > white_p for c in spec.sensor_columns):
+        refits = 0
     unused = unused_columns(spec, runs)
     lowered = result.lowered_spec
     places = enumerate_places(spec, lowered, unused)
@@ -326,7 +333,8 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
             stopped = "max_steps"
             break
         t_step = time.perf_counter()
-        cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say)
+        cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say,
+                              white_p=white_p)
         chosen = None
         for c in cands:
             if not c.supported:

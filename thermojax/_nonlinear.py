@@ -5,7 +5,8 @@ linear model: stiff node time constants cost nothing), the small nonlinear rate 
 (radiation, temperature-dependent conductance and capacitance, input-dependent
 conductance) is taken linear in time over each sample interval, between its value
 at the interval's start and a predicted value at its end (Cox & Matthews 2002,
-ETD2RK). Both integrals are the first-order-hold input matrices of the system
+ETD2RK), in `SUBSTEPS` steps per sample period. Both integrals are the
+first-order-hold input matrices of the system
 `(A, I)`, so one matrix exponential of the augmented system gives every matrix:
 
     x̃       = Φ x_k + B0 u_k + B1 u_k+1 + (G0 + G1) N(x_k, u_k)
@@ -55,21 +56,34 @@ def initial_state_nonlinear(model, system, u0, run_initial=None):
     return x0
 
 
-def etd2_step(model, system: LinearSystem, dt):
-    """`step(x_k, u_k, u_k1) -> x_k+1` over one sample period `dt` (s)."""
+SUBSTEPS = 4  # ETD2 steps per sample period: fast nodes react within a sample to switched power
+
+
+def etd2_step(model, system: LinearSystem, dt, substeps: int = SUBSTEPS):
+    """`step(x_k, u_k, u_k1) -> x_k+1` over one sample period `dt` (s), in `substeps`
+    ETD2 steps with the inputs held as their `hold` says inside the period."""
     m = system.B.shape[1]
-    disc = discretize(_augmented(system), dt)
+    h = dt / substeps
+    disc = discretize(_augmented(system), h)
     Phi = disc.Phi
     B0, G0 = disc.B0[:, :m], disc.B0[:, m:]
     B1, G1 = disc.B1[:, :m], disc.B1[:, m:]
-    zoh = np.array([h == "zoh" for h in system.holds], dtype=bool)
+    zoh = np.array([hold == "zoh" for hold in system.holds], dtype=bool)
+
+    def one(x, u_a, u_b):
+        u_end = jnp.where(zoh, u_a, u_b)
+        linear = Phi @ x + B0 @ u_a + B1 @ u_b
+        n_a = model.nonlinear_rate(system, x, u_a)
+        x_pred = linear + (G0 + G1) @ n_a
+        return linear + G0 @ n_a + G1 @ model.nonlinear_rate(system, x_pred, u_end)
 
     def step(x, u_k, u_k1):
-        u_end = jnp.where(zoh, u_k, u_k1)
-        linear = Phi @ x + B0 @ u_k + B1 @ u_k1
-        n_k = model.nonlinear_rate(system, x, u_k)
-        x_pred = linear + (G0 + G1) @ n_k
-        return linear + G0 @ n_k + G1 @ model.nonlinear_rate(system, x_pred, u_end)
+        u_k1 = jnp.where(zoh, u_k, u_k1)  # a zero-order-hold input keeps u_k all period
+        for j in range(substeps):
+            u_a = u_k + (j / substeps) * (u_k1 - u_k)
+            u_b = u_k + ((j + 1) / substeps) * (u_k1 - u_k)
+            x = one(x, u_a, u_b)
+        return x
 
     return step
 

@@ -20,11 +20,11 @@ HORIZON_S = 2400.0
 EFFECT_CASES = [c for c in g.case_names() if c not in ("null", "out_of_vocabulary")]
 
 
-def _run(case, tmp_path, likelihood="output_error"):
+def _run(case, tmp_path, likelihood="output_error", max_steps=3):
     files = g.write_case(case, tmp_path / "data", seed=0, horizon_s=HORIZON_S)
     out = tmp_path / "out"
     argv = ["investigate", "--model", str(files["model"]), "--out", str(out),
-            "--likelihood", likelihood]
+            "--likelihood", likelihood, "--max-steps", str(max_steps)]
     for p in files["data"]:
         argv += ["--data", str(p)]
     assert main(argv) == 0
@@ -101,7 +101,7 @@ def test_null_case_adds_nothing(tmp_path):
 
 @pytest.mark.slow
 def test_out_of_vocabulary_residual_is_not_reported_white(tmp_path):
-    info, report, _ = _run("out_of_vocabulary", tmp_path)
+    info, report, _ = _run("out_of_vocabulary", tmp_path, max_steps=1)
     _check_report_keys(report)
     assert report["stopped_because"] != "residuals_white"
     assert min(report["steps"][-1]["whiteness_p"].values()) < 0.01
