@@ -23,7 +23,8 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
     """
     say = progress or (lambda _m: None)
     step = evaluate(spec, runs, likelihood)
-    cands = diagnose_step(step, runs, likelihood, refits=refits, fdr=fdr, say=say)
+    cands = diagnose_step(step, runs, likelihood, refits=refits, fdr=fdr, say=say,
+                          initial=spec)
     columns = list(spec.sensor_columns) + [b.column for b in spec.biases]
     inputs = list(spec.input_columns)
     boundary = list(spec.boundary_columns)

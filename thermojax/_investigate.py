@@ -39,6 +39,7 @@ from ._data import Experiment
 from ._errors import InputError
 from ._fit import FitResult, fit, output_error_at, standardized_innovations
 from ._model_file import dump_model, save_model
+from ._parameters_by_name import spec_parameters, with_spec_parameters
 from ._residual_analysis import ljung_box
 from ._spec import ModelSpec
 from ._telemetry import Telemetry
@@ -165,12 +166,16 @@ def unused_columns(spec: ModelSpec, runs: list[Telemetry]) -> dict[str, str]:
 
 
 def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits: int = 3,
-                  fdr: float = 0.05, say=print, white_p: float | None = None
-                  ) -> list[Candidate]:
+                  fdr: float = 0.05, say=print, white_p: float | None = None,
+                  initial: ModelSpec | None = None) -> list[Candidate]:
     """Rank every candidate effect for the model of `step` (which it leaves unchanged).
 
-    With `white_p`, thermal candidates are only scored, not refitted, when every sensor's
-    residuals are already white at that level (the misfit is in a bias channel)."""
+    A refit starts from the fitted model plus the effect's first guess and, with
+    `initial` (the model as the user wrote it), also from the user's values (a fit
+    without the effect may have bent the other parameters to mimic it); the better
+    likelihood is kept. With `white_p`, thermal candidates are only scored, not
+    refitted, when every sensor's residuals are already white at that level (the
+    misfit is in a bias channel)."""
     spec, result = step.spec, step.result
     if white_p is not None and all(
             (step.record["whiteness_p"].get(c) or 0.0) > white_p for c in spec.sensor_columns):
@@ -220,10 +225,20 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
             continue
         effect = new_effect(spec, lowered, c.kind, c.where, holds)
         say(f"refitting with {c.kind} {list(c.where)} (score {c.score:.1f})")
-        try:
-            ext = evaluate(spec.replace(effects=spec.effects + (effect,)), runs, likelihood)
-        except (InputError, FloatingPointError, np.linalg.LinAlgError) as err:
-            c.note = f"refit failed: {err}"
+        extended = spec.replace(effects=spec.effects + (effect,))
+        starts = [extended]
+        if initial is not None:
+            starts.append(with_spec_parameters(extended, spec_parameters(initial)))
+        ext = None
+        for start in starts:
+            try:
+                got = evaluate(start, runs, likelihood)
+            except (InputError, FloatingPointError, np.linalg.LinAlgError) as err:
+                c.note = f"refit failed: {err}"
+                continue
+            if ext is None or got.record["nll"] < ext.record["nll"]:
+                ext = got
+        if ext is None:
             continue
         done += 1
         lr = 2 * (step.record["nll"] - ext.record["nll"])
@@ -334,7 +349,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
             break
         t_step = time.perf_counter()
         cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say,
-                              white_p=white_p)
+                              white_p=white_p, initial=spec)
         chosen = None
         for c in cands:
             if not c.supported:

@@ -104,7 +104,7 @@ def recurrence(D, e, s0):
     if ns * L != K:
         e = jnp.concatenate([e, jnp.zeros((ns * L - K, R, n), e.dtype)])
     dpows = _powers_minus_identity(D, L)
-    pows = dpows + jnp.eye(n, dtype=D.dtype)
+    pows = dpows + jnp.eye(n, dtype=D.dtype)[None]
     eb = jnp.transpose(e.reshape(ns, L, R, n), (0, 2, 1, 3)).reshape(ns, R, L * n)
     # Super-block starts: S[c+1] = P^L S[c] + sum_i P^(L-1-i) e[cL+i].
     into_next = jnp.transpose(pows[L - 1::-1], (1, 0, 2)).reshape(n, L * n)
