@@ -12,3 +12,14 @@ def getkey():
     """A fresh PRNG key per call, deterministic per test."""
     keys = iter(jax.random.split(jax.random.PRNGKey(0), 10_000))
     return lambda: next(keys)
+
+
+@pytest.fixture(autouse=True)
+def _release_compiled_programs():
+    """Drop compiled programs when the process holds too many memory mappings: the
+    suite compiles thousands of programs (every candidate structure of the hidden-effect
+    suite) and nearing the kernel's `vm.max_map_count` crashes inside LLVM."""
+    yield
+    from thermojax._memory import release_compiled_if_crowded
+
+    release_compiled_if_crowded()

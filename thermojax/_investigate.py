@@ -36,8 +36,8 @@ from ._bias import bias_parameters, bias_to_spec, fit_bias, viscoelastic_candida
 from ._candidates import (Candidate, benjamini_hochberg, column_hold, column_role,
                           enumerate_places, new_effect, refit_p_value, score_candidates)
 from ._data import Experiment
-from ._errors import InputError
 from ._fit import FitResult, fit, output_error_at, standardized_innovations
+from ._memory import release_compiled_if_crowded
 from ._model_file import dump_model, save_model
 from ._parameters_by_name import spec_parameters, with_spec_parameters
 from ._residual_analysis import ljung_box
@@ -233,8 +233,8 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
         for start in starts:
             try:
                 got = evaluate(start, runs, likelihood)
-            except (InputError, FloatingPointError, np.linalg.LinAlgError) as err:
-                c.note = f"refit failed: {err}"
+            except Exception as err:  # one candidate's failure must not end the loop
+                c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
                 continue
             if ext is None or got.record["nll"] < ext.record["nll"]:
                 ext = got
@@ -393,6 +393,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
         steps_traces.append(nxt.traces)
         if out is not None:
             _save_checkpoint(out, fingerprint, records, current.spec)
+        release_compiled_if_crowded()  # rejected candidates' programs are not reused
     if stopped != "residuals_white":
         bad = [c for c, p in records[-1]["whiteness_p"].items() if p is None or p <= white_p]
         unexplained = (f"the residuals of {', '.join(bad)} stay non-white: part of the error "
