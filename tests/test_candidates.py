@@ -108,3 +108,21 @@ def test_investigate_resumes_from_its_checkpoint(tmp_path, capsys):
     assert [s["added"] and s["added"]["kind"] for s in again["steps"]] == [None,
                                                                            "sensor_offset"]
     assert again["steps"][0]["candidates"] == first["steps"][0]["candidates"]
+
+
+@pytest.mark.slow
+def test_investigate_under_the_kalman_likelihood(tmp_path):
+    """The loop runs on the Kalman likelihood too (innovations for whiteness; refits
+    with the exact-Hessian Newton solver). Scaled down: short runs, one step."""
+    import thermojax
+
+    files = _write("sensor_offset", tmp_path / "data", 900.0)
+    spec = thermojax.load_model(files["model"])
+    runs = [thermojax.read_telemetry(p) for p in files["data"]]
+    report = thermojax.investigate(spec, runs, likelihood="kalman", refits=3, max_steps=1,
+                                   holdout_check=False)
+    assert report["likelihood"] == "kalman"
+    added = report["steps"][1]["added"]
+    assert (added["kind"], added["where"]) == ("sensor_offset", ["T_die"])
+    assert abs(added["parameters"]["offset"] - 0.15) < 0.01
+    assert report["steps"][1]["rmse"]["T_die"] < 1.5 * 0.01
