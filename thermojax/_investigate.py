@@ -261,6 +261,11 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     for c in refitted:
         c.tied_with = [d.key for d in refitted if d is not c and abs(d.score - c.score) < TIE_LR
                        and (c.supported or d.supported)]
+        if c.tied_with:
+            c.note = (f"near-tie: likelihood ratios within {TIE_LR:.2f} (the 95 % point of "
+                      "χ²₁) of " + ", ".join(f"{k} {list(w)}" for k, w in c.tied_with) +
+                      ", so the data cannot tell them apart; " +
+                      separation_advice({c.kind, *(k for k, _ in c.tied_with)}))
     return cands
 
 
