@@ -95,3 +95,21 @@ def test_lowered_fit_round_trip_names_effect_parameters():
     assert again.effects[0].kind == "sensor_lag"
     assert abs(again.effects[0].parameters["time_constant"].value - p["value"]) < 1e-9
     assert again.node_names == spec.node_names
+
+
+@pytest.mark.slow
+def test_nonlinear_effect_under_the_kalman_likelihood():
+    """The extended Kalman filter (ETD2 step and its Jacobian) recovers a radiation
+    coefficient from the generator's data within two reported std."""
+    from thermojax import fit
+
+    case = g.load_case("radiation")
+    spec = parse_model(g.dump_toml(case["believed"]) + '\n[[effects]]\nkind = "radiation"\n'
+                       'where = ["housing", "T_chamber"]\ncoefficient = 1e-10\n')
+    runs = g.generate_case("radiation", seed=0, horizon_s=900.0)
+    exps = [Experiment(ts, np.stack([c[k] for k in spec.input_columns], 1),
+                       np.stack([c[k] for k in spec.sensor_columns], 1)) for ts, c in runs]
+    res = fit(spec, exps, likelihood="kalman")
+    p = res.parameters["effects.radiation.housing-T_chamber.coefficient"]
+    assert res.converged
+    assert abs(p["value"] - 3e-10) < 2 * p["std"]
