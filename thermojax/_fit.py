@@ -296,6 +296,28 @@ def _raise_names(parameters: dict, lowered) -> dict:
     return out
 
 
+def _rename_identifiability(ident: Identifiability, renames: dict[str, str]) -> Identifiability:
+    """The identifiability report under the original model's names (see `_raise_names`)."""
+    if not renames:
+        return ident
+    order = sorted(renames, key=len, reverse=True)
+
+    def rename(x):
+        if isinstance(x, str):
+            for old in order:
+                x = x.replace(old, renames[old])
+            return x
+        if isinstance(x, list):
+            return [rename(v) for v in x]
+        if isinstance(x, dict):
+            return {k: rename(v) for k, v in x.items()}
+        return x
+
+    return dataclasses.replace(ident, directions=[rename(d) for d in ident.directions],
+                               unidentifiable_parameters={
+                                   rename(n) for n in ident.unidentifiable_parameters})
+
+
 def _is_log(name: str) -> bool:
     """Whether the optimizer moves this parameter's log (positive parameters)."""
     if name.startswith("effects."):
@@ -451,6 +473,7 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     parameters = _raise_names(parameters, lowered)
     renames = lowered.renames()
     free_names = [renames[n][0] if n in renames else n for n in free_names]
+    ident = _rename_identifiability(ident, {k: v[0] for k, v in renames.items()})
     return FitResult(
         spec=raise_effects(lowered, fitted_spec), lowered_spec=fitted_spec, model=state.model, state=state, likelihood=likelihood,
         parameters=parameters, correlation=corr, free_names=free_names, nll=nll,
