@@ -21,7 +21,7 @@ import pytest
 import thermojax as tj
 from thermojax._data import Experiment
 from thermojax._fit import fit
-from thermojax._fit_report import json_safe
+from thermojax._json import json_safe
 from thermojax._identifiability import identifiability
 
 from helpers import (CONFIGS, RTD2H_NAMES, RTD2H_RUNS, RTD2H_TRUTH, cached_fit, imu6_fit,

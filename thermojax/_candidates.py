@@ -20,7 +20,6 @@ likelihood ratio `2 (nll_before − nll_after)`.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -33,7 +32,7 @@ from scipy import stats
 from ._data import Dataset
 from ._spec import EFFECT_KINDS, Effect, ModelSpec, Parameter
 from .effects import KINDS
-from .effects._base import lowpass, path_between
+from .effects._base import lowpass, path_between, unique_name
 
 
 @dataclass
@@ -122,13 +121,7 @@ def new_effect(spec: ModelSpec, lowered: ModelSpec, kind: str, where, holds: dic
     params = {k: Parameter(float(v)) for k, v in impl.initial_parameters(lowered, where).items()}
     if kind == "extra_node" and len(where) == 1:
         params.pop("conductance_b", None)
-    name = None
-    if kind == "extra_node":
-        stem = "mass_" + "_".join(where)
-        names = set(lowered.node_names)
-        name, i = stem, 2
-        while name in names:
-            name, i = f"{stem}_{i}", i + 1
+    name = unique_name(lowered, "mass_" + "_".join(where)) if kind == "extra_node" else None
     hold = next((holds[w] for w in where if w in holds), None)
     return Effect(kind, tuple(where), params, name, hold)
 
@@ -143,8 +136,6 @@ class ScoreContext:
     Arrays are (runs, T, ...) on the padded time grid of the `Dataset`."""
 
     def __init__(self, spec: ModelSpec, model, data: Dataset, run_initial, columns: dict):
-        from ._nonlinear import dataset_states_nonlinear
-
         self.spec = spec
         self.names = list(spec.node_names)
         x = np.asarray(_states_jit(model, data, run_initial))

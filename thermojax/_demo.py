@@ -25,8 +25,6 @@ def _data_path(name: str) -> Path:
 def demo_runs(seed: int = 0):
     """The built-in runs as `(ts, columns)`: a 10 °C/min and a 5 °C/min chamber ramp
     (25 → 85 → 25 °C, 1 Hz) with the die dissipating PRBS power (0 / 0.4 W, 90 s slots)."""
-    import jax.numpy as jnp
-
     from . import io
     from ._data import Dataset, Experiment
     from ._model import ThermalModel

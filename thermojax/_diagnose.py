@@ -6,7 +6,8 @@ import json
 from pathlib import Path
 
 from ._diagnostics import diagnose_traces, diagnostic_plots
-from ._investigate import diagnose_step, evaluate, _json_safe, _noise, _version
+from ._investigate import diagnose_step, evaluate, _noise, _version
+from ._json import json_safe
 from ._spec import ModelSpec
 
 
@@ -40,7 +41,7 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
             f"Benjamini-Hochberg at false-discovery rate {fdr} over all candidates "
             "(one-sided boundary tests for positive effects) and Δ BIC < 0 after refitting"),
     }
-    report = _json_safe(report)
+    report = json_safe(report)
     if out is not None:
         from ._investigation_report import write_investigation_report
 
@@ -52,6 +53,6 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
         story = {"steps": [{**rec, "candidates": report["candidates"]}],
                  "stopped_because": "diagnosis only", "likelihood": likelihood,
                  "noise": report["noise"], "significance_rule": report["significance_rule"]}
-        write_investigation_report(out, _json_safe(story), [step.traces], columns, inputs,
+        write_investigation_report(out, json_safe(story), [step.traces], columns, inputs,
                                    boundary)
     return report

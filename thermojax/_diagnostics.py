@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from ._json import json_safe
 from ._metrics import fit_percent, rmse
 from ._residual_analysis import (PHASES, PhaseLabels, cross_correlation, cumulated_periodogram,
                                  label_phases, ljung_box, pooled_autocorrelation,
@@ -35,23 +36,6 @@ _MAX_CORR_FINDINGS = 3  # per column, strongest first
 
 # ---------------------------------------------------------------------------
 # Inputs
-
-
-def _clean(x):
-    """JSON-ready: NumPy scalars to Python, non-finite floats to None."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _clean(x.tolist())
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        return float(x) if math.isfinite(float(x)) else None
-    return x
 
 
 def _check_runs(columns, runs, input_names) -> list[dict]:
@@ -334,7 +318,7 @@ def diagnose_traces(columns: list[str], runs: list[RunTrace], input_names: list[
                                      "counts shrunk by the AR(1) factor (1-ρ₁)/(1+ρ₁)) and "
                                      f"beyond {_PHASE_REL:g} × the column's RMSE"},
     }
-    return _clean({"columns": out_cols, "findings": findings, "tests": tests,
+    return json_safe({"columns": out_cols, "findings": findings, "tests": tests,
                    "runs": [r["name"] for r in runs]})
 
 

@@ -31,7 +31,7 @@ import optimistix as optx
 from ._data import Dataset, Experiment
 from ._errors import InputError
 from ._identifiability import Identifiability, identifiability
-from ._likelihood import (kalman_nll, kalman_run, rts_smoother, ml_sigma, output_error_nll, output_error_residuals,
+from ._likelihood import (kalman_nll, kalman_run, rts_smoother, output_error_residuals,
                           output_error_sensitivities, simulate_dataset)
 from ._sensitivity import dataset_outputs
 from ._metrics import fit_metrics

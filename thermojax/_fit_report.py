@@ -3,30 +3,11 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
-import numpy as np
-
 from ._fit import FitResult
+from ._json import json_safe
 from ._model_file import save_model
-
-
-def json_safe(x):
-    """Floats that are not finite become None: JSON never holds NaN."""
-    if isinstance(x, dict):
-        return {str(k): json_safe(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [json_safe(v) for v in x]
-    if isinstance(x, (np.floating, float)):
-        return float(x) if math.isfinite(float(x)) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.ndarray):
-        return json_safe(x.tolist())
-    if isinstance(x, set):
-        return sorted(x)
-    return x
 
 
 def fit_report(result: FitResult, runs: list[str]) -> dict:

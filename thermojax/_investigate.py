@@ -21,7 +21,6 @@ are reported as tied (`tied_with`): the data cannot tell them apart.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import math
@@ -37,13 +36,13 @@ from ._candidates import (Candidate, benjamini_hochberg, column_hold, column_rol
                           enumerate_places, new_effect, refit_p_value, score_candidates)
 from ._data import Experiment
 from ._fit import FitResult, fit, output_error_at, standardized_innovations
+from ._json import json_safe
 from ._memory import release_compiled_if_crowded
 from ._model_file import dump_model, save_model
 from ._parameters_by_name import spec_parameters, with_spec_parameters
 from ._residual_analysis import ljung_box
 from ._spec import ModelSpec
 from ._telemetry import Telemetry
-from .effects import lower_effects
 
 STOP_REASONS = ("residuals_white", "no_supported_candidate", "max_steps")
 TIE_LR = float(stats.chi2.ppf(0.95, 1))  # 3.84
@@ -69,7 +68,7 @@ def _experiments(spec: ModelSpec, runs: list[Telemetry]) -> list[Experiment]:
             for i, t in enumerate(runs)]
 
 
-def _bias_runs(spec, lowered, result, runs, bias):
+def _bias_runs(result, runs, bias):
     from ._candidates import _states_jit
 
     data = result.problem.data
@@ -86,8 +85,7 @@ def evaluate(spec: ModelSpec, runs: list[Telemetry], likelihood: str, progress=N
     lowered = result.lowered_spec
     biases = {}
     for b in spec.biases:
-        biases[b.column] = fit_bias(b, list(spec.effects), _bias_runs(spec, lowered, result,
-                                                                      runs, b),
+        biases[b.column] = fit_bias(b, list(spec.effects), _bias_runs(result, runs, b),
                                     list(lowered.node_names))
     spec_out = result.spec
     effects = list(spec_out.effects)
@@ -109,11 +107,10 @@ def evaluate(spec: ModelSpec, runs: list[Telemetry], likelihood: str, progress=N
     else:
         exps = _experiments(spec, runs)
         seq = [e.outputs - p for e, p in zip(exps, result.predictions)]
-    white = {c: ljung_box([s[:, j] for s in seq])[1] for j, c in enumerate(cols)}
-    lags = {c: ljung_box([s[:, j] for s in seq])[2] for j, c in enumerate(cols)}
-    for c, f in biases.items():
-        q, p, lag = ljung_box(f.residuals)
-        white[c], lags[c] = p, lag
+    tests = {c: ljung_box([s[:, j] for s in seq]) for j, c in enumerate(cols)}
+    tests.update({c: ljung_box(f.residuals) for c, f in biases.items()})
+    white = {c: p for c, (_, p, _) in tests.items()}
+    lags = {c: lag for c, (_, _, lag) in tests.items()}
     params = dict(result.parameters)
     for f in biases.values():
         params.update(bias_parameters(f))
@@ -185,8 +182,6 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     places = enumerate_places(spec, lowered, unused)
     thermal = [(k, w) for k, w in places if k != "viscoelastic"]
     columns = {}
-    from ._data import Dataset
-
     exps = _experiments(lowered, runs)
     data, weights, r, J = output_error_at(result, exps)
     T = data.ts.shape[1]
@@ -205,7 +200,7 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
             continue
         bias = next(b for b in spec.biases if b.column == where[1])
         bias_fit, lr = viscoelastic_candidate(
-            bias, list(spec.effects), _bias_runs(spec, lowered, result, runs, bias),
+            bias, list(spec.effects), _bias_runs(result, runs, bias),
             list(lowered.node_names), where[0])
         n_after = step.record["n_samples"]
         cands.append(Candidate(kind, tuple(where), float(lr), refit_p_value(kind, lr, 2),
@@ -296,13 +291,13 @@ def _holdout_gain(spec_base, spec_ext, runs, likelihood, sigma, say) -> float:
     in turn is left out of both fits."""
     if len(runs) < 2:
         return float("nan")
+    experiments = {id(s): _experiments(s, runs) for s in (spec_base, spec_ext)}
     gain = 0.0
     for r in range(len(runs)):
         ssr = []
         for s in (spec_base, spec_ext):
-            res = fit(s, _experiments(s, runs), likelihood="output_error", holdout=r)
-            y = _experiments(spec_base, runs)[r].outputs
-            e = (y - res.predictions[r]) / sigma[None, :]
+            res = fit(s, experiments[id(s)], likelihood="output_error", holdout=r)
+            e = (experiments[id(spec_base)][r].outputs - res.predictions[r]) / sigma[None, :]
             ssr.append(float(np.nansum(e ** 2)))
         gain += 0.5 * (ssr[0] - ssr[1])
         say(f"held-out run {r}: −log L change {-0.5 * (ssr[0] - ssr[1]):.1f}")
@@ -420,7 +415,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
     report["noise"] = _noise(current)
     if out is not None:
         _write_outputs(out, report, current, steps_traces, runs)
-    return _json_safe(report)
+    return json_safe(report)
 
 
 def _noise(step: Step) -> dict:
@@ -432,12 +427,6 @@ def _noise(step: Step) -> dict:
     for c, f in step.biases.items():
         out[c] = float(f.sigma)
     return out
-
-
-def _json_safe(x):
-    from ._fit_report import json_safe
-
-    return json_safe(x)
 
 
 def _version() -> str:
@@ -461,7 +450,7 @@ def _save_checkpoint(out: Path, fingerprint: str, records, spec) -> None:
     save_model(spec, out / f"step{i}_model.toml",
                header=f"thermojax investigate: model after step {i}")
     tmp = out / "checkpoint.json.tmp"
-    tmp.write_text(json.dumps(_json_safe({"fingerprint": fingerprint, "steps": records,
+    tmp.write_text(json.dumps(json_safe({"fingerprint": fingerprint, "steps": records,
                                           "model": f"step{i}_model.toml"})))
     tmp.replace(out / "checkpoint.json")
 
@@ -487,7 +476,7 @@ def _write_outputs(out: Path, report: dict, final: Step, traces, runs) -> None:
     out.mkdir(parents=True, exist_ok=True)
     save_model(final.spec, out / "model_final.toml",
                header="thermojax investigate: the final model")
-    (out / "report.json").write_text(json.dumps(_json_safe(report), indent=2,
+    (out / "report.json").write_text(json.dumps(json_safe(report), indent=2,
                                                 allow_nan=False))
     cols = list(final.spec.sensor_columns) + [b.column for b in final.spec.biases]
     inputs = list(final.spec.input_columns)
@@ -496,5 +485,5 @@ def _write_outputs(out: Path, report: dict, final: Step, traces, runs) -> None:
         for r, tr in enumerate(step_traces or []):
             tr["inputs"] = np.stack([runs[r].column(c) for c in inputs], 1) if inputs \
                 else np.zeros((len(tr["ts"]), 0))
-    write_investigation_report(out, _json_safe(report), [t or [] for t in traces], cols,
+    write_investigation_report(out, json_safe(report), [t or [] for t in traces], cols,
                                inputs, boundary)

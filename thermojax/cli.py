@@ -168,15 +168,20 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def _add_fit_arguments(p) -> None:
+    """--model, --data (repeatable), --out, --likelihood: shared by fit, diagnose, investigate."""
+    p.add_argument("--model", required=True, help="model TOML file or built-in model name")
+    p.add_argument("--data", required=True, action="append", help="telemetry CSV (repeatable)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error")
+
+
 def _add_fit(sub):
     p = sub.add_parser("fit", help="fit a model to one or more chamber runs",
                        description="Fit the free parameters of a model to one or more telemetry "
                        "CSV files (one chamber run each; parameters shared, each run with its "
                        "own initial state). Writes DIR/model.toml, DIR/report.json and plots.")
-    p.add_argument("--model", required=True, help="model TOML file or built-in model name")
-    p.add_argument("--data", required=True, action="append", help="telemetry CSV (repeatable)")
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error")
+    _add_fit_arguments(p)
     p.add_argument("--starts", type=int, default=1, help="number of starts (multi-start)")
     p.add_argument("--profile", action="append", metavar="PARAM",
                    help="also compute a 95 %% profile-likelihood interval of this free "
@@ -235,10 +240,7 @@ def _add_diagnose(sub):
                        "effect of the vocabulary (spec §3) at every place the model allows, "
                        "data columns it does not use included, without changing the model. "
                        "Writes DIR/report.json, DIR/report.md and diagnostic plots.")
-    p.add_argument("--model", required=True, help="model TOML file or built-in model name")
-    p.add_argument("--data", required=True, action="append", help="telemetry CSV (repeatable)")
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error")
+    _add_fit_arguments(p)
     p.set_defaults(func=cmd_diagnose)
 
 
@@ -249,10 +251,7 @@ def _add_investigate(sub):
                        "candidate is supported. Writes DIR/report.json, DIR/model_final.toml, "
                        "DIR/report.md and plots. An interrupted run resumes from its last "
                        "finished step when started again with the same inputs.")
-    p.add_argument("--model", required=True, help="model TOML file or built-in model name")
-    p.add_argument("--data", required=True, action="append", help="telemetry CSV (repeatable)")
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error")
+    _add_fit_arguments(p)
     p.add_argument("--max-steps", type=int, default=4, help="most effects to add (default 4)")
     p.add_argument("--restart", action="store_true",
                    help="ignore a checkpoint in DIR and start from the given model")

@@ -6,8 +6,8 @@ import dataclasses
 
 import numpy as np
 
-from .._spec import Boundary, Effect, Link, ModelSpec, Node, Parameter
-from ._base import AbstractEffect, ParameterLink, fail, lowpass, param, path_between
+from .._spec import Boundary, Link, Node, Parameter
+from ._base import AbstractEffect, ParameterLink, fail, param, path_between
 
 # Time constants (s) of the trial masses the candidate search tries: a hidden mass is
 # seen through its own time constant, which the first-order score cannot know.
