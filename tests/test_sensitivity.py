@@ -73,15 +73,28 @@ def problem():
 
 @pytest.fixture(scope="module")
 def sensitivities(problem):
+    """Residuals and Jacobian as the solver sees them (padded to whole blocks, with the
+    prior rows as a second leaf), and the predictions."""
     theta, prob, _ = problem
-    return jax.jit(_fit._oe_flat_jacobian)(theta, prob)
+    return jax.jit(_fit._oe_blocks_jacobian)(theta, prob)
+
+
+def _flat(sensitivities, prob):
+    """The data rows (padding dropped) and prior rows in the order of `_fit._oe_flat`,
+    and the Jacobian transposed."""
+    ((r, prior), (J, prior_j), _) = sensitivities
+    r, J = jnp.stack(r, axis=-1), jnp.stack(J, axis=2)
+    T = prob.data.outputs.shape[1]
+    P = prior_j.shape[-1]
+    return (np.concatenate([np.ravel(r[:, :T]), prior]),
+            np.concatenate([np.asarray(J[:, :T]).reshape(-1, P), prior_j]).T)
 
 
 def test_jacobian_equals_jacfwd(problem, sensitivities):
     """Every column agrees with `jax.jacfwd` of the official residuals to ~1e-12 of that
     column's size (1e-10 asserted), the residuals to roundoff."""
     theta, prob, names = problem
-    r, Jt, y = sensitivities
+    r, Jt = _flat(sensitivities, prob)
     r_ref = jax.jit(_fit._oe_flat)(theta, prob)
     J_ref = np.asarray(jax.jit(jax.jacfwd(_fit._oe_flat))(theta, prob))
     assert Jt.shape == J_ref.T.shape
@@ -95,7 +108,7 @@ def test_jacobian_equals_jacfwd(problem, sensitivities):
 def test_jacobian_against_finite_differences(problem, sensitivities):
     """Central differences of the official residuals along random directions."""
     theta, prob, _ = problem
-    _, Jt, _ = sensitivities
+    _, Jt = _flat(sensitivities, prob)
     f = jax.jit(_fit._oe_flat)
     rng = np.random.default_rng(0)
     for _ in range(3):
@@ -110,11 +123,17 @@ def test_predictions_and_fast_residuals(problem, sensitivities):
     """The predictions returned with the Jacobian are `simulate_dataset`'s, and the
     solver's residual function equals the official one."""
     theta, prob, _ = problem
-    _, _, y = sensitivities
+    ((r_blocks, prior), _, y) = sensitivities
     model, run_initial = _fit._model_of(theta, prob)
     y_ref = tj.simulate_dataset(model, prob.data, run_initial)
     np.testing.assert_allclose(y, y_ref, rtol=0, atol=1e-10)
-    np.testing.assert_allclose(jax.jit(_fit._oe_flat_fast)(theta, prob),
+    fast, fast_prior = jax.jit(_fit._oe_blocks)(theta, prob)
+    fast, r_blocks = jnp.stack(fast, axis=-1), jnp.stack(r_blocks, axis=-1)
+    np.testing.assert_allclose(fast, r_blocks, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(fast_prior, prior, rtol=0, atol=0)
+    T = prob.data.outputs.shape[1]
+    assert fast.shape[1] % _sensitivity._BLOCK == 0 and np.all(np.asarray(fast[:, T:]) == 0)
+    np.testing.assert_allclose(np.concatenate([np.ravel(fast[:, :T]), fast_prior]),
                                jax.jit(_fit._oe_flat)(theta, prob), rtol=0, atol=1e-9)
 
 

@@ -1,17 +1,20 @@
 """Prediction-error fitting of a model to several runs: output error or Kalman likelihood.
 
 `fit(spec, experiments, likelihood=...)` follows `optx.least_squares(fn, solver, y0, args)`:
-the solver is an optimistix solver, the residual and loss functions are
-module-level and take everything through `args`, so a second fit of the same
-structure (another unit, another candidate effect) reuses the compilation.
+the residual and loss functions are module-level and take everything through `args`,
+so a second fit of the same structure (another unit, another candidate effect) reuses
+the compilation. The default solvers are truncated: `TruncatedGaussNewton` (output
+error) and `TruncatedNewton` (Kalman) leave the directions the data cannot determine
+where they started and converge on the rest; any optimistix solver may be passed.
 
 The optimizer sees one flat vector `theta`: logs of the positive physical
-parameters and noise stds, and per-run initial temperatures in °C. A weak
-Gaussian prior on `theta` around the starting point (std `prior_log_std`, in
-log units: a factor e^3 ≈ 20 by default) keeps directions the data cannot
-determine at their starting values instead of letting them drift to 0 or
-infinity; it changes well-determined parameters by far less than their
-standard errors, and it is left out of every reported likelihood.
+parameters and noise stds, and per-run initial temperatures in °C. With an
+optimistix minimiser under the Kalman likelihood a weak Gaussian prior on `theta`
+around the starting point (std `prior_log_std`, in log units: a factor e^3 ≈ 20 by
+default) does that job instead: it keeps undetermined directions at their starting
+values instead of letting them drift to 0 or infinity, changes well-determined
+parameters by far less than their standard errors, and is left out of every
+reported likelihood.
 """
 
 from __future__ import annotations
@@ -32,8 +35,8 @@ from ._data import Dataset, Experiment
 from ._errors import InputError
 from ._identifiability import Identifiability, identifiability
 from ._likelihood import (kalman_nll, kalman_run, rts_smoother, output_error_residuals,
-                          output_error_sensitivities, simulate_dataset)
-from ._sensitivity import dataset_outputs
+                          simulate_dataset)
+from ._sensitivity import dataset_block_outputs, output_sensitivity_parts, pad_to_blocks
 from ._metrics import fit_metrics
 from ._model import ThermalModel, model_to_spec
 from ._newton import TruncatedNewton, newton
@@ -128,27 +131,45 @@ def _model_of(theta, problem: _Problem):
     return s.model, s.run_initial
 
 
-def _oe_flat_fast(theta, problem: _Problem):
-    """`_oe_flat` through the blocked maps of `_sensitivity` (equal to roundoff; one
-    discretization per run with a fast-compiling matrix exponential)."""
+def _oe_blocks(theta, problem: _Problem):
+    """The residuals the solver sees: `(per_output, prior)`, `per_output` a tuple with the
+    weighted data residuals of each output (runs, blocks L) padded to whole blocks of
+    `_sensitivity` and zero where nothing was measured (`_oe_flat`'s values, reordered,
+    with the padding as extra zeros), so that the solver returns each output's `JᵀJ`.
+    One discretization per run with a fast-compiling matrix exponential."""
     model, run_initial = _model_of(theta, problem)
-    y = dataset_outputs(model, problem.data, run_initial)
-    r = jnp.where(problem.data.mask, problem.data.outputs - y, 0.0) / problem.sigma[None, None, :]
-    prior = (theta - problem.prior_mean) * problem.prior_weight
-    return jnp.concatenate([r.reshape(-1), prior])
+    y = dataset_block_outputs(model, problem.data, run_initial)
+    return _by_output(_data_residuals(y, problem)), _prior(theta, problem)
 
 
-def _oe_flat_jacobian(theta, problem: _Problem):
-    """`(_oe_flat(theta, problem), its Jacobian transposed (params, rows), the predictions)`,
-    by forward sensitivities (`output_error_sensitivities`): equal to `jax.jacfwd(_oe_flat)`
-    to roundoff, at a fraction of its cost. The predictions are the free-run outputs
-    (runs, times, outputs)."""
-    r, Jt, y = output_error_sensitivities(lambda t: _model_of(t, problem), theta, problem.data)
-    r = (r / problem.sigma[None, None, :]).reshape(-1)
-    Jt = (Jt / problem.sigma[None, None, None, :]).reshape(theta.shape[0], -1)
-    prior = (theta - problem.prior_mean) * problem.prior_weight
-    return (jnp.concatenate([r, prior]),
-            jnp.concatenate([Jt, jnp.diag(problem.prior_weight)], axis=1), y)
+def _by_output(x):
+    """(runs, times, outputs, ...) -> a tuple of (runs, times, ...), one per output."""
+    return tuple(x[:, :, k] for k in range(x.shape[2]))
+
+
+def _data_residuals(y, problem: _Problem):
+    """Weighted data residuals from predictions `y` padded to whole blocks."""
+    data = problem.data
+    r = jnp.where(pad_to_blocks(data.mask), pad_to_blocks(data.outputs) - y, 0.0)
+    return r / problem.sigma[None, None, :]
+
+
+def _prior(theta, problem: _Problem):
+    return (theta - problem.prior_mean) * problem.prior_weight
+
+
+def _oe_blocks_jacobian(theta, problem: _Problem):
+    """`(_oe_blocks(theta, problem), its Jacobian, the predictions)` by forward
+    sensitivities (`_sensitivity.output_sensitivity_parts`): equal to
+    `jax.jacfwd(_oe_flat)` to roundoff, at a fraction of its cost. The Jacobian has the
+    residuals' structure, each output's leaf (runs, blocks L, params), the prior's
+    (params, params); the predictions are the free-run outputs (runs, times, outputs)."""
+    data = problem.data
+    y, jacobian = output_sensitivity_parts(lambda t: _model_of(t, problem), theta, data)
+    J = jnp.where(pad_to_blocks(data.mask)[..., None],
+                  -jacobian() / problem.sigma[None, None, :, None], 0.0)
+    return ((_by_output(_data_residuals(y, problem)), _prior(theta, problem)),
+            (_by_output(J), jnp.diag(problem.prior_weight)), y[:, :data.outputs.shape[1]])
 
 
 def _solve_oe(theta0, problem, solver, max_steps):
@@ -164,7 +185,7 @@ def _solve_oe(theta0, problem, solver, max_steps):
 
 
 class _OEEvaluation(eqx.Module):
-    """What the fit reports need at the solution, from the solver's last evaluation."""
+    """What the fit reports need at the solution."""
 
     residuals: jax.Array  # weighted, data rows only, (runs, times, outputs)
     gram: jax.Array  # JᵀJ of each output's weighted data rows, (outputs, params, params)
@@ -174,12 +195,11 @@ class _OEEvaluation(eqx.Module):
 
 @eqx.filter_jit
 def _solve_oe_jit(theta0, problem, solver, max_steps):
-    n = problem.data.outputs.size
-    shape = problem.data.outputs.shape
     if isinstance(solver, TruncatedGaussNewton):
-        sol = gauss_newton(_oe_flat_fast, theta0, problem, solver, jac=_oe_flat_jacobian)
+        sol = gauss_newton(_oe_blocks, theta0, problem, solver, jac=_oe_blocks_jacobian)
+        T = problem.data.outputs.shape[1]
         return sol.value, sol.num_steps, sol.converged, _OEEvaluation(
-            sol.residuals[:n].reshape(shape), _gram(sol.jacobian_t[:, :n], shape[-1]), sol.aux,
+            jnp.stack(sol.residuals[0], axis=-1)[:, :T], jnp.stack(sol.grams[0]), sol.aux,
             sol.num_evaluations)
     sol = optx.least_squares(_oe_residuals, solver, theta0, problem, max_steps=max_steps,
                              throw=False)
@@ -339,14 +359,17 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     - `spec`: the model (its fixed/free flags say what is estimated).
     - `experiments`: one `Experiment` per run; parameters are shared, each run
       has its own initial state.
-    - `likelihood`: `"output_error"` (Levenberg-Marquardt on free-run residuals
+    - `likelihood`: `"output_error"` (truncated Gauss-Newton on free-run residuals
       weighted by each sensor's noise; estimated noise stds take their ML
-      values, iterated to convergence) or `"kalman"` (BFGS on the Kalman
-      prediction-error likelihood, started from the output-error fit).
-    - `solver`: an optimistix solver; default `LevenbergMarquardt(1e-8, 1e-10)`
-      for output error and `BFGS(1e-8, 1e-10)` for Kalman.
-    - `prior_log_std`: std (log units) of the weak prior that keeps
-      unidentifiable directions at their starting values.
+      values, iterated to convergence) or `"kalman"` (truncated Newton with exact
+      Hessians on the Kalman prediction-error likelihood, started from the
+      output-error fit).
+    - `solver`: default `TruncatedGaussNewton()` for output error and
+      `TruncatedNewton()` for Kalman; an optimistix least-squares solver (output
+      error) or minimiser (Kalman) may be passed instead.
+    - `prior_log_std`: std (log units) of the weak prior that keeps unidentifiable
+      directions at their starting values when an optimistix minimiser fits the
+      Kalman likelihood (the truncated solvers need none).
     - `n_starts`: more than 1 adds starts perturbed by a log-normal factor
       (std 0.5); the best likelihood wins.
     - `progress`: optional callable taking a one-line string.
@@ -614,23 +637,16 @@ def _fit_output_error(start, theta0, template, index, data, sigma, fixed_sigma, 
 
 @eqx.filter_jit
 def _oe_evaluate(theta, problem) -> _OEEvaluation:
-    """Weighted data residuals (runs, times, outputs), Jacobian and predictions at `theta`."""
-    n = problem.data.outputs.size
-    shape = problem.data.outputs.shape
+    """Weighted data residuals (runs, times, outputs), the Gram matrix of each output and
+    the predictions at `theta`."""
+    T, p = problem.data.outputs.shape[1:]
     if theta.shape[0] == 0:  # nothing free (a Kalman fit of the noise alone): no Jacobian
         model, run_initial = _model_of(theta, problem)
-        y = dataset_outputs(model, problem.data, run_initial)
-        r = _oe_flat_fast(theta, problem)
-        return _OEEvaluation(r[:n].reshape(shape), jnp.zeros((shape[-1], 0, 0)), y)
-    r, Jt, y = _oe_flat_jacobian(theta, problem)
-    return _OEEvaluation(r[:n].reshape(shape), _gram(Jt[:, :n], shape[-1]), y)
-
-
-def _gram(Jt, p):
-    """`JᵀJ` of each output's rows (rows ordered run, time, output), from the transposed
-    Jacobian: (p, params, params)."""
-    Jt = Jt.reshape(Jt.shape[0], -1, p)
-    return jnp.einsum("akj,bkj->jab", Jt, Jt)
+        y = dataset_block_outputs(model, problem.data, run_initial)
+        return _OEEvaluation(_data_residuals(y, problem)[:, :T], jnp.zeros((p, 0, 0)), y[:, :T])
+    (r, _), (J, _), y = _oe_blocks_jacobian(theta, problem)
+    grams = [j.reshape(-1, j.shape[-1]).T @ j.reshape(-1, j.shape[-1]) for j in J]
+    return _OEEvaluation(jnp.stack(r, axis=-1)[:, :T], jnp.stack(grams), y)
 
 
 def _np_output_error_nll(residuals, mask, sigma) -> float:
@@ -767,17 +783,19 @@ def output_error_at(result: FitResult, experiments: list[Experiment]):
     theta = _free_parameters_np(template, index)
     sigma = np.asarray(model.noise)
     problem = _Problem(template, index, data, jnp.asarray(sigma), theta, jnp.zeros_like(theta))
-    n = data.outputs.size
     weights = np.asarray(data.mask) / sigma[None, None, :]
+    r, J = _oe_samples_jacobian(theta, problem)
+    return data, weights, np.asarray(r).reshape(-1), np.asarray(J).reshape(-1, theta.shape[0])
+
+
+@eqx.filter_jit
+def _oe_samples_jacobian(theta, problem):
+    """Weighted data residuals (runs, T, p) and their Jacobian (runs, T, p, P)."""
+    T = problem.data.outputs.shape[1]
     if theta.shape[0] == 0:
-        r = np.asarray(_oe_flat_fast_jit(theta, problem))[:n]
-        return data, weights, r, np.zeros((n, 0))
-    r, Jt, _ = _oe_flat_jacobian_jit(theta, problem)
-    return data, weights, np.asarray(r)[:n], np.asarray(Jt)[:, :n].T
-
-
-_oe_flat_jacobian_jit = eqx.filter_jit(_oe_flat_jacobian)
-_oe_flat_fast_jit = eqx.filter_jit(_oe_flat_fast)
+        return _oe_evaluate(theta, problem).residuals, jnp.zeros((*problem.data.outputs.shape, 0))
+    (r, _), (J, _), _ = _oe_blocks_jacobian(theta, problem)
+    return jnp.stack(r, axis=-1)[:, :T], jnp.stack(J, axis=2)[:, :T]
 
 
 @eqx.filter_jit

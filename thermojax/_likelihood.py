@@ -23,7 +23,6 @@ from ._data import Dataset
 from ._discretize import discretize, discretize_process_noise
 from ._model import ThermalModel
 from ._nonlinear import dataset_outputs_nonlinear, etd2_step, initial_state_nonlinear
-from ._sensitivity import output_sensitivities
 from ._simulate import ExactHold
 
 LOG_2PI = math.log(2 * math.pi)
@@ -50,19 +49,6 @@ def output_error_residuals(model, data: Dataset, run_initial=None, simulator=Exa
     """`y - ŷ` for every run, zero where nothing was measured: (runs, times, outputs)."""
     return jnp.where(data.mask, data.outputs - simulate_dataset(model, data, run_initial,
                                                                 simulator), 0.0)
-
-
-def output_error_sensitivities(params_to_model, theta, data: Dataset):
-    """`output_error_residuals` at `theta` and their Jacobian in `theta`, by forward sensitivities.
-
-    `params_to_model(theta) -> (model, run_initial)`. Returns `(r, Jt, y)`: residuals
-    (runs, times, outputs) and their Jacobian, transposed: (params, runs, times, outputs),
-    both zero where nothing was measured, and the free-run outputs `y` (runs, times,
-    outputs). The simulator is `ExactHold()`, to roundoff (see `_sensitivity`).
-    """
-    y, dy = output_sensitivities(params_to_model, theta, data)
-    r = jnp.where(data.mask, data.outputs - y, 0.0)
-    return r, jnp.where(data.mask[None], -dy, 0.0), y
 
 
 def output_error_nll(residuals, mask, sigma: Float[Array, " outputs"]) -> Float[Array, ""]:

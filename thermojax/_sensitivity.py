@@ -26,6 +26,12 @@ samples, the outputs of block `b` are `O [u_b; s_b]` and the next block start is
 the same recurrence as the states with a drive of its own. Every term is a
 product of powers of a contraction, as in `ExactHold`, so the result equals
 `jax.jacfwd` of the residuals to float64 roundoff.
+
+**Layout.** Outputs and residuals are kept per block, padded to whole blocks:
+(runs, blocks L, p), samples in order (`pad_to_blocks` pads). Tangents carry the
+parameters last, (runs, blocks L, p, params), the layout of `jax.jacfwd`: the block
+products produce it directly, and `JᵀJ` of a (rows, params) matrix is two to three
+times faster on XLA's CPU kernels than that of its transpose.
 """
 
 from __future__ import annotations
@@ -55,6 +61,16 @@ def _powers_minus_identity(D, k):
     return jnp.concatenate([jnp.zeros_like(D)[None], out])
 
 
+def _small_inner_product(a, b):
+    """`a @ b` (broadcast over leading axes) for a short inner dimension (the `n` nodes):
+    a sum of broadcast products, one fused elementwise pass. XLA's CPU matrix kernels
+    take up to ten times longer on such shapes."""
+    rank = max(a.ndim, b.ndim)
+    a = a.reshape((1,) * (rank - a.ndim) + a.shape)
+    b = b.reshape((1,) * (rank - b.ndim) + b.shape)
+    return sum(a[..., :, i:i + 1] * b[..., i:i + 1, :] for i in range(a.shape[-1]))
+
+
 def _lag_index(L):
     """`d[j, i] = j - 1 - i` and where it is a real lag (`i < j`)."""
     d = np.arange(L)[:, None] - 1 - np.arange(L)[None, :]
@@ -76,11 +92,11 @@ def block_maps(Phi, B0, B1, C, D, L: int = _BLOCK):
     pows = dpows + eye[None]
     PB = pows[:L] @ Bz  # (L, n, m): Phi^k Bz
     lag, real = _lag_index(L)
-    CPB = jnp.einsum("pa,kam->kpm", C, PB)
+    CPB = _small_inner_product(C, PB)  # (L, p, m): C Phi^k Bz
     hy = jnp.where(jnp.asarray(real)[:, :, None, None], CPB[lag], 0.0)  # [j, i] = C Phi^(j-1-i) Bz
     hy = jnp.transpose(hy, (0, 2, 1, 3)).reshape(L * p, L * m)
     hy = hy + jnp.kron(jnp.eye(L, dtype=Phi.dtype), C @ B1 + D)
-    CP = jnp.einsum("pa,jab->jpb", C, pows[:L]).reshape(L * p, n)
+    CP = _small_inner_product(C, pows[:L]).reshape(L * p, n)
     O = jnp.concatenate([hy, CP], axis=1)
     N = jnp.transpose(PB[::-1], (1, 0, 2)).reshape(n, L * m)  # [:, i] = Phi^(L-1-i) Bz
     return dpows[L], N, O
@@ -127,25 +143,32 @@ def _blocked_inputs(u, L):
     return u.reshape(nb, L * m)
 
 
+def pad_to_blocks(x, L: int = _BLOCK):
+    """Per-sample values (runs, T, ...) zero-padded to whole blocks: (runs, blocks L, ...)."""
+    pad = -x.shape[1] % L
+    return jnp.concatenate([x, jnp.zeros((x.shape[0], pad, *x.shape[2:]), x.dtype)], axis=1)
+
+
 def run_primal(maps, z0, u, L: int = _BLOCK):
-    """Outputs (T, p) of one run from its `block_maps` and initial `z0 = x0 - B1 u[0]`,
-    and the blocks' `[inputs, start]` rows `w` (nb, L m + n) that the tangents reuse."""
+    """Outputs (blocks L, p) of one run, padded to whole blocks, from its `block_maps` and
+    initial `z0 = x0 - B1 u[0]`, and the blocks' `[inputs, start]` rows `w`
+    (blocks, L m + n) that the tangents reuse."""
     DL, N, O = maps
-    T = u.shape[0]
     ub = _blocked_inputs(u, L)
     starts = recurrence(DL, (ub @ N.T)[:, None, :], z0[None, :])[:, 0, :]
     w = jnp.concatenate([ub, starts], axis=1)
-    return (w @ O.T).reshape(-1, O.shape[0] // L)[:T], w
+    return (w @ O.T).reshape(-1, O.shape[0] // L), w
 
 
 def run_outputs(maps, z0, u, L: int = _BLOCK):
     """Outputs (T, p) of one run from its `block_maps` and initial `z0 = x0 - B1 u[0]`."""
-    return run_primal(maps, z0, u, L)[0]
+    return run_primal(maps, z0, u, L)[0][:u.shape[0]]
 
 
-def run_tangents(maps, dmaps, dz0, w, T: int, L: int = _BLOCK):
-    """Output tangents (P, T, p) of one run along `P` directions, given the tangents of
-    its maps and initial state (leading axis `P`) and `w` from `run_primal`."""
+def run_tangents(maps, dmaps, dz0, w, L: int = _BLOCK):
+    """Output tangents (blocks L, p, P) of one run along `P` directions, padded to whole
+    blocks, given the tangents of its maps and initial state (leading axis `P`) and `w`
+    from `run_primal`."""
     DL, N, O = maps
     dDL, dN, dO = dmaps
     n = DL.shape[0]
@@ -155,19 +178,10 @@ def run_tangents(maps, dmaps, dz0, w, T: int, L: int = _BLOCK):
     # Tangent block starts: s'[b+1] = Phi^L s'[b] + (dDL s[b] + dN u[b]).
     drive = w @ jnp.concatenate([jnp.transpose(dN, (2, 0, 1)).reshape(Lm, P * n),
                                  jnp.transpose(dDL, (2, 0, 1)).reshape(n, P * n)], axis=0)
-    dstarts = recurrence(DL, drive.reshape(-1, P, n), dz0)  # (nb, P, n)
-    dy = (w @ jnp.transpose(dO, (2, 0, 1)).reshape(Lm + n, P * L * p)).reshape(-1, P, L * p)
-    dy = dy + dstarts @ O[:, Lm:].T
-    return jnp.transpose(dy, (1, 0, 2)).reshape(P, -1, p)[:, :T]
-
-
-def run_sensitivities(maps, z0, dmaps, dz0, u, L: int = _BLOCK):
-    """Outputs (T, p) of one run and their tangents (P, T, p) along `P` directions.
-
-    `dmaps`, `dz0`: the tangents of `maps` and `z0`, each with a leading axis of `P`.
-    """
-    y, w = run_primal(maps, z0, u, L)
-    return y, run_tangents(maps, dmaps, dz0, w, u.shape[0], L)
+    dstarts = recurrence(DL, drive.reshape(-1, P, n), dz0)  # (blocks, P, n)
+    dy = w @ jnp.transpose(dO, (2, 1, 0)).reshape(Lm + n, -1)  # (blocks, L p P)
+    dy = dy.reshape(-1, L * p, P) + _small_inner_product(O[:, Lm:], jnp.swapaxes(dstarts, 1, 2))
+    return dy.reshape(-1, p, P)
 
 
 # Padé [13/13] coefficients (Higham 2005), as in `jax.scipy.linalg.expm`.
@@ -310,17 +324,23 @@ def dataset_maps(model, data, run_initial, L: int = _BLOCK):
 
 def dataset_outputs(model, data, run_initial=None):
     """Free-run outputs (runs, T, p) of every run: `simulate_dataset` by the blocked maps."""
+    return dataset_block_outputs(model, data, run_initial)[:, :data.outputs.shape[1]]
+
+
+def dataset_block_outputs(model, data, run_initial=None):
+    """`dataset_outputs` padded to whole blocks: (runs, blocks L, p)."""
     if model.is_nonlinear:
         from ._nonlinear import dataset_outputs_nonlinear
 
-        return dataset_outputs_nonlinear(model, data, run_initial)
+        return pad_to_blocks(dataset_outputs_nonlinear(model, data, run_initial))
     maps, z0 = dataset_maps(model, data, run_initial)
-    return jax.vmap(run_outputs)(maps, z0, data.inputs.astype(z0.dtype)) + model.output_offset()[None, None, :]
+    y = jax.vmap(lambda m, z, u: run_primal(m, z, u)[0])(maps, z0, data.inputs.astype(z0.dtype))
+    return y + model.output_offset()[None, None, :]
 
 
 def output_sensitivity_parts(params_to_model, theta, data):
-    """Free-run outputs (runs, T, p) of every run, and a function computing their Jacobian
-    in `theta`, transposed: (P, runs, T, p).
+    """Free-run outputs of every run padded to whole blocks (runs, blocks L, p), and a
+    function computing their Jacobian in `theta`: (runs, blocks L, p, P).
 
     `params_to_model(theta) -> (model, run_initial)`. The small part (discretization and
     block maps, with their tangents along every parameter) is computed here; the large
@@ -334,10 +354,9 @@ def output_sensitivity_parts(params_to_model, theta, data):
 
         def outputs(t):
             model, run_initial = params_to_model(t)
-            return dataset_outputs_nonlinear(model, data, run_initial)
+            return pad_to_blocks(dataset_outputs_nonlinear(model, data, run_initial))
 
-        y = outputs(theta)
-        return y, lambda: jnp.moveaxis(jax.jacfwd(outputs)(theta), -1, 0)
+        return outputs(theta), lambda: jax.jacfwd(outputs)(theta)
 
     def maps_of(t):
         model, run_initial = params_to_model(t)
@@ -345,23 +364,14 @@ def output_sensitivity_parts(params_to_model, theta, data):
 
     # Tangents along every parameter, (runs, P, ...); the primal does not depend on the
     # direction, so it is computed once.
-    ((maps, z0), offset), ((dmaps, dz0), doffset) = jax.vmap(
-        lambda v: jax.jvp(maps_of, (theta,), (v,)), out_axes=(None, (1, 0)))(
+    small = jax.vmap(lambda v: jax.jvp(maps_of, (theta,), (v,)), out_axes=(None, (1, 0)))(
         jnp.eye(theta.shape[0], dtype=theta.dtype))
-    u = data.inputs.astype(theta.dtype)
-    y, w = jax.vmap(run_primal)(maps, z0, u)
-    y = y + offset[None, None, :]
+    # Materialized before use: otherwise XLA fuses the small products that build the maps
+    # into the large elementwise passes over the outputs and recomputes them per element.
+    ((maps, z0), offset), ((dmaps, dz0), doffset) = jax.lax.optimization_barrier(small)
+    y, w = jax.vmap(run_primal)(maps, z0, data.inputs.astype(theta.dtype))
 
-    def jacobian_t():
-        dy = jax.vmap(lambda m, dm, dz, w_: run_tangents(m, dm, dz, w_, u.shape[1]),
-                      out_axes=1)(maps, dmaps, dz0, w)
-        return dy + doffset[:, None, None, :]
+    def jacobian():
+        return jax.vmap(run_tangents)(maps, dmaps, dz0, w) + doffset.T[None, None]
 
-    return y, jacobian_t
-
-
-def output_sensitivities(params_to_model, theta, data):
-    """Free-run outputs (runs, T, p) of every run and their Jacobian in `theta`, transposed:
-    (P, runs, T, p). `params_to_model(theta) -> (model, run_initial)`."""
-    y, jacobian_t = output_sensitivity_parts(params_to_model, theta, data)
-    return y, jacobian_t()
+    return y + offset[None, None, :], jacobian

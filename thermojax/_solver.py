@@ -40,8 +40,8 @@ from jaxtyping import Array, Bool, Float, Int
 class GaussNewtonSolution(eqx.Module):
     """What `gauss_newton` returns: the parameters, and how the solve went.
 
-    `residuals`, `jacobian_t` and `aux` are those of the last Jacobian evaluation,
-    taken at `value` (the solver always ends on an evaluation at its final point).
+    `residuals`, `grams` and `aux` are those of the last Jacobian evaluation, taken at
+    `value` (the solver always ends on an evaluation at its final point).
     """
 
     value: Float[Array, " params"]
@@ -49,8 +49,8 @@ class GaussNewtonSolution(eqx.Module):
     num_steps: Int[Array, ""]  # Jacobian evaluations (Gauss-Newton iterations)
     converged: Bool[Array, ""]  # the identifiable part's predicted decrease fell below tolerance
     num_truncated: Int[Array, ""]  # directions left out at the last step
-    residuals: Float[Array, " rows"]
-    jacobian_t: Float[Array, "params rows"]  # the Jacobian, transposed
+    residuals: object  # the residuals (a pytree of arrays, as `fn` returns them)
+    grams: object  # JᵀJ of each leaf of the residuals (the same pytree, leaves (params, params))
     aux: object = None  # what `jac` returned besides residuals and Jacobian, at `value`
     num_evaluations: Int[Array, ""] = None  # residual evaluations (trial points)
 
@@ -87,6 +87,32 @@ class TruncatedGaussNewton(eqx.Module):
     max_acceleration: float = 0.75
 
 
+def _flat_rows(J):
+    """A Jacobian pytree with each leaf as a (rows, params) matrix."""
+    return jax.tree.map(lambda x: x.reshape(-1, x.shape[-1]), J)
+
+
+def _grams(J):
+    """`JᵀJ` of each leaf of a flat-rows Jacobian pytree."""
+    return jax.tree.map(lambda x: x.T @ x, J)
+
+
+def _jt_dot(J, r):
+    """`Jᵀ r` for residual-shaped `r`: (params,)."""
+    return sum(ri.reshape(-1) @ x for x, ri in
+               zip(jax.tree.leaves(J), jax.tree.leaves(r), strict=True))
+
+
+def _j_dot(J, v, like):
+    """`J v`, shaped like the residuals `like`."""
+    return jax.tree.map(lambda x, r: (x @ v).reshape(r.shape), J, like)
+
+
+def _half_sum_squares(r):
+    c = 0.5 * sum(jnp.sum(x ** 2) for x in jax.tree.leaves(r))
+    return jnp.where(jnp.isfinite(c), c, jnp.inf)
+
+
 # Finite-difference step (relative to the velocity) of the directional second derivative.
 _ACCEL_H = 0.1
 # On an accepted step `λ` shrinks by at most this factor (Nielsen's rule allows 1/3; with
@@ -101,11 +127,13 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
     acceleration, damped Levenberg-Marquardt style (Nielsen's update of the damping
     `λ`) and capped.
 
-    `jac(theta, args) -> (r, Jt, aux)` supplies the residuals `r = fn(theta, args)`,
-    their Jacobian *transposed*, `Jt` (params, rows: the layout in which `JᵀJ`, `Jᵀr`
-    and `J v` all read memory contiguously), and anything else wanted at the solution
-    (`aux`, e.g. the model's predictions), e.g. from forward sensitivities; default
-    `jax.jacfwd(fn)` with `aux = None`.
+    The residuals may be a pytree of arrays (e.g. data rows and prior rows, each in the
+    layout that is cheapest to produce). `jac(theta, args) -> (r, J, aux)` supplies the
+    residuals `r = fn(theta, args)`, their Jacobian `J` (the same pytree, each leaf with
+    the parameters last: (*rows, params), as `jax.jacfwd` gives it), and anything else
+    wanted at the solution (`aux`, e.g. the model's predictions), e.g. from forward
+    sensitivities; default `jax.jacfwd(fn)` with `aux = None`. Only the Gram matrices
+    of the leaves are kept between iterations (`GaussNewtonSolution.grams`).
 
     Each iteration takes one Jacobian and the eigendecomposition of `JᵀJ` (the SVD of
     `J`: `J = U diag(s) Vᵀ`, `JᵀJ = V diag(s²) Vᵀ`, `Uᵀr = diag(1/s) Vᵀ Jᵀr`); trial
@@ -116,32 +144,32 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
     if jac is None:
         def jac(theta, args):
             J, r = jax.jacfwd(lambda t: (fn(t, args),) * 2, has_aux=True)(theta)
-            return r, J.T, None
+            return r, J, None
 
     accel = solver.acceleration
-    r_like, J_like, aux_like = jax.eval_shape(jac, theta0, args)
+    r_like, _, aux_like = jax.eval_shape(jac, theta0, args)
 
     def zeros(x):
         return jnp.zeros(x.shape, x.dtype)
 
-    def sq(r):
-        c = 0.5 * jnp.sum(r ** 2)
-        return jnp.where(jnp.isfinite(c), c, jnp.inf)
+    sq = _half_sum_squares
 
     def outer_cond(c):
         return ~c["finished"]
 
     def outer_body(c):
         theta, k, lam = c["theta"], c["k"], c["lam"]
-        r, Jt, aux = jac(theta, args)
+        r, J, aux = jac(theta, args)
+        J = _flat_rows(J)  # every use reads the same (rows, params) matrices
         cost = sq(r)
-        mu, V = jnp.linalg.eigh(Jt @ Jt.T)
+        grams = _grams(J)
+        mu, V = jnp.linalg.eigh(sum(jax.tree.leaves(grams)))
         s = jnp.sqrt(jnp.maximum(mu, 0.0))
         keep = s > solver.min_singular_value
         s_safe = jnp.where(keep, s, 1.0)
 
         def project(x):  # Uᵀ x on the kept directions
-            return jnp.where(keep, (V.T @ (Jt @ x)) / s_safe, 0.0)
+            return jnp.where(keep, (V.T @ _jt_dot(J, x)) / s_safe, 0.0)
 
         Ur = project(r)
         done = (0.5 * jnp.sum(Ur ** 2) < solver.tol) & jnp.isfinite(cost)
@@ -175,7 +203,8 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
             r_pt = fn(point, args)
             if accel:
                 def after_probe(_):
-                    r_vv = (2.0 / _ACCEL_H) * ((r_pt - r) / _ACCEL_H - v @ Jt)
+                    r_vv = jax.tree.map(lambda a, b, c: (2.0 / _ACCEL_H) * ((a - b) / _ACCEL_H - c),
+                                        r_pt, r, _j_dot(J, v, r))
                     a = -(V @ (f * project(r_vv)))
                     curved = (2.0 * jnp.linalg.norm(a) > solver.max_acceleration
                               * jnp.linalg.norm(v)) | ~jnp.all(jnp.isfinite(a))
@@ -219,14 +248,16 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
             "finished": ~better,
             "converged": done,
             "n_out": jnp.sum(~keep),
-            "cost": cost, "r": r, "Jt": Jt, "aux": aux, "n_eval": t["n_eval"],
+            "cost": cost, "r": r, "grams": grams, "aux": aux, "n_eval": t["n_eval"],
         }
 
     false = jnp.zeros((), bool)
     init = {"theta": theta0, "k": jnp.zeros((), int), "lam": jnp.ones(()), "finished": false,
             "converged": false, "n_out": jnp.zeros((), int), "cost": jnp.zeros(()),
-            "r": zeros(r_like), "Jt": zeros(J_like), "aux": jax.tree.map(zeros, aux_like),
+            "r": jax.tree.map(zeros, r_like),
+            "grams": jax.tree.map(lambda _: jnp.zeros((theta0.shape[0],) * 2, theta0.dtype), r_like),
+            "aux": jax.tree.map(zeros, aux_like),
             "n_eval": jnp.zeros((), int)}
     c = jax.lax.while_loop(outer_cond, outer_body, init)
     return GaussNewtonSolution(c["theta"], c["cost"], c["k"], c["converged"], c["n_out"],
-                               c["r"], c["Jt"], c["aux"], c["n_eval"])
+                               c["r"], c["grams"], c["aux"], c["n_eval"])

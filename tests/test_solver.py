@@ -1,0 +1,95 @@
+"""The truncated Gauss-Newton solver (`thermojax._solver.gauss_newton`) on small problems.
+
+Truths, independent of the code under test: `scipy.optimize.least_squares` (MINPACK's
+Levenberg-Marquardt) on the same residuals written in NumPy, a Jacobian written out by
+hand, and the closed-form least-squares solution of a problem with one direction the
+data cannot determine.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.optimize
+
+from thermojax._solver import TruncatedGaussNewton, gauss_newton
+
+T1 = np.linspace(0.0, 5.0, 40)
+T2 = np.linspace(0.0, 3.0, 25)
+
+
+def _decay(theta, t):
+    """`exp(la) exp(-exp(lb) t) + c`."""
+    la, lb, c = theta
+    return jnp.exp(la) * jnp.exp(-jnp.exp(lb) * t) + c
+
+
+def _data():
+    rng = np.random.default_rng(0)
+    truth = np.array([np.log(2.0), np.log(0.7), 0.3])
+    y1 = np.asarray(_decay(truth, T1)) + 0.01 * rng.standard_normal(T1.shape)
+    # The second data set: 5 x 5 grid of samples, to exercise a 2-D residual leaf.
+    y2 = np.asarray(_decay(truth, T2)) + 0.02 * rng.standard_normal(T2.shape)
+    return y1, y2.reshape(5, 5)
+
+
+def _residuals(theta, data):
+    """A pytree of residuals: a vector and a 5 x 5 array, weighted differently."""
+    y1, y2 = data
+    return ((y1 - _decay(theta, T1)) / 0.01,
+            (y2 - _decay(theta, T2).reshape(5, 5)) / 0.02)
+
+
+def _numpy_jacobian(theta):
+    """d residuals / d theta, written out by hand: (40 + 25, 3)."""
+    la, lb, _ = theta
+
+    def one(t, w):
+        e = np.exp(-np.exp(lb) * t)
+        return -np.stack([np.exp(la) * e, -np.exp(la) * e * np.exp(lb) * t,
+                          np.ones_like(t)], axis=1) / w
+
+    return one(T1, 0.01), one(T2, 0.02)
+
+
+def test_pytree_residuals_match_scipy_least_squares():
+    data = _data()
+    theta0 = jnp.array([0.0, 0.0, 0.0])
+    sol = jax.jit(lambda t0, d: gauss_newton(_residuals, t0, d, TruncatedGaussNewton(
+        min_singular_value=1e-6, tol=1e-20)))(theta0, data)
+    assert bool(sol.converged) and int(sol.num_truncated) == 0
+
+    def flat(theta):
+        r1, r2 = _residuals(jnp.asarray(theta), data)
+        return np.concatenate([np.asarray(r1), np.asarray(r2).ravel()])
+
+    ref = scipy.optimize.least_squares(flat, np.zeros(3), method="lm",
+                                       jac=lambda th: np.concatenate(_numpy_jacobian(th)),
+                                       xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    np.testing.assert_allclose(sol.value, ref.x, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(float(sol.cost), 0.5 * np.sum(ref.fun ** 2), rtol=1e-12)
+    # One Gram matrix per residual leaf, at the solution.
+    J1, J2 = _numpy_jacobian(np.asarray(sol.value))
+    np.testing.assert_allclose(sol.grams[0], J1.T @ J1, rtol=1e-10)
+    np.testing.assert_allclose(sol.grams[1], J2.T @ J2, rtol=1e-10)
+    assert sol.residuals[1].shape == (5, 5)
+
+
+def test_undetermined_direction_stays_where_it_started():
+    """`y = exp(la + lb) t`: only `la + lb` is determined. The solver fits it exactly
+    (closed form) and leaves `la - lb` at its starting value."""
+    rng = np.random.default_rng(1)
+    t = np.linspace(0.1, 2.0, 30)
+    y = 3.0 * t + 0.05 * rng.standard_normal(t.shape)
+
+    def residuals(theta, y):
+        return (y - jnp.exp(theta[0] + theta[1]) * t) / 0.05
+
+    theta0 = jnp.array([0.4, -0.9])
+    solver = TruncatedGaussNewton(tol=1e-20)
+    sol = jax.jit(lambda t0, y: gauss_newton(residuals, t0, y, solver))(theta0, jnp.asarray(y))
+    slope = np.sum(t * y) / np.sum(t * t)  # least squares through the origin
+    assert bool(sol.converged) and int(sol.num_truncated) == 1
+    np.testing.assert_allclose(float(sol.value[0] + sol.value[1]), np.log(slope), rtol=0,
+                               atol=1e-10)
+    np.testing.assert_allclose(float(sol.value[0] - sol.value[1]), 0.4 - (-0.9), rtol=0,
+                               atol=1e-12)
