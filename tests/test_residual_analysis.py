@@ -84,6 +84,20 @@ def test_cumulated_periodogram_white_vs_lowpass():
     assert np.max(np.abs(c - f)) > 3 * band  # low-pass: power piles up at low frequency
 
 
+def test_cumulated_periodogram_pools_runs_of_unequal_length_by_frequency():
+    """A tone at 0.6 of Nyquist in the longer of two white runs shows as a jump at 0.6,
+    wherever the shorter run's frequencies fall; two white runs stay inside the band."""
+    rng = np.random.default_rng(6)
+    short, long = rng.standard_normal(600), rng.standard_normal(2000)
+    f, c, band = cumulated_periodogram([short, long])
+    assert len(f) == 300 + 1000 and np.all(np.diff(f) >= 0) and f[-1] == 1.0
+    assert np.max(np.abs(c - f)) < band
+    k = np.arange(2000)
+    f, c, band = cumulated_periodogram([short, long + 2.0 * np.sin(np.pi * 0.6 * k)])
+    jump = np.argmax(np.diff(c))
+    assert abs(f[jump + 1] - 0.6) < 2e-3 and c[jump + 1] - c[jump] > 0.3
+
+
 def test_phases_from_data():
     ts = np.arange(0, 3600.0, 1.0)
     temp = np.interp(ts, [0, 600, 1200, 1800, 2400, 3600], [25, 25, 75, 75, 25, 25])

@@ -86,19 +86,25 @@ def cross_correlation(residuals: list[np.ndarray], signals: list[np.ndarray], ma
 def cumulated_periodogram(runs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, float]:
     """Normalized cumulated periodogram of the pooled residual (Box-Jenkins).
 
-    Returns `(frequency as a fraction of Nyquist, C, band)`: for white noise `C`
+    Each run contributes its periodogram ordinates at its own Fourier frequencies, scaled
+    by its length (so that every ordinate of a white residual has the same mean); the
+    ordinates of all runs are pooled in order of frequency. Returns `(frequency as a
+    fraction of Nyquist, C, band)`, one entry per pooled ordinate: for white noise `C`
     follows the diagonal within `±band` (95 % Kolmogorov-Smirnov band).
     """
-    spectra = []
+    freqs, powers = [], []
     for r in runs:
         x = _finite_segments(r)
         if len(x) >= 4:
-            p = np.abs(np.fft.rfft(x)) ** 2
-            spectra.append(p[1:])
-    m = min(len(p) for p in spectra)
-    p = np.sum([s[:m] for s in spectra], axis=0)
-    c = np.cumsum(p) / np.sum(p) if np.sum(p) > 0 else np.linspace(0, 1, m)
-    return np.arange(1, m + 1) / m, c, 1.36 / np.sqrt(max(m - 1, 1))
+            p = np.abs(np.fft.rfft(x)) ** 2 / len(x)
+            freqs.append(2.0 * np.arange(1, len(p)) / len(x))
+            powers.append(p[1:])
+    f = np.concatenate(freqs)
+    order = np.argsort(f, kind="stable")
+    f, p = f[order], np.concatenate(powers)[order]
+    m = len(f)
+    c = np.cumsum(p) / np.sum(p) if np.sum(p) > 0 else np.arange(1, m + 1) / m
+    return f, c, 1.36 / np.sqrt(max(m - 1, 1))
 
 
 # ---------------------------------------------------------------------------
