@@ -89,13 +89,23 @@ class MatrixExponential(AbstractDiscretization):
     """
 
     def discretize(self, system: LinearSystem, dt) -> DiscreteSystem:
-        n, m = system.B.shape
-        M = jnp.zeros((n + 2 * m, n + 2 * m), dtype=system.A.dtype)
-        M = M.at[:n, :n].set(system.A * dt).at[:n, n:n + m].set(system.B * dt)
-        M = M.at[n:n + m, n + m:].set(jnp.eye(m, dtype=system.A.dtype))
-        E = _expm(M)
-        B0, B1 = _split_holds(system, E[:n, n:n + m], E[:n, n + m:])
-        return DiscreteSystem(E[:n, :n], B0, B1, system.C, system.D, dt)
+        return discrete_from_exponential(system, dt, _expm(augmented_matrix(system, dt)))
+
+
+def augmented_matrix(system: LinearSystem, dt) -> Float[Array, "k k"]:
+    """`[[A dt, B dt, 0], [0, 0, I], [0, 0, 0]]`, whose exponential holds the exact
+    one-step maps for inputs that vary linearly over the step."""
+    n, m = system.B.shape
+    M = jnp.zeros((n + 2 * m, n + 2 * m), dtype=system.A.dtype)
+    M = M.at[:n, :n].set(system.A * dt).at[:n, n:n + m].set(system.B * dt)
+    return M.at[n:n + m, n + m:].set(jnp.eye(m, dtype=system.A.dtype))
+
+
+def discrete_from_exponential(system: LinearSystem, dt, E) -> DiscreteSystem:
+    """The `DiscreteSystem` read off the blocks of `expm(augmented_matrix(system, dt))`."""
+    n, m = system.B.shape
+    B0, B1 = _split_holds(system, E[:n, n:n + m], E[:n, n + m:])
+    return DiscreteSystem(E[:n, :n], B0, B1, system.C, system.D, dt)
 
 
 def _phi1(x):

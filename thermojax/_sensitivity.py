@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._discretize import _THETA13, _split_holds
+from ._discretize import _THETA13, augmented_matrix, discrete_from_exponential
 from ._system import DiscreteSystem
 
 _BLOCK = 16  # samples per block
@@ -277,14 +277,8 @@ def _expm_jvp(primals, tangents):
 def discretize_exact_hold(system, dt) -> DiscreteSystem:
     """`discretize(system, dt)` (`MatrixExponential`): the same values to roundoff, a cheap
     derivative and a fast compilation."""
-    n, m = system.B.shape
     dt = jnp.asarray(dt, dtype=system.A.dtype)
-    M = jnp.zeros((n + 2 * m, n + 2 * m), dtype=system.A.dtype)
-    M = M.at[:n, :n].set(system.A * dt).at[:n, n:n + m].set(system.B * dt)
-    M = M.at[n:n + m, n + m:].set(jnp.eye(m, dtype=system.A.dtype))
-    E = _expm(M)
-    B0, B1 = _split_holds(system, E[:n, n:n + m], E[:n, n + m:])
-    return DiscreteSystem(E[:n, :n], B0, B1, system.C, system.D, dt)
+    return discrete_from_exponential(system, dt, _expm(augmented_matrix(system, dt)))
 
 
 def _initial_state(model, system, u0, run_initial):
