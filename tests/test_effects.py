@@ -78,7 +78,7 @@ def test_every_kind_has_a_module_and_places():
 def test_lowered_fit_round_trip_names_effect_parameters():
     """A fitted model with structural effects writes them back as effects (loadable),
     and its report names them by effect (spec §5)."""
-    from thermojax import fit
+    from thermojax import fit, profile_interval
 
     case = g.load_case("sensor_lag")
     believed = g.dump_toml(case["believed"])
@@ -95,6 +95,14 @@ def test_lowered_fit_round_trip_names_effect_parameters():
     assert again.effects[0].kind == "sensor_lag"
     assert abs(again.effects[0].parameters["time_constant"].value - p["value"]) < 1e-9
     assert again.node_names == spec.node_names
+    # The profile interval of tau (fitted as the element's conductance C / tau) comes back
+    # in seconds, in order, and close to the Wald interval in log tau for a parameter
+    # this well determined.
+    lower, upper = profile_interval(res, "effects.sensor_lag.T_housing.time_constant")
+    half = 1.96 * p["std"] / p["value"]
+    assert lower < p["value"] < upper
+    np.testing.assert_allclose(np.log([lower, upper]) - np.log(p["value"]), [-half, half],
+                               rtol=0.1)
 
 
 @pytest.mark.slow

@@ -401,3 +401,52 @@ def test_kalman_with_only_noise_free():
     for name, true in RTD2H_TRUTH.items():
         assert result.parameters[name]["value"] == pytest.approx(true, rel=1e-12)
     assert within(result.parameters["sensors.T_core.noise"], 0.01)
+
+
+def test_profile_interval_ends_where_chi_square_rises_by_the_quantile():
+    """With one free parameter the profile likelihood is the likelihood itself, so at
+    each end of the 95 % interval the chi-square, recomputed here by the NumPy
+    simulator, exceeds its minimum by the chi-square(1) quantile 3.84."""
+    from thermojax import parse_model, profile_interval
+
+    g_true = 1 / 12
+    spec = parse_model(f"""
+[[nodes]]
+name = "sheath"
+capacitance = {{ value = 0.8, fixed = true }}
+[[nodes]]
+name = "core"
+capacitance = {{ value = 0.1, fixed = true }}
+[[links]]
+between = ["sheath", "core"]
+conductance = 0.05
+[[boundaries]]
+node = "sheath"
+input = "T_fluid"
+conductance = {{ value = 0.2, fixed = true }}
+[[sensors]]
+node = "core"
+column = "T_core"
+noise = {{ value = 0.01, fixed = true }}
+""")
+    ts = np.arange(300.0)
+    u = np.interp(ts, [0, 20, 30, 300], [25, 25, 75, 75])[:, None]
+
+    def outputs(g):
+        A = np.array([[-(0.2 + g) / 0.8, g / 0.8], [g / 0.1, -g / 0.1]])
+        B = np.array([[0.2 / 0.8], [0.0]])
+        x0 = np_steady(A, B, u[0])
+        return np_simulate(A, B, np.array([[0.0, 1.0]]), x0, u, 1.0, ("foh",))[1]
+
+    y = outputs(g_true) + 0.01 * np.random.default_rng(4).standard_normal((len(ts), 1))
+    res = fit(spec, [Experiment(ts, u, y, "step")])
+    name = "links.sheath-core.conductance"
+    g_hat = res.parameters[name]["value"]
+
+    def chi2(g):
+        return float(np.sum((y - outputs(g)) ** 2) / 0.01 ** 2)
+
+    lower, upper = profile_interval(res, name)
+    assert lower < g_hat < upper
+    for end in (lower, upper):
+        assert abs(chi2(end) - chi2(g_hat) - scipy.stats.chi2.ppf(0.95, 1)) < 0.02

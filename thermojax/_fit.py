@@ -88,6 +88,9 @@ class FitResult:
     # Output error with the default solver: residual evaluations at trial points (each
     # of the `n_steps` iterations also evaluates residuals and Jacobian once).
     n_evaluations: int | None = None
+    # Effect parameters fitted through a lowered entry: effect name -> (scale, power),
+    # value = scale * lowered value ** power (e.g. a sensor lag's tau = C / G).
+    lowered_as: dict[str, tuple[float, float]] = field(repr=False, default_factory=dict)
 
 
 # ---------------------------------------------------------------------------
@@ -506,7 +509,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         n_steps=n_steps, converged=converged, message=message,
         n_evaluations=n_evals if likelihood == "output_error" else None,
         wall_time_s=time.perf_counter() - t_start, predictions=preds_list, smoothed=smoothed,
-        theta=np.asarray(theta), problem=problem)
+        theta=np.asarray(theta), problem=problem,
+        lowered_as={target: (scale, power) for target, scale, power in renames.values()})
 
 
 @eqx.filter_jit
@@ -527,7 +531,9 @@ def profile_interval(result: FitResult, name: str, level: float = 0.95, max_refi
     interval's ends are where `2 (nll_pinned - nll_min)` reaches the
     chi-square(1) quantile of `level`, found by bracketing and bisection.
     Noise stds stay at their fitted values. An end that never reaches the
-    threshold (an unidentifiable side) is None.
+    threshold (an unidentifiable side) is None. An effect parameter fitted through
+    a lowered entry (a sensor lag's `tau` as the conductance `C / tau`) is profiled
+    in that entry and its ends mapped back.
     """
     from scipy.stats import chi2
 
@@ -569,7 +575,7 @@ def profile_interval(result: FitResult, name: str, level: float = 0.95, max_refi
             continue
         for _ in range(max(0, max_refits - refits)):
             mid = 0.5 * (lo + hi)
-            if abs(hi - lo) < 1e-4 * max(1.0, abs(mid)):
+            if abs(hi - lo) < 1e-3 * 1.96 * step:  # relative to the expected half-width
                 break
             if excess(mid) > 0:
                 hi = mid
@@ -577,6 +583,11 @@ def profile_interval(result: FitResult, name: str, level: float = 0.95, max_refi
                 lo = mid
         end = 0.5 * (lo + hi)
         ends.append(float(np.exp(end)) if log else end)
+    if name in result.lowered_as:  # value = scale * lowered ** power, monotone
+        scale, power = result.lowered_as[name]
+        ends = [None if e is None else scale * e ** power for e in ends]
+        if power < 0:
+            ends = ends[::-1]
     return ends[0], ends[1]
 
 
