@@ -407,28 +407,19 @@ def test_profile_interval_ends_where_chi_square_rises_by_the_quantile():
     """With one free parameter the profile likelihood is the likelihood itself, so at
     each end of the 95 % interval the chi-square, recomputed here by the NumPy
     simulator, exceeds its minimum by the chi-square(1) quantile 3.84."""
-    from thermojax import parse_model, profile_interval
+    import dataclasses
 
-    g_true = 1 / 12
-    spec = parse_model(f"""
-[[nodes]]
-name = "sheath"
-capacitance = {{ value = 0.8, fixed = true }}
-[[nodes]]
-name = "core"
-capacitance = {{ value = 0.1, fixed = true }}
-[[links]]
-between = ["sheath", "core"]
-conductance = 0.05
-[[boundaries]]
-node = "sheath"
-input = "T_fluid"
-conductance = {{ value = 0.2, fixed = true }}
-[[sensors]]
-node = "core"
-column = "T_core"
-noise = {{ value = 0.01, fixed = true }}
-""")
+    from thermojax import load_model, profile_interval
+    from thermojax._spec import Parameter
+
+    def fixed(entry, field):
+        return dataclasses.replace(entry, **{field: Parameter(getattr(entry, field).value, True)})
+
+    rtd2 = load_model(CONFIGS / "rtd2.toml")  # C 0.8, 0.1 J/K; G_ext 0.2, G 1/12 W/K
+    g_true = rtd2.links[0].conductance.value
+    spec = rtd2.replace(nodes=tuple(fixed(n, "capacitance") for n in rtd2.nodes),
+                        boundaries=tuple(fixed(b, "conductance") for b in rtd2.boundaries),
+                        sensors=tuple(fixed(s, "noise") for s in rtd2.sensors))
     ts = np.arange(300.0)
     u = np.interp(ts, [0, 20, 30, 300], [25, 25, 75, 75])[:, None]
 
