@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import equinox as eqx
-import jax.numpy as jnp
+import jax
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
@@ -90,9 +90,9 @@ class Dataset(eqx.Module):
                                      np.zeros((pad, e.outputs.shape[1]))]))
             mask.append(np.concatenate([measured, np.zeros((pad, e.outputs.shape[1]), bool)]))
             dts.append(dt)
-        return cls(jnp.asarray(np.stack(ts)), jnp.asarray(np.array(dts)),
-                   jnp.asarray(np.stack(u)), jnp.asarray(np.stack(y)),
-                   jnp.asarray(np.stack(mask)), tuple(e.n_times for e in experiments),
+        # `device_put`, not `jnp.asarray`: the latter compiles a small program per shape.
+        return cls(*jax.device_put((np.stack(ts), np.array(dts), np.stack(u), np.stack(y),
+                                    np.stack(mask))), tuple(e.n_times for e in experiments),
                    tuple(e.name for e in experiments))
 
     @property

@@ -183,7 +183,7 @@ def _solve_oe(theta0, problem, solver, max_steps):
     tolerances or dampings (warm-started passes) reuse one compilation.
     """
     if isinstance(solver, TruncatedGaussNewton):
-        solver = jax.tree.map(lambda x: jnp.asarray(x, float), solver)
+        solver = jax.tree.map(lambda x: jax.device_put(np.asarray(x, float)), solver)
     return _solve_oe_jit(theta0, problem, solver, max_steps)
 
 
@@ -396,16 +396,16 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         data = dataclasses.replace(data, mask=data.mask.at[holdout].set(False))
     model = ThermalModel.from_spec(spec)
     k = len(model.initial_nodes)
-    run_initial = jnp.broadcast_to(model.initial[np.array(model.initial_nodes, dtype=int)],
-                                   (data.n_runs, k)) if k else jnp.zeros((data.n_runs, 0))
-    template = FitState(model, jnp.asarray(run_initial))
+    run_initial = np.broadcast_to(np.asarray(model.initial)[np.array(model.initial_nodes, dtype=int)],
+                                  (data.n_runs, k))
+    template = FitState(model, jax.device_put(np.array(run_initial)))
 
     oe_mask, oe_names = _masks(spec, model, data.n_runs, "output_error")
     if not oe_names and likelihood == "output_error":
         raise InputError("nothing to fit: every parameter is fixed. Make at least one "
                          "capacitance, conductance or gain a bare number.", file=spec.source)
     fixed_sigma = np.array([s.noise is not None and s.noise.fixed for s in spec.sensors])
-    sigma = np.asarray(model.noise)
+    sigma = np.exp(np.asarray(model.log_noise))
 
     # -- output error, with the estimated noise stds iterated to their ML values
     index = FreeIndex(oe_mask)
@@ -426,12 +426,12 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     theta, n_steps, converged, sigma, nll, oe_solution, sigma_used, n_evals = best
     _check_finite(theta, theta0, oe_names)
     state = _with_free_parameters_np(template, index, theta)
-    state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model, jnp.asarray(np.log(sigma))),
+    state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model, jax.device_put(np.log(sigma))),
                      state.run_initial)
 
     if likelihood == "output_error":
-        problem = _Problem(template, index, data, jnp.asarray(sigma), theta0,
-                           jnp.zeros_like(theta0))
+        problem = _Problem(template, index, data, jax.device_put(sigma), theta0,
+                           jax.device_put(np.zeros(theta0.shape)))
         # JᵀJ at theta from the last pass, re-weighted to the final stds.
         info = np.einsum("j,jab->ab", (sigma_used / sigma) ** 2, np.asarray(oe_solution.gram))
         free_names = oe_names
@@ -617,8 +617,8 @@ def _fit_output_error(start, theta0, template, index, data, sigma, fixed_sigma, 
     sig = np.asarray(sigma, float)
     mask = np.asarray(data.mask)
     for it in range(outer):
-        problem = _Problem(template, index, data, jnp.asarray(sig), theta0,
-                           jnp.zeros_like(theta0))
+        problem = _Problem(template, index, data, jax.device_put(sig), theta0,
+                           jax.device_put(np.zeros(theta0.shape)))
         if theta.shape[0]:
             theta, steps, ok, *evaluation = _solve_oe(theta, problem, solver, max_steps)
         else:  # nothing physical to move (a Kalman fit of the noise alone)
@@ -715,7 +715,7 @@ def _free_parameters_np(tree, index: FreeIndex) -> jax.Array:
     leaves = jax.tree.leaves(eqx.filter(tree, eqx.is_array))
     parts = [np.ravel(np.asarray(leaf))[np.array(ix, dtype=int)]
              for leaf, ix in zip(leaves, index.per_leaf)]
-    return jnp.asarray(np.concatenate(parts) if parts else np.zeros((0,)))
+    return jax.device_put(np.concatenate(parts) if parts else np.zeros((0,)))
 
 
 def _with_free_parameters_np(tree, index: FreeIndex, theta):
@@ -730,7 +730,7 @@ def _with_free_parameters_np(tree, index: FreeIndex, theta):
             flat = a.reshape(-1)
             flat[np.array(ix, dtype=int)] = theta[offset:offset + len(ix)]
             a = flat.reshape(a.shape)
-        out.append(jnp.asarray(a))
+        out.append(jax.device_put(a))
         offset += len(ix)
     return eqx.combine(jax.tree.unflatten(treedef, out), static)
 
@@ -759,15 +759,15 @@ def _add_fixed_parameters(parameters: dict, spec: ModelSpec, model: ThermalModel
     """Fixed parameters appear in the report too, with std None."""
     net = model.network
     entries = [(f"nodes.{n.name}.capacitance", n.capacitance, c)
-               for n, c in zip(spec.nodes, np.asarray(net.capacitance))]
+               for n, c in zip(spec.nodes, np.exp(np.asarray(net.log_capacitance)))]
     entries += [(f"links.{k.key}.conductance", k.conductance, g)
-                for k, g in zip(spec.links, np.asarray(net.conductance))]
+                for k, g in zip(spec.links, np.exp(np.asarray(net.log_conductance)))]
     entries += [(f"boundaries.{b.key}.conductance", b.conductance, g)
-                for b, g in zip(spec.boundaries, np.asarray(net.boundary_conductance))]
+                for b, g in zip(spec.boundaries, np.exp(np.asarray(net.log_boundary_conductance)))]
     entries += [(f"heat_inputs.{h.key}.gain", h.gain, g)
-                for h, g in zip(spec.heat_inputs, np.asarray(net.heat_gain))]
+                for h, g in zip(spec.heat_inputs, np.exp(np.asarray(net.log_heat_gain)))]
     entries += [(f"sensors.{s.column}.noise", s.noise, sd)
-                for s, sd in zip(spec.sensors, np.asarray(model.noise)) if s.noise is not None]
+                for s, sd in zip(spec.sensors, np.exp(np.asarray(model.log_noise))) if s.noise is not None]
     entries += [(f"nodes.{n.name}.initial", n.initial, n.initial.value)
                 for n in spec.nodes if n.initial is not None and n.initial.fixed]
     for name, p, v in entries:
@@ -792,7 +792,7 @@ def output_error_at(result: FitResult, experiments: list[Experiment]):
     mask, _ = _masks(spec, model, data.n_runs, "output_error")
     index = FreeIndex(mask)
     theta = _free_parameters_np(template, index)
-    sigma = np.asarray(model.noise)
+    sigma = np.exp(np.asarray(model.log_noise))
     problem = _Problem(template, index, data, jnp.asarray(sigma), theta, jnp.zeros_like(theta))
     weights = np.asarray(data.mask) / sigma[None, None, :]
     r, J = _oe_samples_jacobian(theta, problem)

@@ -116,13 +116,13 @@ class ThermalNetwork(eqx.Module):
             heat_gain = np.ones(len(topology.heat_nodes))
 
         def log(x, what):
-            x = jnp.asarray(x, dtype=float)
             if isinstance(x, jax.core.Tracer):
                 return jnp.log(x)
-            if x.ndim != 1 or not bool(jnp.all(x > 0)):
+            x = np.asarray(x, dtype=float)  # concrete: checked and logged in NumPy
+            if x.ndim != 1 or not np.all(x > 0):
                 raise ValueError(f"`ThermalNetwork.from_physical({what}=...)` needs a 1-d array "
                                  f"of positive values, got {x}.")
-            return jnp.log(x)
+            return jax.device_put(np.log(x))
 
         return cls(log(capacitance, "capacitance"), log(conductance, "conductance"),
                    log(boundary_conductance, "boundary_conductance"),
