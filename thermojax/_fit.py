@@ -41,7 +41,7 @@ from ._metrics import fit_metrics
 from ._model import ThermalModel, model_to_spec
 from ._newton import TruncatedNewton, newton
 from ._parameters import FreeIndex, free_parameters, with_free_parameters
-from ._solver import TruncatedGaussNewton, gauss_newton
+from ._solver import TruncatedGaussNewton, _flat_rows, _grams, gauss_newton
 from ._spec import EFFECT_KINDS, ModelSpec
 from .effects import lower_effects, raise_effects
 
@@ -396,8 +396,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         data = dataclasses.replace(data, mask=data.mask.at[holdout].set(False))
     model = ThermalModel.from_spec(spec)
     k = len(model.initial_nodes)
-    run_initial = np.broadcast_to(np.asarray(model.initial)[np.array(model.initial_nodes, dtype=int)],
-                                  (data.n_runs, k))
+    initial = np.asarray(model.initial)[np.array(model.initial_nodes, dtype=int)]
+    run_initial = np.broadcast_to(initial, (data.n_runs, k))
     template = FitState(model, jax.device_put(np.array(run_initial)))
 
     oe_mask, oe_names = _masks(spec, model, data.n_runs, "output_error")
@@ -477,7 +477,7 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         parameters[nm] = {"value": v, "std": sd, "free": True}
     for nm, (v, sd) in noise_params.items():
         parameters[nm] = {"value": v, "std": sd, "free": True}
-    _add_fixed_parameters(parameters, spec, state.model)
+    _add_fixed_parameters(parameters, spec)
     d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     corr = cov / d[:, None] / d[None, :]
 
@@ -656,8 +656,7 @@ def _oe_evaluate(theta, problem) -> _OEEvaluation:
         y = dataset_block_outputs(model, problem.data, run_initial)
         return _OEEvaluation(_data_residuals(y, problem)[:, :T], jnp.zeros((p, 0, 0)), y[:, :T])
     (r, _), (J, _), y = _oe_blocks_jacobian(theta, problem)
-    grams = [j.reshape(-1, j.shape[-1]).T @ j.reshape(-1, j.shape[-1]) for j in J]
-    return _OEEvaluation(jnp.stack(r, axis=-1)[:, :T], jnp.stack(grams), y)
+    return _OEEvaluation(jnp.stack(r, axis=-1)[:, :T], jnp.stack(_grams(_flat_rows(J))), y)
 
 
 def _np_output_error_nll(residuals, mask, sigma) -> float:
@@ -755,24 +754,17 @@ def _check_runs(spec: ModelSpec, experiments: list[Experiment]) -> None:
                           "slow parameters will be poorly determined.", stacklevel=3)
 
 
-def _add_fixed_parameters(parameters: dict, spec: ModelSpec, model: ThermalModel) -> None:
-    """Fixed parameters appear in the report too, with std None."""
-    net = model.network
-    entries = [(f"nodes.{n.name}.capacitance", n.capacitance, c)
-               for n, c in zip(spec.nodes, np.exp(np.asarray(net.log_capacitance)))]
-    entries += [(f"links.{k.key}.conductance", k.conductance, g)
-                for k, g in zip(spec.links, np.exp(np.asarray(net.log_conductance)))]
-    entries += [(f"boundaries.{b.key}.conductance", b.conductance, g)
-                for b, g in zip(spec.boundaries, np.exp(np.asarray(net.log_boundary_conductance)))]
-    entries += [(f"heat_inputs.{h.key}.gain", h.gain, g)
-                for h, g in zip(spec.heat_inputs, np.exp(np.asarray(net.log_heat_gain)))]
-    entries += [(f"sensors.{s.column}.noise", s.noise, sd)
-                for s, sd in zip(spec.sensors, np.exp(np.asarray(model.log_noise))) if s.noise is not None]
-    entries += [(f"nodes.{n.name}.initial", n.initial, n.initial.value)
-                for n in spec.nodes if n.initial is not None and n.initial.fixed]
-    for name, p, v in entries:
+def _add_fixed_parameters(parameters: dict, spec: ModelSpec) -> None:
+    """Fixed parameters appear in the report too, with their file values and std None."""
+    entries = [(f"nodes.{n.name}.capacitance", n.capacitance) for n in spec.nodes]
+    entries += [(f"links.{k.key}.conductance", k.conductance) for k in spec.links]
+    entries += [(f"boundaries.{b.key}.conductance", b.conductance) for b in spec.boundaries]
+    entries += [(f"heat_inputs.{h.key}.gain", h.gain) for h in spec.heat_inputs]
+    entries += [(f"sensors.{s.column}.noise", s.noise) for s in spec.sensors]
+    entries += [(f"nodes.{n.name}.initial", n.initial) for n in spec.nodes]
+    for name, p in entries:
         if name not in parameters and p is not None and p.fixed:
-            parameters[name] = {"value": float(v), "std": None, "free": False}
+            parameters[name] = {"value": float(p.value), "std": None, "free": False}
 
 
 # ---------------------------------------------------------------------------
@@ -793,7 +785,8 @@ def output_error_at(result: FitResult, experiments: list[Experiment]):
     index = FreeIndex(mask)
     theta = _free_parameters_np(template, index)
     sigma = np.exp(np.asarray(model.log_noise))
-    problem = _Problem(template, index, data, jnp.asarray(sigma), theta, jnp.zeros_like(theta))
+    problem = _Problem(template, index, data, jax.device_put(sigma), theta,
+                       jax.device_put(np.zeros(theta.shape)))
     weights = np.asarray(data.mask) / sigma[None, None, :]
     r, J = _oe_samples_jacobian(theta, problem)
     return data, weights, np.asarray(r).reshape(-1), np.asarray(J).reshape(-1, theta.shape[0])

@@ -67,9 +67,9 @@ class ThermalModel(eqx.Module):
                 v = e.parameters[name].value if name in e.parameters else first[name]
                 values.append(float(np.log(v)) if log else float(v))
             terms.append(term)
-        return cls(ThermalNetwork.from_spec(spec), jax.device_put(np.log(np.asarray(noise, float))),
-                   jax.device_put(np.log(np.asarray(q, float))), jax.device_put(np.asarray(init, float)),
-                   jax.device_put(np.asarray(std, float)),
+        return cls(ThermalNetwork.from_spec(spec),
+                   *jax.device_put((np.log(np.asarray(noise, float)), np.log(np.asarray(q, float)),
+                                    np.asarray(init, float), np.asarray(std, float))),
                    tuple(i for i, n in enumerate(spec.nodes) if n.initial is not None),
                    jax.device_put(np.asarray(values, float).reshape(-1)), tuple(terms))
 
@@ -162,6 +162,9 @@ def model_to_spec(model: ThermalModel, spec: ModelSpec, process_noise: bool = Fa
     written, also where the spec left it out; otherwise only where the spec has it."""
     net = model.network
 
+    def values(log_values):  # physical values, in NumPy (no eager XLA programs)
+        return np.exp(np.asarray(log_values))
+
     def upd(p: Parameter | None, v) -> Parameter:
         return Parameter(float(v), p.fixed if p is not None else False)
 
@@ -169,15 +172,15 @@ def model_to_spec(model: ThermalModel, spec: ModelSpec, process_noise: bool = Fa
         n, capacitance=upd(n.capacitance, c),
         process_noise=upd(n.process_noise, q) if process_noise or n.process_noise is not None
         else None)
-        for n, c, q in zip(spec.nodes, np.exp(np.asarray(net.log_capacitance)), np.exp(np.asarray(model.log_process_noise))))
+        for n, c, q in zip(spec.nodes, values(net.log_capacitance), values(model.log_process_noise)))
     links = tuple(dataclasses.replace(k, conductance=upd(k.conductance, g))
-                  for k, g in zip(spec.links, np.exp(np.asarray(net.log_conductance))))
+                  for k, g in zip(spec.links, values(net.log_conductance)))
     bounds = tuple(dataclasses.replace(b, conductance=upd(b.conductance, g))
-                   for b, g in zip(spec.boundaries, np.exp(np.asarray(net.log_boundary_conductance))))
+                   for b, g in zip(spec.boundaries, values(net.log_boundary_conductance)))
     heats = tuple(dataclasses.replace(h, gain=upd(h.gain, g))
-                  for h, g in zip(spec.heat_inputs, np.exp(np.asarray(net.log_heat_gain))))
+                  for h, g in zip(spec.heat_inputs, values(net.log_heat_gain)))
     sensors = tuple(dataclasses.replace(s, noise=upd(s.noise, sd))
-                    for s, sd in zip(spec.sensors, np.exp(np.asarray(model.log_noise))))
+                    for s, sd in zip(spec.sensors, values(model.log_noise)))
     values = iter(model.effect_parameter_values())
     by_place = {(t.kind, t.where): t for t in model.effect_terms}
     effects = []

@@ -160,11 +160,6 @@ def run_primal(maps, z0, u, L: int = _BLOCK):
     return (w @ O.T).reshape(-1, O.shape[0] // L), w
 
 
-def run_outputs(maps, z0, u, L: int = _BLOCK):
-    """Outputs (T, p) of one run from its `block_maps` and initial `z0 = x0 - B1 u[0]`."""
-    return run_primal(maps, z0, u, L)[0][:u.shape[0]]
-
-
 def run_tangents(maps, dmaps, dz0, w, L: int = _BLOCK):
     """Output tangents (blocks L, p, P) of one run along `P` directions, padded to whole
     blocks, given the tangents of its maps and initial state (leading axis `P`) and `w`
@@ -338,9 +333,7 @@ def output_sensitivity_parts(params_to_model, theta, data):
 
     `params_to_model(theta) -> (model, run_initial)`. The small part (discretization and
     block maps, with their tangents along every parameter) is computed here; the large
-    part of the Jacobian only when the returned function is called, so that a caller can
-    put it under `lax.cond` and have one copy of the small part's code serve residual
-    and Jacobian evaluations alike (it costs a fraction of a millisecond).
+    part of the Jacobian when the returned function is called.
     """
 
     if params_to_model(theta)[0].is_nonlinear:  # ETD2 scan, differentiated forward
