@@ -2,11 +2,11 @@
 
 The six-node IMU (configs/imu6.toml) is identified from three 3-hour chamber runs at
 1 Hz (ramps between 25 and 85 °C and back at 1, 5 and 10 °C/min, dwells filling the
-3 h, built with `thermojax._profiles`), with 0.01 °C white noise on the housing, PCB
+3 h, built with `thermojax.measurements._profiles`), with 0.01 °C white noise on the housing, PCB
 and ASIC sensors. P_asic (gain fixed at 1) dissipates 0.05 W plus a 0.05 W step
 between 30 and 60 min in each run: a known heat input fixes the absolute scale of the
 capacitances and conductances. All 13 capacitances and conductances are free and
-start 30 % off (`thermojax._runner.perturbed(truth, 0.3, seed=1)`), the same start
+start 30 % off (`thermojax.cli._runner.perturbed(truth, 0.3, seed=1)`), the same start
 for every fitter.
 
 Fitters, all on the same data, in log-parameters, in the same process:
@@ -63,8 +63,8 @@ jax.config.update("jax_enable_x64", True)
 
 import thermojax as tj  # noqa: E402
 from thermojax import _profiles  # noqa: E402
-from thermojax._data import Experiment  # noqa: E402
-from thermojax._runner import perturbed  # noqa: E402
+from thermojax.measurements._data import Experiment  # noqa: E402
+from thermojax.cli._runner import perturbed  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 HOURS = 3.0

@@ -49,10 +49,10 @@ def imu6_runs(seed: int = 0, duration_s: float = 12600.0):
     """Three 3.5 h runs of imu6 plus the hidden effects, as `(ts, columns)`."""
     import numpy as np
 
-    from thermojax._data import Dataset, Experiment
-    from thermojax._model import ThermalModel
-    from thermojax._nonlinear import dataset_outputs_nonlinear
-    from thermojax._profiles import builtin_profile
+    from thermojax.measurements._data import Dataset, Experiment
+    from thermojax.model._model import ThermalModel
+    from thermojax.dynamics._nonlinear import dataset_outputs_nonlinear
+    from thermojax.measurements._profiles import builtin_profile
 
     text = (REPO / "configs" / "imu6.toml").read_text()
     truth = thermojax.parse_model(text + IMU6_HIDDEN)

@@ -304,7 +304,7 @@ def rtd2h_spec(text: str = RTD2H_TEXT):
 
 
 def rtd2h_experiments(seed: int = 1, process_noise: bool = False):
-    from thermojax._data import Experiment
+    from thermojax.measurements._data import Experiment
 
     return [Experiment(ts, U, Y, name=name) for name, (ts, U, Y, *_)
             in zip(RTD2H_NAMES, rtd2h_data(seed, process_noise))]
@@ -322,7 +322,7 @@ def cached_fit(key, make):
 
 def rtd2h_oe_fit():
     """The output-error fit of the rtd2h runs (seed 1), shared by the test modules."""
-    from thermojax._fit import fit
+    from thermojax.fitting._fit import fit
 
     def make():
         experiments = rtd2h_experiments(1)
@@ -334,7 +334,7 @@ def rtd2h_oe_fit():
 
 def rtd2h_kalman_fit():
     """The Kalman fit of rtd2h runs simulated with process noise (seed 1)."""
-    from thermojax._fit import fit
+    from thermojax.fitting._fit import fit
 
     def make():
         experiments = rtd2h_experiments(1, process_noise=True)
@@ -370,7 +370,7 @@ def off_by_factor(spec, factor: float):
     `1/factor` alternately, in file order."""
     import dataclasses
 
-    from thermojax._spec import Parameter
+    from thermojax.model._spec import Parameter
 
     k = iter(range(1000))
 
@@ -386,8 +386,8 @@ def off_by_factor(spec, factor: float):
 
 def imu6_fit():
     """The output-error fit of `imu6_data()` started 3x off (`off_by_factor(imu6, 3)`)."""
-    from thermojax._data import Experiment
-    from thermojax._fit import fit
+    from thermojax.measurements._data import Experiment
+    from thermojax.fitting._fit import fit
 
     def make():
         data = imu6_data()

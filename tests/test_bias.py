@@ -1,6 +1,6 @@
 """Bias channels (spec §4): exact strain recursion, least-squares/τ recovery, LR scores, files.
 
-Truths are independent of `thermojax._bias`: node temperatures are analytic
+Truths are independent of `thermojax.fitting._bias`: node temperatures are analytic
 piecewise-linear ramps, the strain comes from `scipy.integrate.solve_ivp` stretch by
 stretch between the ramps' knots, and one test uses the hidden-effect generator.
 """
@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 import scipy.integrate
 
-from thermojax._bias import (BiasFit, bias_parameters, bias_to_spec, fit_bias, strain,
+from thermojax.fitting._bias import (BiasFit, bias_parameters, bias_to_spec, fit_bias, strain,
                              viscoelastic_candidate)
 from thermojax._errors import InputError
-from thermojax._model_file import dump_model, parse_model
-from thermojax._spec import Bias, Effect, Parameter
+from thermojax.model._model_file import dump_model, parse_model
+from thermojax.model._spec import Bias, Effect, Parameter
 
 NODES = ["case", "die"]
 COLUMN = "gyro_x_dph"

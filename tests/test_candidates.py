@@ -9,10 +9,10 @@ import pytest
 from scipy import stats
 
 from thermojax import parse_model
-from thermojax._candidates import (benjamini_hochberg, column_hold, column_role,
+from thermojax.investigation._candidates import (benjamini_hochberg, column_hold, column_role,
                                    enumerate_places, refit_p_value)
 from thermojax.cli import main
-from thermojax.effects import lower_effects
+from thermojax.model.effects import lower_effects
 
 from hidden import generator as g
 

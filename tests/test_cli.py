@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from thermojax import InputError, io
-from thermojax._model_file import load_model
-from thermojax._telemetry import Telemetry, read_telemetry, write_telemetry
+from thermojax.model._model_file import load_model
+from thermojax.measurements._telemetry import Telemetry, read_telemetry, write_telemetry
 from thermojax.cli import main
 
 from helpers import CONFIGS, ROOT

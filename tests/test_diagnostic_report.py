@@ -11,8 +11,8 @@ import re
 import numpy as np
 import pytest
 
-from thermojax._diagnostics import diagnose_traces, diagnostic_plots
-from thermojax._investigation_report import write_investigation_report
+from thermojax.investigation._diagnostics import diagnose_traces, diagnostic_plots
+from thermojax.investigation._investigation_report import write_investigation_report
 
 DT = 10.0  # s
 INPUTS = ["T_chamber", "T_in", "P_heater"]

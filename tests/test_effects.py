@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from thermojax import Dataset, Experiment, ThermalModel, parse_model
-from thermojax._likelihood import simulate_dataset
-from thermojax._model_file import dump_model
-from thermojax._sensitivity import dataset_outputs
-from thermojax.effects import KINDS, lower_effects
+from thermojax.fitting._likelihood import simulate_dataset
+from thermojax.model._model_file import dump_model
+from thermojax.dynamics._sensitivity import dataset_outputs
+from thermojax.model.effects import KINDS, lower_effects
 
 from hidden import generator as g
 

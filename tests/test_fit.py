@@ -29,10 +29,10 @@ import numpy as np
 import pytest
 import scipy.stats
 
-import thermojax._fit as fit_module
+import thermojax.fitting._fit as fit_module
 from thermojax import InputError, read_telemetry, write_telemetry
-from thermojax._data import Experiment
-from thermojax._fit import _check_finite, fit
+from thermojax.measurements._data import Experiment
+from thermojax.fitting._fit import _check_finite, fit
 
 from helpers import (CONFIGS, RTD2H_CORE_OFFSET, RTD2H_NAMES, RTD2H_Q, RTD2H_TEXT, RTD2H_TRUTH,
                      imu6_fit, model_matrices, np_simulate, np_steady, rtd2h_experiments, rtd2h_inputs,
@@ -410,7 +410,7 @@ def test_profile_interval_ends_where_chi_square_rises_by_the_quantile():
     import dataclasses
 
     from thermojax import load_model, profile_interval
-    from thermojax._spec import Parameter
+    from thermojax.model._spec import Parameter
 
     def fixed(entry, field):
         return dataclasses.replace(entry, **{field: Parameter(getattr(entry, field).value, True)})

@@ -16,8 +16,8 @@ import pytest
 
 import thermojax as tj
 from thermojax import write_telemetry
-from thermojax._data import Experiment
-from thermojax._fit import fit
+from thermojax.measurements._data import Experiment
+from thermojax.fitting._fit import fit
 from thermojax.cli import main
 
 from helpers import (CONFIGS, RTD2H_NAMES, RTD2H_TEXT, RTD2H_TRUTH, rtd2h_data,

@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 
 import thermojax as tj
-from thermojax._data import Experiment
-from thermojax._fit import fit
+from thermojax.measurements._data import Experiment
+from thermojax.fitting._fit import fit
 from thermojax._json import json_safe
-from thermojax._identifiability import identifiability
+from thermojax.fitting._identifiability import identifiability
 
 from helpers import (CONFIGS, RTD2H_NAMES, RTD2H_RUNS, RTD2H_TRUTH, cached_fit, imu6_fit,
                      np_simulate, np_steady, rtd2h_oe_fit, text_matrices)

@@ -24,9 +24,9 @@ import numpy as np
 import pytest
 
 import thermojax as tj
-from thermojax._data import Dataset, Experiment
-from thermojax._likelihood import kalman_nll, kalman_run, rts_smoother
-from thermojax._model import ThermalModel
+from thermojax.measurements._data import Dataset, Experiment
+from thermojax.fitting._likelihood import kalman_nll, kalman_run, rts_smoother
+from thermojax.model._model import ThermalModel
 
 from helpers import (CONFIGS, model_matrices, np_discretize, np_simulate, np_steady,
                      np_van_loan, rtd2h_kalman_fit)

@@ -12,8 +12,8 @@ import pytest
 
 import thermojax as tj
 from thermojax import InputError
-from thermojax._model_file import dump_model, load_model, parse_model, save_model
-from thermojax._spec import Bias, Effect, ModelSpec, Parameter
+from thermojax.model._model_file import dump_model, load_model, parse_model, save_model
+from thermojax.model._spec import Bias, Effect, ModelSpec, Parameter
 
 from helpers import CONFIGS, ROOT
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from thermojax._errors import InputError
-from thermojax._profiles import (
+from thermojax.measurements._profiles import (
     BUILTIN_PROFILES,
     PHASE_KINDS,
     Phase,

@@ -1,4 +1,4 @@
-"""Output-error Jacobians by forward sensitivities (`thermojax._sensitivity`).
+"""Output-error Jacobians by forward sensitivities (`thermojax.dynamics._sensitivity`).
 
 Truths, independent of the code under test:
 
@@ -21,12 +21,13 @@ import numpy as np
 import pytest
 
 import thermojax as tj
-from thermojax import _fit, _sensitivity
-from thermojax._data import Dataset, Experiment
-from thermojax._discretize import _expm as reference_expm
-from thermojax._model import ThermalModel
-from thermojax._parameters import FreeIndex
-from thermojax._spec import Parameter
+from thermojax.fitting import _fit
+from thermojax.dynamics import _sensitivity
+from thermojax.measurements._data import Dataset, Experiment
+from thermojax.dynamics._discretize import _expm as reference_expm
+from thermojax.model._model import ThermalModel
+from thermojax.model._parameters import FreeIndex
+from thermojax.model._spec import Parameter
 
 from helpers import CONFIGS
 

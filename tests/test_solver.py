@@ -1,4 +1,4 @@
-"""The truncated Gauss-Newton solver (`thermojax._solver.gauss_newton`) on small problems.
+"""The truncated Gauss-Newton solver (`thermojax.fitting._solver.gauss_newton`) on small problems.
 
 Truths, independent of the code under test: `scipy.optimize.least_squares` (MINPACK's
 Levenberg-Marquardt) on the same residuals written in NumPy, a Jacobian written out by
@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
-from thermojax._solver import TruncatedGaussNewton, gauss_newton
+from thermojax.fitting._solver import TruncatedGaussNewton, gauss_newton
 
 T1 = np.linspace(0.0, 5.0, 40)
 T2 = np.linspace(0.0, 3.0, 25)

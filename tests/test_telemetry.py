@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from thermojax._errors import InputError
-from thermojax._telemetry import (
+from thermojax.measurements._telemetry import (
     Telemetry,
     check_inputs,
     check_sensors,
@@ -298,7 +298,7 @@ def test_readers_do_not_import_jax():
     import thermojax
 
     root = Path(thermojax.__file__).parent
-    for name in ("_telemetry.py", "_profiles.py"):
+    for name in ("measurements/_telemetry.py", "measurements/_profiles.py"):
         tree = ast.parse((root / name).read_text())
         for node in ast.walk(tree):
             if isinstance(node, ast.Import):

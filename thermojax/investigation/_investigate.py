@@ -31,18 +31,18 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from ._bias import bias_parameters, bias_to_spec, fit_bias, viscoelastic_candidate
+from ..fitting._bias import bias_parameters, bias_to_spec, fit_bias, viscoelastic_candidate
 from ._candidates import (Candidate, benjamini_hochberg, column_hold, column_role,
                           enumerate_places, new_effect, refit_p_value, score_candidates)
-from ._data import Experiment
-from ._fit import FitResult, fit, output_error_at, standardized_innovations
-from ._json import json_safe
-from ._memory import release_compiled_if_crowded
-from ._model_file import dump_model, save_model
-from ._parameters_by_name import spec_parameters, with_spec_parameters
-from ._residual_analysis import ljung_box
-from ._spec import ModelSpec
-from ._telemetry import Telemetry
+from ..measurements._data import Experiment
+from ..fitting._fit import FitResult, fit, output_error_at, standardized_innovations
+from .._json import json_safe
+from .._memory import release_compiled_if_crowded
+from ..model._model_file import dump_model, save_model
+from ..model._parameters_by_name import spec_parameters, with_spec_parameters
+from .._residual_analysis import ljung_box
+from ..model._spec import ModelSpec
+from ..measurements._telemetry import Telemetry
 
 STOP_REASONS = ("residuals_white", "no_supported_candidate", "max_steps")
 TIE_LR = float(stats.chi2.ppf(0.95, 1))  # 3.84
@@ -375,7 +375,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
             stopped = "no_supported_candidate"
             break
         if chosen.kind == "viscoelastic":
-            from ._spec import Effect, Parameter
+            from ..model._spec import Effect, Parameter
 
             eff = Effect("viscoelastic", chosen.where, {
                 k: Parameter(v) for k, v in chosen.parameters.items()})
@@ -430,7 +430,7 @@ def _noise(step: Step) -> dict:
 
 
 def _version() -> str:
-    from . import __version__
+    from .. import __version__
 
     return __version__
 
@@ -456,7 +456,7 @@ def _save_checkpoint(out: Path, fingerprint: str, records, spec) -> None:
 
 
 def _load_checkpoint(out: Path, fingerprint: str, spec):
-    from ._model_file import load_model
+    from ..model._model_file import load_model
 
     path = out / "checkpoint.json"
     if not path.exists():

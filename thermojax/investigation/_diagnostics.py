@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from ._json import json_safe
-from ._metrics import fit_percent, rmse
-from ._residual_analysis import (PHASES, PhaseLabels, cross_correlation, cumulated_periodogram,
+from .._json import json_safe
+from .._metrics import fit_percent, rmse
+from .._residual_analysis import (PHASES, PhaseLabels, cross_correlation, cumulated_periodogram,
                                  label_phases, ljung_box, pooled_autocorrelation,
                                  residuals_by_phase)
 

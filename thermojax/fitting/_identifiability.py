@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._spec import ModelSpec
+from ..model._spec import ModelSpec
 
 
 @dataclass

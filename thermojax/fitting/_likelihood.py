@@ -19,11 +19,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._data import Dataset
-from ._discretize import discretize, discretize_process_noise
-from ._model import ThermalModel
-from ._nonlinear import dataset_outputs_nonlinear, etd2_step, initial_state_nonlinear
-from ._simulate import ExactHold
+from ..measurements._data import Dataset
+from ..dynamics._discretize import discretize, discretize_process_noise
+from ..model._model import ThermalModel
+from ..dynamics._nonlinear import dataset_outputs_nonlinear, etd2_step, initial_state_nonlinear
+from ..dynamics._simulate import ExactHold
 
 LOG_2PI = math.log(2 * math.pi)
 

@@ -12,7 +12,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._discretize import AbstractDiscretization, MatrixExponential, Modal, discretize, modal_decomposition
-from ._system import LinearSystem
+from ..model._system import LinearSystem
 
 
 class Solution(eqx.Module):

@@ -9,8 +9,8 @@ import jax
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._errors import InputError
-from ._spec import ModelSpec
+from .._errors import InputError
+from ..model._spec import ModelSpec
 from ._telemetry import Telemetry
 
 
@@ -43,7 +43,7 @@ class Experiment:
         Raises `InputError` for a missing column, an input gap, an all-NaN
         sensor, or fewer than two samples.
         """
-        from .io import model_inputs, model_outputs
+        from ._inputs import model_inputs, model_outputs
 
         file = telemetry.path or name or "data"
         u = model_inputs(spec, telemetry)

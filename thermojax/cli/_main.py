@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._errors import InputError
+from .._errors import InputError
 
 
 def _builtin_model_path(name: str) -> Path:
@@ -31,8 +31,8 @@ def _resolve_model(arg: str) -> Path:
 def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool, seed: int,
                      dt: float, baseline_power: float, write_states: bool):
     """Shared by `simulate` and `demo`: returns (spec, ts, inputs, states, outputs, measured)."""
-    from . import io
-    from ._telemetry import Telemetry
+    from .. import io
+    from ..measurements._telemetry import Telemetry
 
     spec = io.load_model(model_path)
     source = io.load_profile(profile_arg, dt=dt)
@@ -53,7 +53,8 @@ def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool,
 
     # Through the package's lazy loader, which switches JAX to float64 first: importing
     # `._network` directly would simulate in float32 outside the test suite.
-    from . import ThermalNetwork, simulate
+    from .. import ThermalNetwork
+    from .. import simulate
 
     net = ThermalNetwork.from_spec(spec)
     ts_uniform = ts[0] + np.median(steps) * np.arange(len(ts))
@@ -87,7 +88,7 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from ._plots import plot_simulation
+    from .._plots import plot_simulation
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -131,8 +132,8 @@ def cmd_demo(args) -> int:
 
 
 def _load_runs(spec, paths: list[str]):
-    from ._data import Experiment
-    from ._telemetry import read_telemetry
+    from ..measurements._data import Experiment
+    from ..measurements._telemetry import read_telemetry
 
     return [Experiment.from_telemetry(spec, read_telemetry(p), name=p) for p in paths]
 
@@ -144,9 +145,9 @@ def _progress(msg: str) -> None:
 def cmd_fit(args) -> int:
     import warnings
 
-    from . import io
-    from ._fit import fit, profile_interval
-    from ._fit_report import comparison_table, write_fit_outputs
+    from .. import io
+    from ..fitting._fit import fit, profile_interval
+    from ..fitting._fit_report import comparison_table, write_fit_outputs
 
     spec = io.load_model(_resolve_model(args.model))
     experiments = _load_runs(spec, args.data)
@@ -190,14 +191,14 @@ def _add_fit(sub):
 
 
 def _read_runs(paths: list[str]):
-    from ._telemetry import read_telemetry
+    from ..measurements._telemetry import read_telemetry
 
     return [read_telemetry(p) for p in paths]
 
 
 def cmd_diagnose(args) -> int:
-    from . import io
-    from ._diagnose import diagnose
+    from .. import io
+    from ..investigation._diagnose import diagnose
 
     spec = io.load_model(_resolve_model(args.model))
     report = diagnose(spec, _read_runs(args.data), likelihood=args.likelihood, out=Path(args.out),
@@ -211,8 +212,8 @@ def cmd_diagnose(args) -> int:
 
 
 def cmd_investigate(args) -> int:
-    from . import io
-    from ._investigate import investigate
+    from .. import io
+    from ..investigation._investigate import investigate
 
     spec = io.load_model(_resolve_model(args.model))
     out = Path(args.out)
@@ -326,7 +327,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _version() -> str:
-    from . import __version__
+    from .. import __version__
 
     return __version__
 
@@ -342,7 +343,3 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"thermojax {args.command}: interrupted.", file=sys.stderr)
         return 130
-
-
-if __name__ == "__main__":
-    sys.exit(main())

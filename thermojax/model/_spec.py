@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-from ._errors import InputError
+from .._errors import InputError
 
 HOLDS = ("foh", "zoh")
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._errors import InputError
+from ..._errors import InputError
 from .._spec import EFFECT_KINDS, Effect, ModelSpec, Parameter
 
 T_REF = 25.0  # °C, reference temperature of every temperature coefficient

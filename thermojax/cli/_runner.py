@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._errors import InputError
+from .._errors import InputError
 
 _KEYS = {"name", "model", "likelihood", "out", "data", "synthetic", "options"}
 _OPTIONS = {"starts", "perturb", "max_steps"}
@@ -126,9 +126,9 @@ def package_versions() -> dict:
 
 def synthetic_runs(spec, syn: dict, folder: Path) -> list[str]:
     """Simulate the truth model through built-in profiles (with sensor noise); write CSVs."""
-    from . import io
-    from ._network import ThermalNetwork
-    from ._simulate import simulate
+    from .. import io
+    from ..model._network import ThermalNetwork
+    from ..dynamics._simulate import simulate
 
     truth = io.load_model(syn["truth"])
     net = ThermalNetwork.from_spec(truth)
@@ -154,7 +154,7 @@ def synthetic_runs(spec, syn: dict, folder: Path) -> list[str]:
 
 def perturbed(spec, factor: float, seed: int = 0):
     """`spec` with every free capacitance, conductance and gain moved by ±`factor`."""
-    from ._spec import Parameter
+    from ..model._spec import Parameter
 
     rng = np.random.default_rng(seed)
 
@@ -173,10 +173,10 @@ def perturbed(spec, factor: float, seed: int = 0):
 
 def run_config(path: str | Path, progress=print) -> Path:
     """Run one config; return the new results folder."""
-    from . import io
-    from ._data import Experiment
-    from ._fit import fit
-    from ._fit_report import comparison_table, write_fit_outputs
+    from .. import io
+    from ..measurements._data import Experiment
+    from ..fitting._fit import fit
+    from ..fitting._fit_report import comparison_table, write_fit_outputs
 
     cfg = load_config(path)
     spec = io.load_model(cfg["model"])

@@ -36,7 +36,7 @@ from typing import TypeAlias
 
 import numpy as np
 
-from ._errors import InputError
+from .._errors import InputError
 
 Real: TypeAlias = float | int
 

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._system import DiscreteSystem, LinearSystem
+from ..model._system import DiscreteSystem, LinearSystem
 
 
 class AbstractDiscretization(eqx.Module):

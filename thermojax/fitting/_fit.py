@@ -31,19 +31,19 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ._data import Dataset, Experiment
-from ._errors import InputError
+from ..measurements._data import Dataset, Experiment
+from .._errors import InputError
 from ._identifiability import Identifiability, identifiability
 from ._likelihood import (kalman_nll, kalman_run, rts_smoother, output_error_residuals,
                           simulate_dataset)
-from ._sensitivity import dataset_block_outputs, output_sensitivity_parts, pad_to_blocks
-from ._metrics import fit_metrics
-from ._model import ThermalModel, model_to_spec
+from ..dynamics._sensitivity import dataset_block_outputs, output_sensitivity_parts, pad_to_blocks
+from .._metrics import fit_metrics
+from ..model._model import ThermalModel, model_to_spec
 from ._newton import TruncatedNewton, newton
-from ._parameters import FreeIndex, free_parameters, with_free_parameters
+from ..model._parameters import FreeIndex, free_parameters, with_free_parameters
 from ._solver import TruncatedGaussNewton, _flat_rows, _grams, gauss_newton
-from ._spec import EFFECT_KINDS, ModelSpec
-from .effects import lower_effects, raise_effects
+from ..model._spec import EFFECT_KINDS, ModelSpec
+from ..model.effects import lower_effects, raise_effects
 
 LIKELIHOODS = ("output_error", "kalman")
 

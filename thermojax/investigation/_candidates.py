@@ -29,10 +29,10 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from ._data import Dataset
-from ._spec import EFFECT_KINDS, Effect, ModelSpec, Parameter
-from .effects import KINDS
-from .effects._base import lowpass, path_between, unique_name
+from ..measurements._data import Dataset
+from ..model._spec import EFFECT_KINDS, Effect, ModelSpec, Parameter
+from ..model.effects import KINDS
+from ..model.effects._base import lowpass, path_between, unique_name
 
 
 @dataclass
@@ -187,7 +187,7 @@ class ScoreContext:
 
 @eqx.filter_jit
 def _states_jit(model, data, run_initial):
-    from ._nonlinear import dataset_states_nonlinear
+    from ..dynamics._nonlinear import dataset_states_nonlinear
 
     return dataset_states_nonlinear(model, data, run_initial)
 
@@ -196,8 +196,8 @@ def _states_jit(model, data, run_initial):
 def _heat_responses(model, data, W):
     """Output responses (K, runs, T, p) of the fitted network to heat inputs W
     (K, runs, T, n) W, each from the steady state of its first sample."""
-    from ._simulate import ExactHold
-    from ._system import LinearSystem
+    from ..dynamics._simulate import ExactHold
+    from ..model._system import LinearSystem
 
     system = model.linear_system()
     n = system.n_states

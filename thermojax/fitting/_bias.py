@@ -22,8 +22,8 @@ import numpy as np
 import scipy.optimize
 import scipy.signal
 
-from ._errors import InputError
-from ._spec import Bias, Effect, Parameter
+from .._errors import InputError
+from ..model._spec import Bias, Effect, Parameter
 
 T_REF = 25.0  # °C, reference of the static polynomial
 TAU_BOUNDS = (1.0, 1e5)  # s, search range of a relaxation time

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._discretize import discretize
-from ._system import LinearSystem
+from ..model._system import LinearSystem
 
 
 def _augmented(system: LinearSystem) -> LinearSystem:

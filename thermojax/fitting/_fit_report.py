@@ -6,13 +6,13 @@ import json
 from pathlib import Path
 
 from ._fit import FitResult
-from ._json import json_safe
-from ._model_file import save_model
+from .._json import json_safe
+from ..model._model_file import save_model
 
 
 def fit_report(result: FitResult, runs: list[str]) -> dict:
     """The `report.json` of `thermojax fit`."""
-    from . import __version__
+    from .. import __version__
 
     return json_safe({
         "schema": 1,
@@ -42,8 +42,8 @@ def write_fit_outputs(result: FitResult, experiments, out: Path, runs: list[str]
                       profiles: dict | None = None) -> dict:
     """Write model.toml, report.json, one PNG per run and (Kalman) the smoothed node
     temperatures `smoothed_run<i>.csv` into `out`; return the report."""
-    from ._plots import plot_fit
-    from ._telemetry import write_telemetry
+    from .._plots import plot_fit
+    from ..measurements._telemetry import write_telemetry
 
     out.mkdir(parents=True, exist_ok=True)
     save_model(result.spec, out / "model.toml",
@@ -68,7 +68,7 @@ def write_fit_outputs(result: FitResult, experiments, out: Path, runs: list[str]
 
 def whiteness(columns, experiments, predictions) -> dict:
     """Ljung-Box p-value of each column's free-run residual, runs pooled."""
-    from ._residual_analysis import ljung_box
+    from .._residual_analysis import ljung_box
 
     out, lags = {}, None
     for j, c in enumerate(columns):

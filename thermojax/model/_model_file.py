@@ -8,7 +8,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from ._errors import InputError
+from .._errors import InputError
 from ._spec import (Bias, Boundary, Effect, HeatInput, Link, ModelSpec, Node, Parameter, Sensor,
                     validate)
 

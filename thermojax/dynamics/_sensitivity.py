@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._discretize import _THETA13, augmented_matrix, discrete_from_exponential
-from ._system import DiscreteSystem
+from ..model._system import DiscreteSystem
 
 _BLOCK = 16  # samples per block
 _SUPER = 8  # blocks per super-block of the block-start recurrence

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._profiles import builtin_profile
+from ..measurements._profiles import builtin_profile
 
 NOISE = 0.01  # °C, white sensor noise of the built-in data
 SLOT_S = 90.0  # s, PRBS slot of the die power
@@ -25,10 +25,10 @@ def _data_path(name: str) -> Path:
 def demo_runs(seed: int = 0):
     """The built-in runs as `(ts, columns)`: a 10 °C/min and a 5 °C/min chamber ramp
     (25 → 85 → 25 °C, 1 Hz) with the die dissipating PRBS power (0 / 0.4 W, 90 s slots)."""
-    from . import io
-    from ._data import Dataset, Experiment
-    from ._model import ThermalModel
-    from ._nonlinear import dataset_outputs_nonlinear
+    from .. import io
+    from ..measurements._data import Dataset, Experiment
+    from ..model._model import ThermalModel
+    from ..dynamics._nonlinear import dataset_outputs_nonlinear
 
     truth = io.load_model(_data_path("chain3_truth.toml"))
     model = ThermalModel.from_spec(truth)
@@ -52,9 +52,9 @@ def demo_runs(seed: int = 0):
 def run_demo(out: Path, progress=print) -> dict:
     """Write the built-in runs, investigate them from the believed model, and return the
     investigation's report."""
-    from . import io
-    from ._investigate import investigate
-    from ._telemetry import read_telemetry
+    from .. import io
+    from ..investigation._investigate import investigate
+    from ..measurements._telemetry import read_telemetry
 
     out.mkdir(parents=True, exist_ok=True)
     paths = []

@@ -7,8 +7,8 @@ from pathlib import Path
 
 from ._diagnostics import diagnose_traces, diagnostic_plots
 from ._investigate import diagnose_step, evaluate, _noise, _version
-from ._json import json_safe
-from ._spec import ModelSpec
+from .._json import json_safe
+from ..model._spec import ModelSpec
 
 
 def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Path | None = None,

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._errors import InputError
+from .._errors import InputError
 
 TIME_COLUMN = "time_s"
 

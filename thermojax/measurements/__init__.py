@@ -1,0 +1,12 @@
+"""Telemetry files, chamber profiles, and the experiments and datasets a fit reads."""
+
+from .. import _x64  # noqa: F401  (float64 before any array is made)
+from ._data import Dataset, Experiment
+from ._inputs import load_profile, model_inputs, model_outputs, profile_inputs
+from ._profiles import Profile, builtin_profile
+from ._telemetry import Telemetry, read_telemetry, write_telemetry
+
+__all__ = [
+    "Dataset", "Experiment", "Profile", "Telemetry", "builtin_profile", "load_profile",
+    "model_inputs", "model_outputs", "profile_inputs", "read_telemetry", "write_telemetry",
+]
