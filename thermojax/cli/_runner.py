@@ -171,8 +171,9 @@ def perturbed(spec, factor: float, seed: int = 0):
         heat_inputs=tuple(dataclasses.replace(h, gain=move(h.gain)) for h in spec.heat_inputs))
 
 
-def run_config(path: str | Path, progress=print) -> Path:
-    """Run one config; return the new results folder."""
+def run_config(path: str | Path, progress=print, out: str | Path | None = None) -> Path:
+    """Run one config; return the new results folder (under `out` when given, else
+    under the config's own `out`)."""
     from .. import io
     from ..measurements._data import Experiment
     from ..fitting._fit import fit
@@ -180,7 +181,7 @@ def run_config(path: str | Path, progress=print) -> Path:
 
     cfg = load_config(path)
     spec = io.load_model(cfg["model"])
-    folder = new_run_folder(Path(cfg["out"]), cfg["name"])
+    folder = new_run_folder(Path(out if out is not None else cfg["out"]), cfg["name"])
     (folder / "versions.json").write_text(json.dumps(package_versions(), indent=2))
     if "synthetic" in cfg:
         progress(f"simulating {len(cfg['synthetic']['profiles'])} synthetic runs")

@@ -132,6 +132,11 @@ class ModelSpec:
     def input_holds(self) -> tuple[str, ...]:
         return tuple(self._column_holds().values())
 
+    def hold_for(self, column: str, default: str | None = None) -> str:
+        """The hold of an input `column`: the model's own where it already uses the
+        column, else `default` (else `"foh"`, the spec's default)."""
+        return self._column_holds().get(column, default or "foh")
+
     def _column_holds(self) -> dict[str, str]:
         holds: dict[str, str] = {}
         for entry in (*self.boundaries, *self.heat_inputs):

@@ -13,7 +13,7 @@ class Boundary(AbstractEffect):
 
     def lower(self, spec, effect):
         col, node = effect.where
-        hold = dict(zip(spec.input_columns, spec.input_holds)).get(col, effect.hold or "foh")
+        hold = spec.hold_for(col, effect.hold)
         entry = BoundaryEntry(node, col, param(effect, "conductance", 0.01), hold)
         return (spec.replace(boundaries=spec.boundaries + (entry,)),
                 [ParameterLink("conductance", f"boundaries.{node}-{col}.conductance")])

@@ -13,7 +13,7 @@ class HeatSource(AbstractEffect):
 
     def lower(self, spec, effect):
         col, node = effect.where
-        hold = dict(zip(spec.input_columns, spec.input_holds)).get(col, effect.hold or "foh")
+        hold = spec.hold_for(col, effect.hold)
         heat = HeatInput(node, col, param(effect, "gain", 0.1), hold)
         return (spec.replace(heat_inputs=spec.heat_inputs + (heat,)),
                 [ParameterLink("gain", f"heat_inputs.{node}-{col}.gain")])
