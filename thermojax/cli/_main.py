@@ -7,6 +7,7 @@ message naming the file, line or row, and field; never a traceback for those.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from importlib import resources
 from pathlib import Path
@@ -14,6 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import InputError
+from ._outputs import (check_output_file, check_output_folder, mark_own, staged_file,
+                       staged_folder)
 
 
 def _builtin_model_path(name: str) -> Path:
@@ -77,11 +80,10 @@ def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool,
 
 def cmd_simulate(args) -> int:
     out = Path(args.out)
-    if out.parent and not out.parent.exists():
-        raise InputError("the output folder does not exist; create it first.", file=str(out),
-                         field="--out")
-    spec, ts, *_ = _simulate_to_csv(_resolve_model(args.model), args.profile, out, args.noise,
-                                    args.seed, args.dt, args.power, args.states)
+    check_output_file(out, args.force)
+    with staged_file(out) as tmp:
+        spec, ts, *_ = _simulate_to_csv(_resolve_model(args.model), args.profile, tmp,
+                                        args.noise, args.seed, args.dt, args.power, args.states)
     print(f"wrote {out}: {len(ts)} samples x {len(spec.sensor_columns)} sensors "
           f"({', '.join(spec.sensor_columns)})")
     return 0
@@ -91,7 +93,8 @@ def cmd_demo(args) -> int:
     from .._plots import plot_simulation
 
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    check_output_folder(out, args.force)
+    mark_own(out)
     model = _builtin_model_path("imu6")
     print("thermojax demo: the six-node tactical-IMU model through the seed's calibration "
           "schedule (1, 5 and 10 °C/min ramps between -40 and +85 °C plateaus), 1 s samples, "
@@ -149,7 +152,10 @@ def cmd_fit(args) -> int:
     from ..fitting._fit import fit, profile_interval
     from ..fitting._fit_report import comparison_table, write_fit_outputs
 
+    out = Path(args.out)
+    check_output_folder(out, args.force)
     spec = io.load_model(_resolve_model(args.model))
+    _check_profile_names(spec, args.profile or [], args.likelihood)
     experiments = _load_runs(spec, args.data)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -162,19 +168,74 @@ def cmd_fit(args) -> int:
             profiles[name] = {"level": 0.95, "lower": lower, "upper": upper}
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
-    out = Path(args.out)
-    write_fit_outputs(result, experiments, out, list(args.data), profiles)
+    with staged_folder(out) as tmp:
+        write_fit_outputs(result, experiments, tmp, list(args.data), profiles)
     print(comparison_table(result))
     print(f"wrote {out / 'model.toml'}, {out / 'report.json'} and plots")
     return 0
 
 
+def _check_profile_names(spec, names: list[str], likelihood: str) -> None:
+    """`fit --profile NAME`: every NAME a free parameter of the model, before any work."""
+    if not names:
+        return
+    if likelihood != "output_error":
+        raise InputError("profile-likelihood intervals are computed for output-error fits "
+                         "only; drop --profile or use --likelihood output_error.",
+                         field="--profile")
+    from ..model import spec_parameters
+
+    free = [n for n, p in spec_parameters(spec).items() if not p.fixed
+            and not n.startswith("sensors.") and not n.endswith(".process_noise")]
+    for name in names:
+        if name not in free:
+            raise InputError(f"'{name}' is not a free parameter of the model; free ones are "
+                             f"{', '.join(free)}.", file=str(spec.source), field="--profile")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _nonnegative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def _add_force(p, what: str) -> None:
+    p.add_argument("--force", action="store_true",
+                   help=f"replace {what} even if thermojax did not write it")
+
+
 def _add_fit_arguments(p) -> None:
-    """--model, --data (repeatable), --out, --likelihood: shared by fit, diagnose, investigate."""
+    """--model, --data (repeatable), --out, --likelihood, --force: shared by fit, diagnose,
+    investigate."""
     p.add_argument("--model", required=True, help="model TOML file or built-in model name")
     p.add_argument("--data", required=True, action="append", help="telemetry CSV (repeatable)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error")
+    _add_force(p, "an existing --out folder")
 
 
 def _add_fit(sub):
@@ -183,7 +244,8 @@ def _add_fit(sub):
                        "CSV files (one chamber run each; parameters shared, each run with its "
                        "own initial state). Writes DIR/model.toml, DIR/report.json and plots.")
     _add_fit_arguments(p)
-    p.add_argument("--starts", type=int, default=1, help="number of starts (multi-start)")
+    p.add_argument("--starts", type=_positive_int, default=1,
+                   help="number of starts (multi-start, at least 1)")
     p.add_argument("--profile", action="append", metavar="PARAM",
                    help="also compute a 95 %% profile-likelihood interval of this free "
                    "parameter, by its dotted name (repeatable; output error only)")
@@ -200,9 +262,12 @@ def cmd_diagnose(args) -> int:
     from .. import io
     from ..investigation._diagnose import diagnose
 
+    out = Path(args.out)
+    check_output_folder(out, args.force)
     spec = io.load_model(_resolve_model(args.model))
-    report = diagnose(spec, _read_runs(args.data), likelihood=args.likelihood, out=Path(args.out),
-                      progress=_progress)
+    runs = _read_runs(args.data)
+    with staged_folder(out) as tmp:
+        report = diagnose(spec, runs, likelihood=args.likelihood, out=tmp, progress=_progress)
     print(f"{'rank':>4}  {'kind':<24} {'where':<34} {'score':>10} {'p':>9}  supported")
     for i, c in enumerate(report["candidates"][:12]):
         print(f"{i + 1:>4}  {c['kind']:<24} {'-'.join(c['where']):<34} {c['score']:>10.1f} "
@@ -215,9 +280,12 @@ def cmd_investigate(args) -> int:
     from .. import io
     from ..investigation._investigate import investigate
 
-    spec = io.load_model(_resolve_model(args.model))
     out = Path(args.out)
-    report = investigate(spec, _read_runs(args.data), likelihood=args.likelihood, out=out,
+    check_output_folder(out, args.force)
+    spec = io.load_model(_resolve_model(args.model))
+    runs = _read_runs(args.data)
+    mark_own(out)  # finished steps are kept here; a rerun resumes from them
+    report = investigate(spec, runs, likelihood=args.likelihood, out=out,
                          max_steps=args.max_steps, resume=not args.restart, progress=_progress)
     _print_story(report)
     print(f"wrote {out / 'report.json'}, {out / 'model_final.toml'} and {out / 'report.md'}")
@@ -253,7 +321,8 @@ def _add_investigate(sub):
                        "DIR/report.md and plots. An interrupted run resumes from its last "
                        "finished step when started again with the same inputs.")
     _add_fit_arguments(p)
-    p.add_argument("--max-steps", type=int, default=4, help="most effects to add (default 4)")
+    p.add_argument("--max-steps", type=_nonnegative_int, default=4,
+                   help="most effects to add (default 4)")
     p.add_argument("--restart", action="store_true",
                    help="ignore a checkpoint in DIR and start from the given model")
     p.set_defaults(func=cmd_investigate)
@@ -289,13 +358,14 @@ def _add_simulate(sub):
     p.add_argument("--noise", action="store_true",
                    help="add white sensor noise with each sensor's `noise` std (0.01 °C if unset)")
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    p.add_argument("--dt", type=float, default=1.0,
+    p.add_argument("--dt", type=_positive_float, default=1.0,
                    help="sample period of a built-in profile, s (default 1)")
     p.add_argument("--power", type=float, default=0.0,
                    help="constant power added to every heat-input column of a built-in "
                    "profile, W (default 0)")
     p.add_argument("--states", action="store_true",
                    help="also write every node temperature as a column state_<node>")
+    _add_force(p, "an existing --out file")
     p.set_defaults(func=cmd_simulate)
 
 
@@ -308,6 +378,7 @@ def _add_demo(sub):
     p.add_argument("--out", default="thermojax_demo", help="output folder (default thermojax_demo)")
     p.add_argument("--quick", action="store_true",
                    help="only the simulation part (the IMU through the calibration schedule)")
+    _add_force(p, "an existing --out folder")
     p.set_defaults(func=cmd_demo)
 
 
@@ -333,6 +404,12 @@ def _version() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; returns its exit status (0, 2 for a user's mistake, 130 on Ctrl-C).
+
+    Called with no `argv` (the `thermojax` script), an interrupted run ends the process
+    at once after its message: tearing the interpreter down while XLA's compiler
+    threads are busy crashed it (a segfault after Ctrl-C).
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -341,5 +418,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"thermojax {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"thermojax {args.command}: interrupted.", file=sys.stderr)
+        print(f"thermojax {args.command}: interrupted; finished work is kept (an "
+              "interrupted investigation resumes when started again).", file=sys.stderr)
+        if argv is None:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(130)
         return 130

@@ -1,0 +1,226 @@
+"""A user's common mistakes on the command line: each gets a message naming the file or
+flag and exit 2, before any work, and no file is lost; Ctrl-C exits 130 with finished
+work kept and nothing half-written."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from thermojax.cli import main
+from thermojax.measurements import read_telemetry
+
+from helpers import CONFIGS, ROOT
+
+RTD2 = str(CONFIGS / "rtd2.toml")
+
+
+def run(capsys, *argv):
+    capsys.readouterr()
+    try:
+        rc = main(list(map(str, argv)))
+    except SystemExit as e:  # argparse usage errors
+        rc = e.code
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def assert_refused(rc, err, *fragments):
+    assert rc == 2, err
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment in err, (fragment, err)
+
+
+@pytest.fixture(scope="module")
+def shock_csv(tmp_path_factory):
+    """rtd2 through the shock profile with sensor noise: one small run to fit."""
+    path = tmp_path_factory.mktemp("data") / "shock.csv"
+    assert main(["simulate", "--model", RTD2, "--profile", "shock", "--out", str(path),
+                 "--noise", "--seed", "1"]) == 0
+    return path
+
+
+def listing(folder):
+    return sorted(p.name for p in folder.iterdir())
+
+
+# ---------------------------------------------------------------------------
+# simulate
+
+
+def test_simulate_refuses_a_folder_as_out(capsys, tmp_path):
+    rc, _, err = run(capsys, "simulate", "--model", RTD2, "--profile", "shock",
+                     "--out", tmp_path)
+    assert_refused(rc, err, str(tmp_path), "--out", "is a folder")
+
+
+def test_simulate_never_replaces_a_measured_file(capsys, tmp_path):
+    measured = tmp_path / "mydata.csv"
+    measured.write_text("time_s,T_core\n0,20.1\n1,20.2\n")
+    rc, _, err = run(capsys, "simulate", "--model", RTD2, "--profile", "shock",
+                     "--out", measured)
+    assert_refused(rc, err, str(measured), "--force")
+    assert measured.read_text() == "time_s,T_core\n0,20.1\n1,20.2\n"
+    assert listing(tmp_path) == ["mydata.csv"]  # no temporary file left behind
+    rc, _, _ = run(capsys, "simulate", "--model", RTD2, "--profile", "shock",
+                   "--out", measured, "--force")
+    assert rc == 0
+    assert len(read_telemetry(measured)) == 4201
+
+
+def test_simulate_may_replace_its_own_file(capsys, tmp_path):
+    out = tmp_path / "sim.csv"
+    for seed in ("1", "2"):
+        rc, _, err = run(capsys, "simulate", "--model", RTD2, "--profile", "shock",
+                         "--out", out, "--noise", "--seed", seed)
+        assert rc == 0, err
+    assert "seed 2" in out.read_text().splitlines()[0]
+
+
+@pytest.mark.parametrize("value, message", [("-1", "must be a positive number, got -1"),
+                                            ("0", "must be a positive number, got 0"),
+                                            ("nan", "must be a positive number"),
+                                            ("abc", "expected a number")])
+def test_simulate_bad_dt_names_the_flag(capsys, tmp_path, value, message):
+    rc, _, err = run(capsys, "simulate", "--model", RTD2, "--profile", "shock",
+                     "--out", tmp_path / "x.csv", "--dt", value)
+    assert_refused(rc, err, "--dt", message)
+    assert listing(tmp_path) == []
+
+
+def test_simulate_missing_output_folder(capsys, tmp_path):
+    rc, _, err = run(capsys, "simulate", "--model", RTD2, "--profile", "shock",
+                     "--out", tmp_path / "nope" / "x.csv")
+    assert_refused(rc, err, "does not exist", "--out")
+
+
+# ---------------------------------------------------------------------------
+# fit: arguments checked before the work
+
+
+@pytest.mark.parametrize("argv, fragments", [
+    (["--profile", "BADNAME"], ["'BADNAME' is not a free parameter", "--profile",
+                                "links.sheath-core.conductance"]),
+    (["--profile", "nodes.core.capacitance", "--likelihood", "kalman"],
+     ["output-error fits only", "--profile"]),
+    (["--starts", "0"], ["--starts", "must be at least 1"]),
+    (["--starts", "two"], ["--starts", "expected a whole number"]),
+])
+def test_fit_arguments_refused_before_work(capsys, tmp_path, shock_csv, argv, fragments):
+    out = tmp_path / "fit"
+    t0 = time.perf_counter()
+    rc, _, err = run(capsys, "fit", "--model", RTD2, "--data", shock_csv, "--out", out, *argv)
+    assert_refused(rc, err, *fragments)
+    assert not out.exists()
+    assert time.perf_counter() - t0 < 30  # a fit of this run takes longer; nothing ran
+
+
+def test_fit_refuses_a_foreign_folder_and_keeps_it(capsys, tmp_path, shock_csv):
+    out = tmp_path / "notes"
+    out.mkdir()
+    (out / "mine.txt").write_text("keep me")
+    rc, _, err = run(capsys, "fit", "--model", RTD2, "--data", shock_csv, "--out", out)
+    assert_refused(rc, err, str(out), "--force", "not written by thermojax")
+    assert listing(out) == ["mine.txt"]
+
+
+def test_fit_refuses_a_file_as_out(capsys, tmp_path, shock_csv):
+    out = tmp_path / "result"
+    out.write_text("a file")
+    rc, _, err = run(capsys, "fit", "--model", RTD2, "--data", shock_csv, "--out", out)
+    assert_refused(rc, err, str(out), "is a file")
+    assert out.read_text() == "a file"
+
+
+@pytest.mark.slow
+def test_fit_replaces_its_own_folder_whole(capsys, tmp_path, shock_csv):
+    out = tmp_path / "fit"
+    rc, _, err = run(capsys, "fit", "--model", RTD2, "--data", shock_csv, "--out", out)
+    assert rc == 0, err
+    (out / "stale.txt").write_text("from an earlier run")
+    rc, _, err = run(capsys, "fit", "--model", RTD2, "--data", shock_csv, "--out", out)
+    assert rc == 0, err
+    assert "stale.txt" not in listing(out)  # replaced whole, not merged
+    assert {"model.toml", "report.json"} <= set(listing(out))
+    assert [p for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_missing_data_file_is_named(capsys, tmp_path):
+    rc, _, err = run(capsys, "fit", "--model", RTD2, "--data", tmp_path / "nope.csv",
+                     "--out", tmp_path / "fit")
+    assert_refused(rc, err, "nope.csv")
+    assert not (tmp_path / "fit").exists()
+
+
+@pytest.mark.parametrize("command", ["diagnose", "investigate"])
+def test_loop_commands_refuse_foreign_folder(capsys, tmp_path, shock_csv, command):
+    out = tmp_path / "work"
+    out.mkdir()
+    (out / "thesis.tex").write_text("x")
+    rc, _, err = run(capsys, command, "--model", RTD2, "--data", shock_csv, "--out", out)
+    assert_refused(rc, err, str(out), "--force")
+    assert listing(out) == ["thesis.tex"]
+
+
+def test_investigate_negative_max_steps(capsys, tmp_path, shock_csv):
+    rc, _, err = run(capsys, "investigate", "--model", RTD2, "--data", shock_csv,
+                     "--out", tmp_path / "inv", "--max-steps", "-1")
+    assert_refused(rc, err, "--max-steps", "must be 0 or more")
+
+
+# ---------------------------------------------------------------------------
+# Ctrl-C
+
+
+def interrupt_after(argv, seconds, tmp_path):
+    """Start `thermojax argv...` as a real process, send SIGINT after `seconds`."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    proc = subprocess.Popen([sys.executable, "-m", "thermojax", *map(str, argv)], cwd=tmp_path,
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(seconds)
+    assert proc.poll() is None, proc.communicate()  # still working when interrupted
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    return proc.returncode, out, err
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_fit_exits_130_and_writes_nothing(tmp_path, shock_csv):
+    out = tmp_path / "fit"
+    rc, _, err = interrupt_after(["fit", "--model", RTD2, "--data", shock_csv, "--out", out,
+                                  "--likelihood", "kalman"], 10, tmp_path)  # ~1 min of work
+    assert rc == 130, err
+    assert "Traceback" not in err and "interrupted" in err
+    assert not out.exists()
+    assert [p for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_investigate_exits_130_and_resumes(tmp_path):
+    """The chain3 demo data: step 0 and the first added effect take a few seconds each;
+    an interrupt keeps the finished steps and a rerun resumes from them."""
+    from thermojax.cli import demo_runs
+    from thermojax.measurements import write_telemetry
+
+    paths = []
+    for i, (ts, columns) in enumerate(demo_runs()):
+        paths.append(write_telemetry(tmp_path / f"run{i}.csv", ts, columns))
+    model = ROOT / "thermojax" / "data" / "chain3.toml"
+    out = tmp_path / "inv"
+    argv = ["investigate", "--model", model, *sum((["--data", p] for p in paths), []),
+            "--out", out, "--max-steps", "2"]
+    rc, _, err = interrupt_after(argv, 25, tmp_path)
+    assert rc == 130, err
+    assert "Traceback" not in err and "interrupted" in err
+    assert (out / ".thermojax").is_file()
+    finished = (out / "checkpoint.json").is_file()
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-m", "thermojax", *map(str, argv)], cwd=tmp_path,
+                          env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr
+    assert ("resuming after step" in proc.stdout) == finished
+    assert (out / "report.json").is_file() and (out / "model_final.toml").is_file()
