@@ -98,11 +98,15 @@ def test_config_round_trip(name, tmp_path):
     assert without_source(again) == without_source(spec)
 
 
-@pytest.mark.parametrize("name", ["rtd2", "imu6"])
+@pytest.mark.parametrize("name", ["rtd2", "imu6", "chain3"])
 def test_builtin_model_matches_config(name):
     """`--model imu6` (the packaged copy) is the same model as configs/imu6.toml."""
     builtin = load_model(ROOT / "thermojax" / "data" / f"{name}.toml")
     assert without_source(builtin) == without_source(load_model(CONFIGS / f"{name}.toml"))
+    # configs/ holds real files, byte for byte the packaged copies (no symlinks)
+    assert not (CONFIGS / f"{name}.toml").is_symlink()
+    assert (CONFIGS / f"{name}.toml").read_bytes() == (ROOT / "thermojax" / "data" /
+                                                       f"{name}.toml").read_bytes()
 
 
 def test_public_names():
