@@ -576,3 +576,20 @@ def test_effect_boundary_grounds_a_node():
     text = BASE + ('\n[[nodes]]\nname = "wall"\ncapacitance = 1.0\n'
                    '\n[[effects]]\nkind = "boundary"\nwhere = ["T_wall", "wall"]\n')
     assert parse_model(text).node_names == ("sheath", "core", "wall")
+
+
+def test_example_model_with_bias_channels():
+    """configs/imu6_bias.toml: imu6's thermal part, a gyro and an accelerometer channel,
+    and a viscoelastic state on the accelerometer; it survives dump -> parse."""
+    spec = load_model(CONFIGS / "imu6_bias.toml")
+    imu6 = load_model(CONFIGS / "imu6.toml")
+    assert (spec.nodes, spec.links, spec.boundaries, spec.heat_inputs, spec.sensors) == (
+        imu6.nodes, imu6.links, imu6.boundaries, imu6.heat_inputs, imu6.sensors)
+    gyro, accel = spec.biases
+    assert (gyro.column, gyro.temperature, gyro.order) == ("gyro_x_dph", "proof_mass", 3)
+    assert len(gyro.coefficients) == 4 + 1 + 1  # cubic, one gradient, one rate
+    assert (accel.column, accel.temperature, len(accel.coefficients)) == ("accel_x_ug", "mems", 4)
+    (visco,) = spec.effects
+    assert visco.where == ("mems", "accel_x_ug")
+    assert visco.parameters["time_constant"].value == 1500.0
+    assert without_source(parse_model(dump_model(spec))) == without_source(spec)
