@@ -1,4 +1,4 @@
-"""Goodness of fit, as spec §2 and MATLAB's `compare` define it."""
+"""Goodness of fit, as docs/formats.md §2 and MATLAB's `compare` define it."""
 
 from __future__ import annotations
 

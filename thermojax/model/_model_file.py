@@ -1,4 +1,4 @@
-"""Model TOML files (spec §2): read with tomllib into a validated `ModelSpec`, and write back."""
+"""Model TOML files (docs/formats.md §2): read with tomllib into a validated `ModelSpec`, and write back."""
 
 from __future__ import annotations
 

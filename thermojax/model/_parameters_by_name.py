@@ -1,4 +1,4 @@
-"""Every parameter of a `ModelSpec` by its stable dotted report name (spec §5)."""
+"""Every parameter of a `ModelSpec` by its stable dotted report name (docs/formats.md §5)."""
 
 from __future__ import annotations
 

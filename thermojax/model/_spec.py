@@ -76,7 +76,7 @@ class Sensor:
 
 @dataclass(frozen=True)
 class Effect:
-    """An `[[effects]]` entry (spec §3): its kind, where it acts, and its parameters."""
+    """An `[[effects]]` entry (docs/formats.md §3): its kind, where it acts, and its parameters."""
 
     kind: str
     where: tuple[str, ...]
@@ -91,7 +91,7 @@ class Effect:
 
 @dataclass(frozen=True)
 class Bias:
-    """A `[[biases]]` entry (spec §4): an inertial bias channel."""
+    """A `[[biases]]` entry (docs/formats.md §4): an inertial bias channel."""
 
     column: str
     temperature: str
@@ -172,7 +172,7 @@ _READS_COLUMNS = ("extra_node", "radiation", "conductance_temperature", "heat_so
 
 
 # ---------------------------------------------------------------------------
-# The vocabulary of effects (spec §3): where-arity and parameters per kind.
+# The vocabulary of effects (docs/formats.md §3): where-arity and parameters per kind.
 # `where` roles: "node", "node_or_input" (a node, or a boundary/heat input column),
 # "input" (any data column), "column" (a sensor column).
 

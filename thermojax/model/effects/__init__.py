@@ -1,4 +1,4 @@
-"""The vocabulary of missing physics (spec §3): one module per effect kind.
+"""The vocabulary of missing physics (docs/formats.md §3): one module per effect kind.
 
 `KINDS[kind]` is the kind's `AbstractEffect`; `lower_effects(spec)` writes the
 structural effects of a model as plain nodes, links, boundaries and heat inputs.
