@@ -224,3 +224,21 @@ def test_ctrl_c_during_investigate_exits_130_and_resumes(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert ("resuming after step" in proc.stdout) == finished
     assert (out / "report.json").is_file() and (out / "model_final.toml").is_file()
+
+
+# ---------------------------------------------------------------------------
+# progress
+
+
+@pytest.mark.slow
+def test_progress_plain_when_not_a_terminal_and_silent_when_quiet(capsys, tmp_path, shock_csv):
+    rc, out, err = run(capsys, "fit", "--model", RTD2, "--data", shock_csv,
+                       "--out", tmp_path / "a")
+    assert rc == 0, err
+    assert "  fitting 1 run(s) under the output_error likelihood" in out
+    assert "\x1b[" not in out  # no terminal control codes in a log file
+    rc, out_quiet, err = run(capsys, "fit", "--model", RTD2, "--data", shock_csv,
+                             "--out", tmp_path / "b", "--quiet")
+    assert rc == 0, err
+    assert "fitting 1 run(s)" not in out_quiet and "output error pass" not in out_quiet
+    assert "RMSE" in out_quiet  # the results are still printed

@@ -1,9 +1,9 @@
 """Where a command may write: checked before any work, written whole or not at all.
 
 A command never overwrites a file or folder it did not write itself unless given
-`--force` (spec §5). Folders a command writes carry a marker file, so a later run of
+`--force` (docs/formats.md §5). Folders a command writes carry a marker file, so a later run of
 the same command may replace (or, for `investigate`, resume) them; a CSV written by
-`simulate` is recognized by its first comment line. Results are written into a hidden
+`simulate` or `resample` is recognized by its first comment line. Results are written into a hidden
 temporary folder next to the target and renamed into place when complete, so an error
 or Ctrl-C never leaves a half-filled folder where the results should be.
 """
@@ -19,7 +19,7 @@ from pathlib import Path
 from .._errors import InputError
 
 MARKER = ".thermojax"
-SIMULATED_BY = "simulated by thermojax"
+OWN_CSV_MARKS = ("simulated by thermojax", "written by thermojax")  # first comment line
 
 
 def is_own_folder(path: Path) -> bool:
@@ -29,7 +29,8 @@ def is_own_folder(path: Path) -> bool:
 def _is_own_csv(path: Path) -> bool:
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
-            return SIMULATED_BY in f.readline()
+            first = f.readline()
+        return any(mark in first for mark in OWN_CSV_MARKS)
     except OSError:
         return False
 
@@ -60,7 +61,7 @@ def check_output_file(path: Path, force: bool) -> None:
         raise InputError("is a folder, but --out names a CSV file for this command; give a "
                          "file name such as run.csv.", file=str(path), field="--out")
     if path.exists() and not force and not _is_own_csv(path):
-        raise InputError("the file exists and was not written by `thermojax simulate`; "
+        raise InputError("the file exists and was not written by thermojax; "
                          "choose another name, or pass --force to replace it.",
                          file=str(path), field="--out")
 
