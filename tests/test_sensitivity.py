@@ -5,7 +5,9 @@ Truths, independent of the code under test:
 - `jax.jacfwd` of the residuals the fit defines (`_fit._oe_flat`: `simulate_dataset`
   through `ExactHold`, the official discretization, plain autodiff);
 - central finite differences of the same residuals;
-- `numpy.linalg.solve` and `jax.jvp` of `_discretize._expm`.
+- `numpy.linalg.solve`, `scipy.linalg.expm` and `scipy.linalg.expm_frechet`, and
+  `jax.jvp` of `jax.scipy.linalg.expm` (autodiff, scaled as Higham 2005);
+- `jax.jacfwd` and central differences for `jax.grad` through the sensitivity path.
 
 The problem is the six-node IMU (FOH chamber temperature, ZOH power) with two runs of
 different lengths and sample periods (so one is padded), dropped samples, and the PCB's
@@ -24,7 +26,7 @@ import thermojax as tj
 from thermojax.fitting import _fit
 from thermojax.dynamics import _sensitivity
 from thermojax.measurements._data import Dataset, Experiment
-from thermojax.dynamics._discretize import _expm as reference_expm
+from thermojax.dynamics import _discretize
 from thermojax.model._model import ThermalModel
 from thermojax.model._parameters import FreeIndex
 from thermojax.model._spec import Parameter
@@ -138,14 +140,23 @@ def test_predictions_and_fast_residuals(problem, sensitivities):
                                jax.jit(_fit._oe_flat)(theta, prob), rtol=0, atol=1e-9)
 
 
+def reference_expm(M):
+    """`jax.scipy.linalg.expm`, differentiated by plain autodiff, with the scaling of
+    Higham (2005) applied first (`‖M‖₁ / 2^s <= θ13`: JAX's own stops at `2 θ13`)."""
+    norm = jax.lax.stop_gradient(jnp.linalg.norm(M, 1))
+    s = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(norm, 1e-300) / _discretize._THETA13)), 0, 64)
+    E = jax.scipy.linalg.expm(M * 2.0 ** (-s))
+    return jax.lax.fori_loop(0, 64, lambda i, E: jnp.where(i < s, E @ E, E), E)
+
+
 def test_expm_derivative_matches_autodiff():
-    """The written-out Padé derivative equals `jax.jvp` of `_discretize._expm`, for
+    """The written-out Padé derivative equals `jax.jvp` of `reference_expm`, for
     matrices that need no squaring and for ones that need several."""
     rng = np.random.default_rng(1)
     for scale in (0.3, 4.0, 60.0):
         M = jnp.asarray(rng.standard_normal((10, 10)) * scale / 3)
         dM = jnp.asarray(rng.standard_normal((10, 10)))
-        E, dE = jax.jvp(_sensitivity._expm, (M,), (dM,))
+        E, dE = jax.jvp(_discretize._expm, (M,), (dM,))
         E_ref, dE_ref = jax.jvp(reference_expm, (M,), (dM,))
         np.testing.assert_allclose(E, E_ref, rtol=0, atol=1e-13 * float(jnp.max(jnp.abs(E_ref))))
         np.testing.assert_allclose(dE, dE_ref, rtol=0,
@@ -158,5 +169,30 @@ def test_small_solve_pivots():
     A = rng.standard_normal((7, 7))
     A[0, 0] = 1e-14  # a zero leading pivot without row exchanges
     B = rng.standard_normal((7, 3))
-    np.testing.assert_allclose(_sensitivity._solve_small(jnp.asarray(A), jnp.asarray(B)),
+    np.testing.assert_allclose(_discretize._solve_small(jnp.asarray(A), jnp.asarray(B)),
                                np.linalg.solve(A, B), rtol=1e-11, atol=1e-12)
+
+
+def test_reverse_mode_gradient_of_residual_sum_of_squares(problem):
+    """`jax.grad` (reverse mode, through the exponential's transposed derivative, the
+    blocked recurrences and the small steady-state solve) of the solver's residual sum of
+    squares equals `jax.jacfwd` and central differences."""
+    theta, prob, names = problem
+
+    def ssr(t):
+        per_output, _ = _fit._oe_blocks(t, prob)
+        return sum(jnp.sum(r ** 2) for r in per_output)
+
+    g_rev = np.asarray(jax.jit(jax.grad(ssr))(theta))
+    g_fwd = np.asarray(jax.jit(jax.jacfwd(ssr))(theta))
+    assert np.all(np.isfinite(g_rev)) and np.all(g_fwd != 0)
+    # two exact derivatives of the same function, summed in other orders: roundoff only
+    np.testing.assert_allclose(g_rev, g_fwd, rtol=1e-10, atol=1e-12 * np.abs(g_fwd).max())
+    f = jax.jit(ssr)
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        v = rng.standard_normal(theta.shape[0])
+        h = 1e-5
+        fd = (f(theta + h * v) - f(theta - h * v)) / (2 * h)
+        # central differences: O(h²) truncation and eps/h rounding, ~1e-8 relative
+        assert abs(float(fd) - g_rev @ v) < 1e-6 * np.abs(g_rev).max() * np.abs(v).sum()

@@ -18,6 +18,8 @@ The local error is third order in the sample period times the rate of change of 
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -34,8 +36,8 @@ def _augmented(system: LinearSystem) -> LinearSystem:
 
 
 def nonlinear_steady_state(model, system: LinearSystem, u0, iterations: int = 8):
-    """The equilibrium of the nonlinear model at a constant input `u0` (°C), by Newton's
-    method from the linear equilibrium."""
+    """The equilibrium (°C), shape (nodes,), of the nonlinear model at a constant input
+    `u0` (inputs,), by Newton's method from the linear equilibrium."""
     x = system.steady_state(u0)
 
     def residual(x):
@@ -48,12 +50,9 @@ def nonlinear_steady_state(model, system: LinearSystem, u0, iterations: int = 8)
 
 
 def initial_state_nonlinear(model, system, u0, run_initial=None):
-    """As `ThermalModel.initial_state`, from the nonlinear equilibrium."""
-    x0 = nonlinear_steady_state(model, system, u0)
-    if model.initial_nodes:
-        idx = np.array(model.initial_nodes)
-        x0 = x0.at[idx].set(model.initial[idx] if run_initial is None else run_initial)
-    return x0
+    """`model.initial_state` (°C, shape (nodes,)) from the nonlinear equilibrium."""
+    return model.initial_state(system, u0, run_initial,
+                               steady_state=functools.partial(nonlinear_steady_state, model))
 
 
 SUBSTEPS = 4  # ETD2 steps per sample period: fast nodes react within a sample to switched power

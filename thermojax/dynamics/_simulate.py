@@ -8,10 +8,10 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
-from ._discretize import AbstractDiscretization, MatrixExponential, Modal, discretize, modal_decomposition
+from ._blocked import block_maps, block_rows
+from ._discretize import AbstractDiscretization, MatrixExponential, discretize, modal_decomposition
 from ..model._system import LinearSystem
 
 
@@ -84,13 +84,11 @@ class ExactHold(AbstractSimulator):
     with `lax.associative_scan` (`parallel=True`: O(log T) depth, for long
     horizons on accelerators; on a reciprocal network it runs diagonally in
     modal coordinates). Both equal the step-by-step recurrence to float64
-    roundoff. `ts` must be uniformly spaced. `unroll` is kept for compatibility
-    and has no effect: the step-by-step scan it tuned is gone.
+    roundoff. `ts` must be uniformly spaced.
     """
 
     discretization: AbstractDiscretization = MatrixExponential()
     parallel: bool = eqx.field(static=True, default=False)
-    unroll: int = eqx.field(static=True, default=8)
 
     def run(self, system, x0, inputs, ts) -> Solution:
         if not isinstance(system, LinearSystem):
@@ -107,115 +105,21 @@ class ExactHold(AbstractSimulator):
         return Solution(ts, states, outputs)
 
 
-# Sequential simulation, blocked. With `z[k] = x[k] - B1 u[k]` the recurrence
-# `x[k+1] = Phi x[k] + B0 u[k] + B1 u[k+1]` becomes `z[k+1] = Phi z[k] + Bz u[k]`,
-# `Bz = B0 + Phi B1`, which only looks back. It is cut into blocks of `_BLOCK` samples.
-# Inside a block every state and output is a linear map of the block's first `z` and the
-# block's own inputs (powers of Phi and a block-Toeplitz matrix of the impulse response),
-# so all blocks of all (vmapped) runs are evaluated by one matrix product: BLAS work
-# instead of a long chain of tiny steps. Only the block starts are sequential; they obey
-# the same kind of recurrence, `s[b+1] = Phi^L s[b] + e[b]`, which is blocked the same
-# way (`_SUPER` blocks per level) until at most `_SEQ_MAX` steps remain for a `lax.scan`.
-# It is the same linear map as the step-by-step recurrence, summed in another order, so
-# equal to it to float64 roundoff: against the recurrence run in extended precision,
-# 1e-15 to 3e-15 relative on imu6 and random networks, 2e-14 at worst (tau_max/dt ~ 5e4
-# over 144,000 steps), where a float64 step-by-step scan is at 6e-15 to 1e-14. Under
-# `jax.jit`, using only `.outputs` lets XLA drop the product that forms the states.
-_BLOCK = 16
-_SUPER = 8
-_SEQ_MAX = 128
-
-
-def _powers_minus_identity(D, k):
-    """`P^j - I` for `j = 0..k`, shape (k+1, n, n), given `D = P - I`.
-
-    Built as `D_(j+1) = D_j + D + D D_j`, so each is accurate relative to its own
-    (small, for slow modes) size. Forming `P^j` by repeated products instead loses
-    that: its rounding, of order `j eps`, is amplified by `1/(1 - rho^j)` in the
-    block-start recurrence, up to ~1e-13 relative on slow (tau/dt ~ 1e4) networks.
-    """
-    out = [jnp.zeros_like(D)]
-    for _ in range(k):
-        out.append(out[-1] + D + D @ out[-1])
-    return jnp.stack(out)
-
-
-def _strict_toeplitz(pows, L):
-    """`T[j, i] = P^(j-1-i)` for `i < j`, else 0: shape (L, L, n, n)."""
-    d = np.arange(L)[:, None] - 1 - np.arange(L)[None, :]
-    return jnp.where(jnp.asarray(d >= 0)[:, :, None, None], pows[np.clip(d, 0, L)], 0.0)
-
-
-def _block_maps(D, L):
-    """For `s[k+1] = (I + D) s[k] + e[k]` in blocks of `L`, with `P = I + D`:
-
-    - `dpows`: `P^j - I`, j = 0..L, shape (L+1, n, n);
-    - `pows`: `P^j`, same shape;
-    - `tz`: `tz[j, i] = P^(j-1-i)` for `i < j` else 0, shape (L, L, n, n).
-    """
-    dpows = _powers_minus_identity(D, L)
-    pows = dpows + jnp.eye(D.shape[0], dtype=D.dtype)[None]
-    return dpows, pows, _strict_toeplitz(pows, L)
-
-
-def _affine_starts(D, e, x0):
-    """`s[0] = x0`, `s[b+1] = (I + D) s[b] + e[b]`: returns `s[0..N-1]` (`e[N-1]` is unused)."""
-    N, n = e.shape
-    if N <= _SEQ_MAX:
-        def step(x, eb):
-            return x + (D @ x + eb), x
-
-        # Not unrolled: at most _SEQ_MAX cheap steps, and unrolling 8x cost ~0.6 s of compile.
-        return jax.lax.scan(step, x0, e)[1]
-    L = _SUPER
-    ns = -(-N // L)
-    e = jnp.concatenate([e, jnp.zeros((ns * L - N, n), e.dtype)]) if ns * L != N else e
-    dpows, pows, tz = _block_maps(D, L)
-    eb = e.reshape(ns, L * n)
-    # Super-block recurrence: s'[c+1] = P^L s'[c] + sum_i P^(L-1-i) e[cL+i].
-    into_next = jnp.transpose(pows[L - 1::-1], (1, 0, 2)).reshape(n, L * n)
-    starts = _affine_starts(dpows[L], eb @ into_next.T, x0)
-    # Within a super-block: s[cL+j] = P^j s'[c] + sum_{i<j} P^(j-1-i) e[cL+i].
-    expand = jnp.concatenate([jnp.transpose(tz, (0, 2, 1, 3)).reshape(L * n, L * n),
-                              pows[:L].reshape(L * n, n)], axis=1)
-    s = jnp.concatenate([eb, starts], axis=1) @ expand.T
-    return s.reshape(ns * L, n)[:N]
-
-
 def _blocked_hold(disc, x0, inputs):
-    """States and outputs of the exact-hold recurrence, blocked (see above)."""
+    """States (times, n) and outputs (times, p) of the exact-hold recurrence, blocked
+    (`_blocked`). Under `jax.jit`, using only the outputs lets XLA drop the product that
+    forms the states."""
     Phi, B0, B1, C, D = disc.Phi, disc.B0, disc.B1, disc.C, disc.D
     dtype = jnp.result_type(Phi, inputs, x0)
     u = inputs.astype(dtype)
     x0 = x0.astype(dtype)
     T = u.shape[0]
     n, m = B0.shape
-    p = C.shape[0]
-    eye = jnp.eye(n, dtype=dtype)
-    L = _BLOCK
-    nb = -(-T // L)
-    if nb * L != T:  # hold the last input: padded samples only follow the real ones
-        u = jnp.concatenate([u, jnp.broadcast_to(u[-1], (nb * L - T, m))])
-    ub = u.reshape(nb, L * m)
-    Bz = B0 + Phi @ B1
-    dpows, pows, tz = _block_maps(Phi - eye, L)
-    # z[k0+j] = Phi^j z[k0] + sum_{i<j} Phi^(j-1-i) Bz u[k0+i]
-    hz = jnp.einsum("jiab,bc->jaic", tz, Bz)  # (L, n, L, m)
-    if nb > 1:
-        into_next = jnp.einsum("iab,bc->aic", pows[L - 1::-1], Bz).reshape(n, L * m)
-        starts = _affine_starts(dpows[L], ub @ into_next.T, x0 - B1 @ u[0])
-    else:
-        starts = (x0 - B1 @ u[0])[None, :]
-    w = jnp.concatenate([ub, starts], axis=1)  # (blocks, L m + n)
-    eye_L = jnp.eye(L, dtype=dtype)
-    # x = z + B1 u;  y = C z + (C B1 + D) u
-    state_map = jnp.concatenate([hz.reshape(L * n, L * m) + jnp.kron(eye_L, B1),
-                                 pows[:L].reshape(L * n, n)], axis=1)
-    output_map = jnp.concatenate([
-        jnp.einsum("pa,jaic->jpic", C, hz).reshape(L * p, L * m) + jnp.kron(eye_L, C @ B1 + D),
-        jnp.einsum("pa,jab->jpb", C, pows[:L]).reshape(L * p, n)], axis=1)
-    states = (w @ state_map.T).reshape(nb * L, n)[:T].at[0].set(x0)  # x0 exactly, not z0 + B1 u0
-    outputs = (w @ output_map.T).reshape(nb * L, p)[:T]
+    states_readout = (jnp.eye(n, dtype=dtype), jnp.zeros((n, m), dtype))
+    DL, N, (state_map, output_map) = block_maps(Phi, B0, B1, (states_readout, (C, D)))
+    w = block_rows(DL, N, x0 - B1 @ u[0], u)
+    states = (w @ state_map.T).reshape(-1, n)[:T].at[0].set(x0)  # x0 exactly, not z0 + B1 u0
+    outputs = (w @ output_map.T).reshape(-1, C.shape[0])[:T]
     return states, outputs
 
 

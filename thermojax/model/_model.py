@@ -144,10 +144,24 @@ class ThermalModel(eqx.Module):
     def process_noise(self) -> Float[Array, " nodes"]:
         return jnp.exp(self.log_process_noise)
 
-    def initial_state(self, system, u0, run_initial=None) -> Float[Array, " nodes"]:
-        """x0: steady state at `u0`, with `initial_nodes` set to `initial` (or to this
-        run's estimate `run_initial`, one value per entry of `initial_nodes`)."""
-        x0 = system.steady_state(u0)
+    def initial_state(self, system, u0, run_initial=None, steady_state=None
+                      ) -> Float[Array, " nodes"]:
+        """The initial state x0 (°C) of a run: the equilibrium at its first input sample,
+        with `initial_nodes` set to `initial` (or to this run's estimate).
+
+        **Arguments:**
+
+        - `system`: the model's `LinearSystem` (`self.linear_system()`).
+        - `u0`: the run's first input sample, shape (inputs,).
+        - `run_initial`: this run's initial temperatures (°C), one per entry of
+          `initial_nodes`; default `initial`.
+        - `steady_state`: `(system, u0) -> x`, the equilibrium solve; default
+          `system.steady_state`. The fit's sensitivities pass a small Gauss-Jordan solve,
+          a nonlinear model its Newton iteration (`dynamics._nonlinear`).
+
+        **Returns:** x0, shape (nodes,).
+        """
+        x0 = system.steady_state(u0) if steady_state is None else steady_state(system, u0)
         if self.initial_nodes:
             idx = np.array(self.initial_nodes)
             values = self.initial[idx] if run_initial is None else run_initial
