@@ -62,7 +62,7 @@ import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 import thermojax as tj  # noqa: E402
-from thermojax import _profiles  # noqa: E402
+from thermojax.measurements import _profiles  # noqa: E402
 from thermojax.measurements._data import Experiment  # noqa: E402
 from thermojax.cli._runner import perturbed  # noqa: E402
 

@@ -1,7 +1,14 @@
 """Test configuration: float64, strict promotion, shared fixtures."""
 
+import os
+import tempfile
+
 import jax
 import pytest
+
+# Commands run in-process enable the persistent compilation cache: keep the suite's
+# entries out of the user's cache folder.
+os.environ.setdefault("THERMOJAX_CACHE_DIR", tempfile.mkdtemp(prefix="thermojax-test-cache-"))
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
