@@ -14,10 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.integrate
+import scipy.signal
 
-from thermojax.fitting._bias import (BiasFit, bias_parameters, bias_to_spec, fit_bias, strain,
-                             viscoelastic_candidate)
 from thermojax._errors import InputError
+from thermojax.dynamics._lag import first_order_lag
+from thermojax.fitting._bias import (BiasFit, bias_parameters, bias_to_spec, fit_bias,
+                                     viscoelastic_candidate)
 from thermojax.model._model_file import dump_model, parse_model
 from thermojax.model._spec import Bias, Effect, Parameter
 
@@ -97,10 +99,49 @@ def test_strain_matches_ivp(tau, jitter):
     knots_t = np.array([ts[0], ts[200], ts[380], ts[900], ts[1100], ts[-1]])
     knots_T = np.array([25.0, 25.0, 85.0, 70.0, 10.0, 10.0])
     T, _ = ramp(ts, knots_t, knots_T)
-    got = strain(ts, T, tau)
+    got = first_order_lag(T, np.diff(ts), tau)  # the strain of `_bias`
     want = ivp_strain(ts, knots_t, knots_T, tau)
     # FOH recursion exact for piecewise-linear T; DOP853 at 1e-12 and float64 roundoff only
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-8)
+
+
+
+def ramp_response(ts, slope, tau):
+    """Lag of `x = slope·t` from rest at t = 0: `y = slope·τ·(u − 1 + e^{−u})`, u = t/τ,
+    summed as its series `Σ_{k≥2} (−u)^k / k!` (no cancellation; u ≤ 1e-2 here)."""
+    u = ts / tau
+    return slope * tau * sum((-u) ** k / math.factorial(k) for k in range(2, 12))
+
+
+@pytest.mark.parametrize("jitter", [False, True])
+def test_lag_keeps_its_digits_when_dt_is_tiny_against_tau(jitter):
+    tau, slope = 1e6, 0.5  # s, K/s: dt/τ = 1e-6
+    ts = np.arange(2001.0)
+    if jitter:  # irregular steps: the per-step branch
+        ts = ts + np.concatenate([[0.0], np.random.default_rng(2).uniform(-0.3, 0.3, 2000)])
+    want = ramp_response(ts, slope, tau)
+    got = first_order_lag(slope * ts, np.diff(ts), tau)
+    # series to 1e-40; what is left is 1 − β and β − a rounded (≈ 1e-16 / (dt/2τ)), ~3e-10
+    np.testing.assert_allclose(got[1:], want[1:], rtol=1e-8, atol=0)
+    assert got[0] == 0.0  # at rest at the first sample
+    if not jitter:  # the form β = (τ/dt)(1 − a) loses four more digits here
+        a = math.exp(-1.0 / tau)
+        c = tau * (1 - a)
+        naive = scipy.signal.lfilter([1 - c, c - a], [1.0, -a], slope * ts)
+        assert np.max(np.abs(naive[1:] / want[1:] - 1)) > 1e-6
+
+
+def test_lag_filters_every_column_along_time():
+    rng = np.random.default_rng(3)
+    x = np.cumsum(rng.standard_normal((500, 3)), axis=0)
+    got = first_order_lag(x, 2.0, 30.0)
+    for j in range(3):  # the same filter column by column (uniform and per-step branches)
+        np.testing.assert_array_equal(got[:, j], first_order_lag(x[:, j], 2.0, 30.0))
+        steps = np.full(499, 2.0)
+        steps[::2] += 1e-6  # jitter far below a sample: the recursion branch
+        np.testing.assert_allclose(first_order_lag(x[:, j], steps, 30.0), got[:, j],
+                                   rtol=0, atol=1e-5)  # steps differ by 1e-6 s only
+    assert first_order_lag(x[:1], 2.0, 30.0).shape == (1, 3)
 
 
 def test_fit_recovers_truth():

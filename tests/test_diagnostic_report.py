@@ -7,11 +7,14 @@ input, a heating/cooling asymmetry). The checks compare with formulas written ou
 
 import json
 import re
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
-from thermojax.investigation._diagnostics import diagnose_traces, diagnostic_plots
+from thermojax.investigation._diagnostic_plots import diagnostic_plots
+from thermojax.investigation._diagnostics import diagnose_traces
 from thermojax.investigation._investigation_report import write_investigation_report
 
 DT = 10.0  # s
@@ -225,3 +228,36 @@ def test_report_with_one_step_and_bare_keys(tmp_path):
     # no traces at all still gives a report
     path = write_investigation_report(tmp_path / "bare", report, [], COLUMNS, INPUTS)
     _pngs_exist(path.read_text(encoding="utf-8"), tmp_path / "bare")
+
+
+def test_writing_pngs_leaves_the_matplotlib_backend_alone(tmp_path):
+    # A user's session with its own backend: importing thermojax and writing every kind of
+    # PNG it makes (report, diagnostics, fit, simulation) must not switch it.
+    code = f"""
+import sys
+import matplotlib
+matplotlib.use("svg")
+import numpy as np
+import thermojax
+from thermojax._plots import plot_fit, plot_simulation
+from thermojax.investigation._investigation_report import write_investigation_report
+
+out = {str(tmp_path)!r}
+ts = np.arange(200) * 10.0
+u = np.column_stack([20 + 0.01 * ts, np.where(ts > 1000, 5.0, 0.0)])
+y = np.column_stack([u[:, 0] + 1.0, u[:, 0] + 2.0])
+noise = np.random.default_rng(0).normal(0, 0.05, y.shape)
+trace = {{"name": "r", "ts": ts, "measured": y + noise, "predicted": y, "inputs": u}}
+report = {{"steps": [{{"added": None, "rmse": {{"a": 0.05, "b": 0.05}}, "candidates": []}}]}}
+write_investigation_report(out, report, [[trace]], ["a", "b"], ["T_ch", "P_h"], ["T_ch"])
+plot_fit(out + "/fit.png", ts, y + noise, y, ["a", "b"])
+plot_simulation(out + "/sim.png", ts, {{"T_ch": u[:, 0], "P_h": u[:, 1]}}, {{"n": y[:, 0]}},
+                {{"s": y[:, 0]}})
+print(matplotlib.get_backend(), "matplotlib.pyplot" in sys.modules)
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["svg", "False"]  # backend kept; pyplot never imported
+    for name in ("fit.png", "sim.png", "error_by_step.png", "step0_fit.png"):
+        assert (tmp_path / name).stat().st_size > 1000, name

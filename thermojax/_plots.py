@@ -1,23 +1,49 @@
-"""Matplotlib figures written to PNG (headless: the Agg backend)."""
+"""Matplotlib figures written to PNG.
+
+Every figure is a `matplotlib.figure.Figure` on its own Agg canvas, never a pyplot
+figure: writing a PNG neither selects nor changes the user's matplotlib backend.
+Matplotlib is imported when a figure is made, not with this module.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+
+def new_figure(**kwargs):
+    """A `matplotlib.figure.Figure` drawn by the Agg canvas (no pyplot, no backend
+    change); `kwargs` go to `Figure` (`figsize` in inches)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(**kwargs)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _finish(fig, axes, path: str | Path, dpi: int) -> Path:
+    """Grid every axis, tighten the layout and write `fig` to the PNG `path` at `dpi`."""
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=dpi)
+    return path
 
 
 def plot_simulation(path: str | Path, ts, inputs: dict, nodes: dict, sensors: dict,
                     reference: str | None = None, title: str = "") -> Path:
     """Three stacked panels against time (h): inputs (°C, W), node temperatures
     with the sensor readings as dots, and each node minus the `reference` node
-    (default the first): the internal gradients."""
+    (default the first): the internal gradients.
+
+    `ts` (times,) in s; every value of `inputs`, `nodes` and `sensors` (times,).
+    **Returns:** `path`, the PNG written."""
     t_h = np.asarray(ts) / 3600.0
-    fig, axes = plt.subplots(3, 1, figsize=(10, 9), sharex=True)
+    fig = new_figure(figsize=(10, 9))
+    axes = fig.subplots(3, 1, sharex=True)
     temp_inputs = {k: v for k, v in inputs.items() if not k.startswith("P")}
     power_inputs = {k: v for k, v in inputs.items() if k.startswith("P")}
     ax = axes[0]
@@ -49,22 +75,19 @@ def plot_simulation(path: str | Path, ts, inputs: dict, nodes: dict, sensors: di
     ax.set_ylabel(f"node − {reference}, K")
     ax.legend(loc="upper left", ncol=3, fontsize=8)
     ax.set_xlabel("time, h")
-    for ax in axes:
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _finish(fig, axes, path, dpi=110)
 
 
 def plot_fit(path: str | Path, ts, measured, predicted, columns, title: str = "") -> Path:
     """Measured against model (upper panel of each pair) and the residual (lower), per
-    column, against time (h). `measured`/`predicted` are (times, columns)."""
+    column, against time (h).
+
+    `ts` (times,) in s; `measured`, `predicted` (times, columns) in °C.
+    **Returns:** `path`, the PNG written."""
     t_h = np.asarray(ts) / 3600.0
     n = len(columns)
-    fig, axes = plt.subplots(2 * n, 1, figsize=(10, 3.2 * n + 1), sharex=True,
-                             gridspec_kw={"height_ratios": [2, 1] * n})
+    fig = new_figure(figsize=(10, 3.2 * n + 1))
+    axes = fig.subplots(2 * n, 1, sharex=True, gridspec_kw={"height_ratios": [2, 1] * n})
     axes = np.atleast_1d(axes)
     stride = max(1, len(t_h) // 2000)
     for j, c in enumerate(columns):
@@ -80,10 +103,4 @@ def plot_fit(path: str | Path, ts, measured, predicted, columns, title: str = ""
         ax.set_ylabel("residual")
     axes[0].set_title(title)
     axes[-1].set_xlabel("time, h")
-    for ax in axes:
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _finish(fig, axes, path, dpi=100)

@@ -1,4 +1,4 @@
-"""Inertial bias channels (spec §4): a bias column explained by the thermal states.
+"""Inertial bias channels (docs/formats.md §4): a bias column explained by the thermal states.
 
 A `[[biases]]` column reads
 
@@ -7,9 +7,9 @@ A `[[biases]]` column reads
 with `T` the bias's `temperature` node (°C) and, for each `viscoelastic` effect on
 the column, a strain `dε_v/dt = (T_v − ε_v)/τ_v`, `ε_v(0) = T_v(0)`. Node
 temperatures arrive sampled and are taken as piecewise linear between samples,
-for which `strain` integrates ε exactly. Given the τ's the coefficients are
-linear (least squares); the τ's come from a bounded search on log τ of the
-likelihood with the coefficients profiled out. NumPy/SciPy only.
+for which `dynamics._lag.first_order_lag` integrates ε exactly. Given the τ's the
+coefficients are linear (least squares); the τ's come from a bounded search on
+log τ of the likelihood with the coefficients profiled out. NumPy/SciPy only.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.optimize
-import scipy.signal
 
 from .._errors import InputError
+from ..dynamics._lag import first_order_lag
 from ..model._spec import Bias, Effect, Parameter
 
 T_REF = 25.0  # °C, reference of the static polynomial
@@ -67,40 +67,13 @@ class BiasFit:
 # The strain state
 
 
-def strain(ts: np.ndarray, temps: np.ndarray, tau: float) -> np.ndarray:
-    """Strain ε (°C, shape `(T,)`) of `dε/dt = (T − ε)/τ`, `ε(ts[0]) = temps[0]`.
-
-    Exact for `temps` linear between samples (first-order hold): with
-    `a = exp(−dt/τ)` and `β = (τ/dt)(1 − a)`,
-    `ε[k+1] = a ε[k] + (1 − β) T[k+1] + (β − a) T[k]`.
-
-    **Arguments:** `ts` sample times (s, `(T,)`, increasing), `temps` node
-    temperatures (°C, `(T,)`), `tau` relaxation time (s, > 0).
-    """
-    ts = np.asarray(ts, dtype=float)
-    temps = np.asarray(temps, dtype=float)
-    dev = temps - temps[0]  # ε − T[0] starts at 0, so the filter starts at rest
-    if ts.size < 2:
-        return temps.copy()
-    dt = np.diff(ts)
-    x = dt / tau
-    one_minus_a = -np.expm1(-x)
-    a = 1.0 - one_minus_a
-    beta = one_minus_a / x
-    b0, b1 = 1.0 - beta, beta - a
-    if np.ptp(dt) <= 1e-9 * dt.mean():  # uniform sampling: one linear filter
-        out = scipy.signal.lfilter([b0[0], b1[0]], [1.0, -a[0]], dev)
-    else:  # jitter or gaps: the same recursion step by step (still exact)
-        out = np.zeros_like(dev)
-        for k in range(dt.size):
-            out[k + 1] = a[k] * out[k] + b0[k] * dev[k + 1] + b1[k] * dev[k]
-    return out + temps[0]
-
-
 def _strain_term(ts, temps, tau) -> tuple[np.ndarray, np.ndarray]:
-    """`z = T − ε(τ)` and `∂z/∂log τ` (central difference), each `(T,)`."""
-    z = temps - strain(ts, temps, tau)
-    dz = (strain(ts, temps, tau * math.exp(-_H)) - strain(ts, temps, tau * math.exp(_H))) / (2 * _H)
+    """`z = T − ε(τ)` and `∂z/∂log τ` (central difference), each `(T,)`; `ts` in s,
+    `temps` in °C, `tau` in s."""
+    dt = np.diff(ts)
+    z = temps - first_order_lag(temps, dt, tau)
+    dz = (first_order_lag(temps, dt, tau * math.exp(-_H))
+          - first_order_lag(temps, dt, tau * math.exp(_H))) / (2 * _H)
     return z, dz
 
 
@@ -406,7 +379,7 @@ def bias_to_spec(bias: Bias, effects: list[Effect], fit: BiasFit) -> tuple[Bias,
 
 
 def bias_parameters(fit: BiasFit) -> dict[str, dict]:
-    """Report entries `{"value", "std", "free"}` under the dotted names of spec §5
+    """Report entries `{"value", "std", "free"}` under the dotted names of docs/formats.md §5
     (`std` None where fixed or unidentifiable; never NaN)."""
     col = fit.column
 

@@ -20,7 +20,6 @@ likelihood ratio `2 (nll_before − nll_after)`.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import equinox as eqx
@@ -29,10 +28,11 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
+from ..dynamics._lag import first_order_lag
 from ..measurements._data import Dataset
 from ..model._spec import EFFECT_KINDS, Effect, ModelSpec, Parameter
 from ..model.effects import KINDS
-from ..model.effects._base import lowpass, path_between, unique_name
+from ..model.effects._base import path_between, unique_name
 
 
 @dataclass
@@ -51,7 +51,6 @@ class Candidate:
     note: str = ""
     holdout_gain: float | None = None  # held-out −log L improvement (leave one run out)
     result: object = field(default=None, repr=False)  # FitResult of the refit
-    direction: np.ndarray | None = field(default=None, repr=False)  # d⊥, unit norm
 
     @property
     def key(self) -> tuple[str, tuple[str, ...]]:
@@ -146,7 +145,6 @@ class ScoreContext:
         self.dTdt = x @ A.T + u @ B.T
         self.capacitance = np.asarray(system.capacitance)
         self.y = np.asarray(x @ np.asarray(system.C).T)
-        self.dt = float(np.asarray(data.dt)[0])
         self.dts = np.asarray(data.dt)
         self.columns = columns
         self.sensor_columns = list(spec.sensor_columns)
@@ -175,8 +173,10 @@ class ScoreContext:
         return any(h.node == node and h.input == column for h in self.spec.heat_inputs)
 
     def lag(self, x: np.ndarray, tau: float) -> np.ndarray:
-        """First-order lag of (runs, T) signals along time, per run's sample period."""
-        return np.stack([lowpass(x[r], float(self.dts[r]), tau) for r in range(x.shape[0])])
+        """First-order lag (`tau` in s) of `x` (runs, T, ...) along time, per run's sample
+        period, at rest at the first sample."""
+        return np.stack([first_order_lag(x[r], float(self.dts[r]), tau)
+                         for r in range(x.shape[0])])
 
     def path_conductance(self, where) -> float:
         kind, i = path_between(self.spec, where[0], where[1])
@@ -245,7 +245,8 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
         responses = {key: out[k] for k, key in enumerate(heat)}
     cands = []
     for i, (kind, where, how, dirs) in enumerate(raw):
-        best = None
+        one_sided = EFFECT_KINDS[kind].parameters[0] in EFFECT_KINDS[kind].positive
+        scores = []
         for j, d in enumerate(dirs):
             d = responses[(i, j)] if how == "heat" else d
             dw = (np.asarray(d) * weights).reshape(-1)
@@ -258,17 +259,12 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
             else:
                 u = float(dp @ r)
                 stat = u * u / norm2
-            one_sided = EFFECT_KINDS[kind].parameters[0] in EFFECT_KINDS[kind].positive
-            if one_sided and u <= 0:
-                stat = 0.0
-            if best is None or stat > best[0]:
-                best = (stat, dp / math.sqrt(norm2) if norm2 > 0 else None, one_sided)
-        if best is None:
+            scores.append(0.0 if one_sided and u <= 0 else stat)
+        if not scores:
             continue
-        stat, direction, one_sided = best
+        stat = max(scores)
         p = stats.chi2.sf(stat, 1) * (0.5 if one_sided else 1.0) * len(dirs)
-        cands.append(Candidate(kind, tuple(where), float(stat), float(min(1.0, p)),
-                               direction=direction))
+        cands.append(Candidate(kind, tuple(where), float(stat), float(min(1.0, p))))
     cands.sort(key=lambda c: -c.score)
     return cands
 

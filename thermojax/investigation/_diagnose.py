@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ._diagnostics import diagnose_traces, diagnostic_plots
+from ._diagnostic_plots import diagnostic_plots
+from ._diagnostics import diagnose_traces
 from ._investigate import diagnose_step, evaluate, _noise, _version
 from .._json import json_safe
 from ..model._spec import ModelSpec

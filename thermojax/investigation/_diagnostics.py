@@ -1,6 +1,7 @@
-"""How a model fails: numbers, plain-English findings and plots from its run traces.
+"""How a model fails: numbers and plain-English findings from its run traces (the
+plots of the same traces are in `_diagnostic_plots`).
 
-Pure NumPy/matplotlib (no JAX). A run trace is a plain dict
+Pure NumPy/SciPy (no JAX). A run trace is a plain dict
 
     {"name": str, "ts": (T,) s, "measured": (T, p) with NaN for missing,
      "predicted": (T, p), "inputs": (T, m)}
@@ -14,7 +15,6 @@ fit figures from `_metrics`.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 from scipy import stats
@@ -137,17 +137,163 @@ def _phase_diff(res, phases, a: str, b: str, frac: float):
     return float(va.mean() - vb.mean()), se
 
 
-def _g(x, digits: int = 2) -> str:
-    """Short number: two significant figures (p-values below 1e-300 shown as such)."""
-    return f"{x:.{digits}g}"
-
-
 def _p(p: float) -> str:
     return "< 1e-300" if p < 1e-300 else f"= {p:.2g}"
 
 
+def _max_lag(runs, max_lag: int | None) -> int:
+    """Cross-correlation lags, samples: `max_lag` (default `min(30, shortest run / 5)`),
+    at most the shortest run's length − 1."""
+    shortest = min(len(r["ts"]) for r in runs)
+    lag = int(max_lag) if max_lag is not None else max(1, min(30, shortest // 5))
+    return max(0, min(lag, shortest - 1))
+
+
 # ---------------------------------------------------------------------------
-# Numbers
+# Numbers, one test at a time: each returns its JSON entry and its findings,
+# `(weight, sentence)` pairs (heavier first in the report)
+
+
+def _fit_figures(runs, j: int) -> tuple[dict, list[np.ndarray]]:
+    """Column `j`'s pooled and per-run `rmse` and `fit_percent`, and its residual per run
+    (measured − predicted, (T,) each)."""
+    y = [r["measured"][:, j] for r in runs]
+    yhat = [r["predicted"][:, j] for r in runs]
+    res = [a - b for a, b in zip(y, yhat)]
+    y_all, p_all = np.concatenate(y), np.concatenate(yhat)
+    n_fin = int(np.isfinite(y_all).sum())
+    col = {
+        "n_samples": n_fin,
+        "rmse": rmse(y_all, p_all),
+        "fit_percent": fit_percent(y_all, p_all),
+        "mean_residual": float(np.nanmean(y_all - p_all)) if n_fin else None,
+        "per_run": [{"run": r["name"], "rmse": rmse(a, b), "fit_percent": fit_percent(a, b)}
+                    for r, a, b in zip(runs, y, yhat)],
+    }
+    return col, res
+
+
+def _whiteness(c: str, res) -> tuple[dict, tuple[float, str]]:
+    """Ljung-Box over the pooled runs: its entry and its finding."""
+    q, p_lb, lags = ljung_box(res)
+    white = p_lb >= WHITE_P
+    entry = {"q": q, "p": p_lb, "lags": lags, "white": white}
+    if white:
+        return entry, (0.0, f"{c}: residuals white (Ljung-Box p {_p(p_lb)}, {lags} lags)")
+    return entry, (1e9, f"{c}: residuals not white (Ljung-Box p {_p(p_lb)} over {lags} lags)")
+
+
+def _phase_contrast(res, phases, a: str, b: str, frac: float, scale: float):
+    """`_phase_diff` of phases `a` and `b`, and whether it is reported (beyond `_PHASE_SE`
+    standard errors and `_PHASE_REL` × `scale`, the column's RMSE)."""
+    diff, se = _phase_diff(res, phases, a, b, frac)
+    sig = diff is not None and abs(diff) > _PHASE_SE * se and abs(diff) > _PHASE_REL * scale
+    return diff, se, bool(sig)
+
+
+def _phase_evidence(c: str, unit: str, res, phases, col_rmse) -> tuple[dict, list]:
+    """Residual mean and RMSE per chamber phase, the heating-minus-cooling asymmetry and
+    the power-step-minus-dwell difference, with their findings."""
+    by_phase = residuals_by_phase(res, phases)
+    out = {k: {"n": v["n"], "mean": v["mean"], "rmse": v["rms"]}
+           for k, v in by_phase.items() if k in PHASES}
+    out["heating_minus_cooling"] = by_phase["heating_minus_cooling"]
+    frac = _n_eff(res)
+    scale = col_rmse if col_rmse is not None and math.isfinite(col_rmse) else 0.0
+    findings = []
+    diff, se, sig = _phase_contrast(res, phases, "heating_ramp", "cooling_ramp", frac, scale)
+    out["asymmetry"] = {"heating_minus_cooling": diff, "std_error": se, "significant": sig}
+    if sig:
+        h, cc = by_phase["heating_ramp"]["mean"], by_phase["cooling_ramp"]["mean"]
+        findings.append((abs(diff) / se, (
+            f"{c}: heating-ramp residual {h:+.2g} {unit} vs cooling {cc:+.2g} {unit} "
+            f"(asymmetry {diff:+.2g} {unit}, {abs(diff) / se:.0f} standard errors: a "
+            "temperature-dependent or rate-dependent effect)")))
+    diff, se, sig = _phase_contrast(res, phases, "power_step", "dwell", frac, scale)
+    out["power_step_minus_dwell"] = {"difference": diff, "std_error": se, "significant": sig}
+    if sig:
+        findings.append((abs(diff) / se, (
+            f"{c}: residual after power steps {diff:+.2g} {unit} from the dwell level "
+            f"({abs(diff) / se:.0f} standard errors: a missing heat path, a lag or a "
+            "power-dependent effect)")))
+    return out, findings
+
+
+def _cross_correlations(c: str, res, signals, lag: int, dt: float, white: bool
+                        ) -> tuple[list[dict], list]:
+    """Per input and derivative (`signals`, per run, from `_signals`): the largest
+    |cross-correlation| with the residual over lags `-lag..lag`, its pointwise band and
+    the band for the largest of all lags of all signals; findings for the strongest."""
+    n_signals = len(signals[0])
+    n_tests = (2 * lag + 1) * n_signals
+    xc = []
+    for s in range(n_signals):
+        name, deriv, _ = signals[0][s]
+        lags, ccf, band = cross_correlation(res, [sig[s][2] for sig in signals], lag)
+        k = int(np.argmax(np.abs(ccf)))
+        # The band for the largest of all 2L+1 lags of all 2m signals (Šidák): what
+        # a white residual independent of the inputs stays inside 95 % of the time.
+        band_all = float(stats.norm.isf((1 - 0.95 ** (1 / n_tests)) / 2) * band / 1.96)
+        peak = float(ccf[k])
+        xc.append({"signal": name, "derivative": deriv, "label": _label(name, deriv),
+                   "peak": peak, "abs_peak": abs(peak), "lag_samples": int(lags[k]),
+                   "lag_s": float(lags[k] * dt), "band": band, "band_all_lags": band_all,
+                   "exceeds_band": abs(peak) > band, "significant": abs(peak) > band_all})
+    strong = sorted((e for e in xc if e["significant"]), key=lambda e: -e["abs_peak"])
+    findings = [(e["abs_peak"] / e["band"], (
+        f"{c}: residual correlates with {e['label']} (peak {e['peak']:.2f} at lag "
+        f"{e['lag_s']:.3g} s, band {e['band']:.2g})"
+        + ("" if white else "; the band assumes a white residual, so read it as a lead")))
+        for e in strong[:_MAX_CORR_FINDINGS]]
+    return xc, findings
+
+
+def _periodogram(c: str, res, dt: float) -> tuple[dict | None, list]:
+    """The cumulated periodogram's largest departure from the white-noise line against
+    its 5 % Kolmogorov-Smirnov bound (None when no run has 4 samples)."""
+    if not any(len(r) >= 4 for r in res):
+        return None, []
+    f, cp, bound = cumulated_periodogram(res)
+    dev = cp - f
+    k = int(np.argmax(np.abs(dev)))
+    side = "low" if dev[k] > 0 else "high"
+    entry = {"max_deviation": float(abs(dev[k])), "bound": bound,
+             "at_fraction_of_nyquist": float(f[k]), "at_hz": float(f[k] / (2 * dt)),
+             "excess_at": side, "exceeds": bool(abs(dev[k]) > bound)}
+    if abs(dev[k]) <= bound:
+        return entry, []
+    what = ("slow drift or missing slow dynamics" if side == "low"
+            else "fast wiggles: sensor noise model or a missing fast path")
+    return entry, [(abs(dev[k]) / bound, (
+        f"{c}: residual power concentrated at {side} frequencies (cumulated "
+        f"periodogram off the white line by {abs(dev[k]):.2f}, 5% bound {bound:.2g}: "
+        f"{what})"))]
+
+
+def _tests(lb_lags, lag: int, dt: float, n_inputs: int, chamber, powers) -> dict:
+    """How every number was computed, for the report."""
+    return {
+        "residuals": "measured minus predicted (as given in the run traces)",
+        "pooling": "lagged products summed over runs, each run about its own mean; "
+                   "a lag never straddles two runs",
+        "ljung_box": {"lags": lb_lags, "lags_rule": "min(20, N/5) with N the pooled sample count",
+                      "white_if_p_at_least": WHITE_P},
+        "cross_correlation": {
+            "lags_samples": lag, "sample_interval_s": dt,
+            "lag_sign": "positive lag: the input leads the residual",
+            "band": "1.96/sqrt(N), pointwise 95 % for a white residual independent of the input",
+            "band_all_lags": f"Šidák-corrected 95 % band for the largest of {2 * lag + 1} lags "
+                             f"times {2 * n_inputs} signals; 'significant' and the "
+                             "findings use it",
+            "derivative": "central differences (numpy.gradient) of each input over ts"},
+        "cumulated_periodogram": "Box-Jenkins; bound 1.36/sqrt(m - 1), 5 % Kolmogorov-Smirnov",
+        "phases": {"chamber_input": chamber, "power_inputs": powers,
+                   "labelling": "label_phases: ramp beyond 0.2 °C/min, power step 600 s after "
+                                "a jump in power",
+                   "asymmetry_rule": f"reported beyond {_PHASE_SE:g} standard errors (sample "
+                                     "counts shrunk by the AR(1) factor (1-ρ₁)/(1+ρ₁)) and "
+                                     f"beyond {_PHASE_REL:g} × the column's RMSE"},
+    }
 
 
 def diagnose_traces(columns: list[str], runs: list[RunTrace], input_names: list[str],
@@ -184,284 +330,30 @@ def diagnose_traces(columns: list[str], runs: list[RunTrace], input_names: list[
     chamber, powers = _split_inputs(input_names, boundary_inputs)
     phases = [_phases(r, input_names, chamber, powers) for r in runs]
     dt = _dt(runs)
-    shortest = min(len(r["ts"]) for r in runs)
-    lag = int(max_lag) if max_lag is not None else max(1, min(30, shortest // 5))
-    lag = max(0, min(lag, shortest - 1))
+    lag = _max_lag(runs, max_lag)
     signals = [_signals(r, input_names) for r in runs]
-    n_signals = 2 * len(input_names)
 
     out_cols, findings = {}, []
     lb_lags = None
     for j, c in enumerate(columns):
-        unit = units.get(c, "°C")
-        y = [r["measured"][:, j] for r in runs]
-        yhat = [r["predicted"][:, j] for r in runs]
-        res = [a - b for a, b in zip(y, yhat)]
-        y_all, p_all = np.concatenate(y), np.concatenate(yhat)
-        n_fin = int(np.isfinite(y_all).sum())
-        col = {
-            "n_samples": n_fin,
-            "rmse": rmse(y_all, p_all),
-            "fit_percent": fit_percent(y_all, p_all),
-            "mean_residual": float(np.nanmean(y_all - p_all)) if n_fin else None,
-            "per_run": [{"run": r["name"], "rmse": rmse(a, b), "fit_percent": fit_percent(a, b)}
-                        for r, a, b in zip(runs, y, yhat)],
-        }
+        col, res = _fit_figures(runs, j)
         out_cols[c] = col
-        if n_fin < _MIN_SAMPLES:
+        if col["n_samples"] < _MIN_SAMPLES:
             col.update({"ljung_box": None, "phases": None, "cross_correlation": [],
                         "cumulated_periodogram": None})
-            findings.append(f"{c}: too few measured samples ({n_fin}) to test the residual")
+            findings.append(f"{c}: too few measured samples ({col['n_samples']}) to test the "
+                            "residual")
             continue
-        col_findings = []
+        col["ljung_box"], white = _whiteness(c, res)
+        lb_lags = col["ljung_box"]["lags"]
+        col["phases"], by_phase = _phase_evidence(c, units.get(c, "°C"), res, phases,
+                                                  col["rmse"])
+        col["cross_correlation"], by_input = _cross_correlations(
+            c, res, signals, lag, dt, col["ljung_box"]["white"])
+        col["cumulated_periodogram"], by_frequency = _periodogram(c, res, dt)
+        ranked = [white, *by_phase, *by_input, *by_frequency]
+        findings += [s for _, s in sorted(ranked, key=lambda t: -t[0])]
 
-        # Whiteness
-        q, p_lb, lb_lags = ljung_box(res)
-        white = p_lb >= WHITE_P
-        col["ljung_box"] = {"q": q, "p": p_lb, "lags": lb_lags, "white": white}
-        if white:
-            col_findings.append((0.0, f"{c}: residuals white (Ljung-Box p {_p(p_lb)}, {lb_lags} lags)"))
-        else:
-            col_findings.append((1e9, f"{c}: residuals not white (Ljung-Box p {_p(p_lb)} over "
-                                      f"{lb_lags} lags)"))
-
-        # Phases
-        by_phase = residuals_by_phase(res, phases)
-        col["phases"] = {k: {"n": v["n"], "mean": v["mean"], "rmse": v["rms"]}
-                         for k, v in by_phase.items() if k in PHASES}
-        col["phases"]["heating_minus_cooling"] = by_phase["heating_minus_cooling"]
-        frac = _n_eff(res)
-        scale = col["rmse"] if col["rmse"] is not None and math.isfinite(col["rmse"]) else 0.0
-        diff, se = _phase_diff(res, phases, "heating_ramp", "cooling_ramp", frac)
-        sig = diff is not None and abs(diff) > _PHASE_SE * se and abs(diff) > _PHASE_REL * scale
-        col["phases"]["asymmetry"] = {"heating_minus_cooling": diff, "std_error": se,
-                                      "significant": bool(sig)}
-        if sig:
-            h, cc = by_phase["heating_ramp"]["mean"], by_phase["cooling_ramp"]["mean"]
-            col_findings.append((abs(diff) / se, (
-                f"{c}: heating-ramp residual {h:+.2g} {unit} vs cooling {cc:+.2g} {unit} "
-                f"(asymmetry {diff:+.2g} {unit}, {abs(diff) / se:.0f} standard errors: a "
-                "temperature-dependent or rate-dependent effect)")))
-        diff, se = _phase_diff(res, phases, "power_step", "dwell", frac)
-        sig = diff is not None and abs(diff) > _PHASE_SE * se and abs(diff) > _PHASE_REL * scale
-        col["phases"]["power_step_minus_dwell"] = {"difference": diff, "std_error": se,
-                                                   "significant": bool(sig)}
-        if sig:
-            col_findings.append((abs(diff) / se, (
-                f"{c}: residual after power steps {diff:+.2g} {unit} from the dwell level "
-                f"({abs(diff) / se:.0f} standard errors: a missing heat path, a lag or a "
-                "power-dependent effect)")))
-
-        # Cross-correlation with each input and its derivative
-        n_tests = (2 * lag + 1) * n_signals
-        xc = []
-        for s in range(n_signals):
-            name, deriv, _ = signals[0][s]
-            lags, ccf, band = cross_correlation(res, [sig_[s][2] for sig_ in signals], lag)
-            k = int(np.argmax(np.abs(ccf)))
-            # The band for the largest of all 2L+1 lags of all 2m signals (Šidák): what
-            # a white residual independent of the inputs stays inside 95 % of the time.
-            band_all = float(stats.norm.isf((1 - 0.95 ** (1 / n_tests)) / 2) * band / 1.96)
-            peak = float(ccf[k])
-            xc.append({"signal": name, "derivative": deriv, "label": _label(name, deriv),
-                       "peak": peak, "abs_peak": abs(peak), "lag_samples": int(lags[k]),
-                       "lag_s": float(lags[k] * dt), "band": band, "band_all_lags": band_all,
-                       "exceeds_band": abs(peak) > band, "significant": abs(peak) > band_all})
-        col["cross_correlation"] = xc
-        strong = sorted((e for e in xc if e["significant"]), key=lambda e: -e["abs_peak"])
-        for e in strong[:_MAX_CORR_FINDINGS]:
-            col_findings.append((e["abs_peak"] / e["band"], (
-                f"{c}: residual correlates with {e['label']} (peak {e['peak']:.2f} at lag "
-                f"{e['lag_s']:.3g} s, band {e['band']:.2g})"
-                + ("" if white else "; the band assumes a white residual, so read it as a lead"))))
-
-        # Cumulated periodogram
-        if any(len(r) >= 4 for r in res):
-            f, cp, bound = cumulated_periodogram(res)
-            dev = cp - f
-            k = int(np.argmax(np.abs(dev)))
-            side = "low" if dev[k] > 0 else "high"
-            col["cumulated_periodogram"] = {
-                "max_deviation": float(abs(dev[k])), "bound": bound,
-                "at_fraction_of_nyquist": float(f[k]), "at_hz": float(f[k] / (2 * dt)),
-                "excess_at": side, "exceeds": bool(abs(dev[k]) > bound)}
-            if abs(dev[k]) > bound:
-                what = ("slow drift or missing slow dynamics" if side == "low"
-                        else "fast wiggles: sensor noise model or a missing fast path")
-                col_findings.append((abs(dev[k]) / bound, (
-                    f"{c}: residual power concentrated at {side} frequencies (cumulated "
-                    f"periodogram off the white line by {abs(dev[k]):.2f}, 5% bound {bound:.2g}: "
-                    f"{what})")))
-        else:
-            col["cumulated_periodogram"] = None
-        findings += [s for _, s in sorted(col_findings, key=lambda t: -t[0])]
-
-    tests = {
-        "residuals": "measured minus predicted (as given in the run traces)",
-        "pooling": "lagged products summed over runs, each run about its own mean; "
-                   "a lag never straddles two runs",
-        "ljung_box": {"lags": lb_lags, "lags_rule": "min(20, N/5) with N the pooled sample count",
-                      "white_if_p_at_least": WHITE_P},
-        "cross_correlation": {
-            "lags_samples": lag, "sample_interval_s": dt,
-            "lag_sign": "positive lag: the input leads the residual",
-            "band": "1.96/sqrt(N), pointwise 95 % for a white residual independent of the input",
-            "band_all_lags": f"Šidák-corrected 95 % band for the largest of {2 * lag + 1} lags "
-                             f"times {2 * len(input_names)} signals; 'significant' and the "
-                             "findings use it",
-            "derivative": "central differences (numpy.gradient) of each input over ts"},
-        "cumulated_periodogram": "Box-Jenkins; bound 1.36/sqrt(m - 1), 5 % Kolmogorov-Smirnov",
-        "phases": {"chamber_input": chamber, "power_inputs": powers,
-                   "labelling": "label_phases: ramp beyond 0.2 °C/min, power step 600 s after "
-                                "a jump in power",
-                   "asymmetry_rule": f"reported beyond {_PHASE_SE:g} standard errors (sample "
-                                     "counts shrunk by the AR(1) factor (1-ρ₁)/(1+ρ₁)) and "
-                                     f"beyond {_PHASE_REL:g} × the column's RMSE"},
-    }
+    tests = _tests(lb_lags, lag, dt, len(input_names), chamber, powers)
     return json_safe({"columns": out_cols, "findings": findings, "tests": tests,
-                   "runs": [r["name"] for r in runs]})
-
-
-# ---------------------------------------------------------------------------
-# Plots
-
-_DPI = 80
-
-
-def _stride(n: int, points: int = 1500) -> int:
-    return max(1, n // points)
-
-
-def diagnostic_plots(out_dir, prefix: str, columns, runs, input_names, boundary_inputs=(),
-                     max_lag: int | None = None) -> dict[str, str]:
-    """Write the diagnostic PNGs into `out_dir`; return their file names (relative to
-    `out_dir`) by key:
-
-    - `fit`: per column, measured against model over time for each run, residual below;
-    - `acf`: pooled residual autocorrelation with the ±1.96/√N band, per column;
-    - `xcorr`: cross-correlation of the residual with each input and derivative, bands;
-    - `periodogram`: cumulated periodogram with the 5 % Kolmogorov-Smirnov band;
-    - `phases`: residual mean per chamber phase, per column.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    runs = _check_runs(columns, runs, input_names)
-    pre = f"{prefix}_" if prefix else ""
-    names = {k: f"{pre}{k}.png" for k in ("fit", "acf", "xcorr", "periodogram", "phases")}
-    p, nr = len(columns), len(runs)
-    res = [[r["measured"][:, j] - r["predicted"][:, j] for r in runs] for j in range(p)]
-    dt = _dt(runs)
-    shortest = min(len(r["ts"]) for r in runs)
-    lag = int(max_lag) if max_lag is not None else max(1, min(30, shortest // 5))
-    lag = max(0, min(lag, shortest - 1))
-
-    def save(fig, key):
-        # Fixed margins (tight_layout costs as much as drawing the figure)
-        w, h = fig.get_size_inches()
-        fig.subplots_adjust(left=min(1.0 / w, 0.3), right=1 - min(0.2 / w, 0.1),
-                            bottom=min(0.6 / h, 0.3), top=1 - min(0.35 / h, 0.15),
-                            hspace=0.45, wspace=0.3)
-        fig.savefig(out_dir / names[key], dpi=_DPI)
-        plt.close(fig)
-
-    # fit: rows = (column, residual) pairs, one column of panels per run
-    fig, axes = plt.subplots(2 * p, nr, figsize=(min(4.0 * nr, 16.0), 2.6 * p + 0.6),
-                             squeeze=False, gridspec_kw={"height_ratios": [2, 1] * p})
-    for i, r in enumerate(runs):
-        t_h = r["ts"] / 3600.0
-        s = _stride(len(t_h))
-        for j, c in enumerate(columns):
-            ax = axes[2 * j, i]
-            ax.plot(t_h[::s], r["measured"][::s, j], ".", ms=2, color="0.4", label="measured")
-            ax.plot(t_h[::s], r["predicted"][::s, j], color="tab:blue", lw=1.0, label="model")
-            if i == 0:
-                ax.set_ylabel(c)
-            if j == 0:
-                ax.set_title(r["name"], fontsize=9)
-            if i == 0 and j == 0:
-                ax.legend(fontsize=7, loc="best")
-            ax = axes[2 * j + 1, i]
-            ax.plot(t_h[::s], res[j][i][::s], color="tab:red", lw=0.6)
-            ax.axhline(0, color="k", lw=0.5)
-            if i == 0:
-                ax.set_ylabel("residual", fontsize=8)
-        axes[-1, i].set_xlabel("time, h")
-    for ax in axes.ravel():
-        ax.grid(alpha=0.3)
-        ax.tick_params(labelsize=7)
-    save(fig, "fit")
-
-    # acf
-    acf_lags = max(1, min(50, shortest - 1))
-    fig, axes = plt.subplots(p, 1, figsize=(6, 1.9 * p + 0.4), squeeze=False)
-    for j, c in enumerate(columns):
-        ax = axes[j, 0]
-        rho, n = pooled_autocorrelation(res[j], acf_lags)
-        k = np.arange(1, acf_lags + 1)
-        ax.vlines(k * dt, 0, rho, color="tab:blue")
-        band = 1.96 / math.sqrt(max(n, 1))
-        ax.axhspan(-band, band, color="0.85")
-        ax.axhline(0, color="k", lw=0.5)
-        ax.set_ylabel(f"{c}\nACF", fontsize=8)
-    axes[-1, 0].set_xlabel("lag, s")
-    axes[0, 0].set_title("pooled residual autocorrelation (grey: ±1.96/√N)", fontsize=9)
-    save(fig, "acf")
-
-    # xcorr: one panel per column, every input and derivative overlaid
-    signals = [_signals(r, input_names) for r in runs]
-    fig, axes = plt.subplots(p, 1, figsize=(7, 2.2 * p + 0.6), squeeze=False)
-    for j, c in enumerate(columns):
-        ax = axes[j, 0]
-        band = None
-        for s in range(2 * len(input_names)):
-            name, deriv, _ = signals[0][s]
-            lags, ccf, band = cross_correlation(res[j], [sg[s][2] for sg in signals], lag)
-            ax.plot(lags * dt, ccf, lw=1.0, ls="--" if deriv else "-", label=_label(name, deriv))
-        if band is not None:
-            ax.axhspan(-band, band, color="0.85")
-            ax.legend(fontsize=6, ncol=2, loc="best")
-        ax.axhline(0, color="k", lw=0.5)
-        ax.set_ylabel(f"{c}\ncorrelation", fontsize=8)
-    axes[-1, 0].set_xlabel("lag, s (positive: input leads)")
-    axes[0, 0].set_title("residual vs inputs and their derivatives (grey: 95 % band)", fontsize=9)
-    save(fig, "xcorr")
-
-    # cumulated periodogram
-    fig, axes = plt.subplots(1, p, figsize=(min(3.2 * p, 16.0), 3.0), squeeze=False)
-    for j, c in enumerate(columns):
-        ax = axes[0, j]
-        if any(np.isfinite(x).sum() >= 4 for x in res[j]):
-            f, cp, bound = cumulated_periodogram(res[j])
-            ax.plot(f, cp, color="tab:blue", lw=1.0)
-            ax.plot([0, 1], [0, 1], color="k", lw=0.5)
-            ax.fill_between(f, f - bound, f + bound, color="0.85")
-        ax.set_title(c, fontsize=9)
-        ax.set_xlabel("frequency / Nyquist", fontsize=8)
-        ax.set_xlim(0, 1)
-        ax.set_ylim(0, 1.05)
-    axes[0, 0].set_ylabel("cumulated periodogram")
-    save(fig, "periodogram")
-
-    # phases: grouped bars, mean residual per phase and column
-    chamber, powers = _split_inputs(input_names, boundary_inputs)
-    ph = [_phases(r, input_names, chamber, powers) for r in runs]
-    fig, ax = plt.subplots(figsize=(6, 3))
-    width = 0.8 / max(p, 1)
-    x = np.arange(len(PHASES))
-    for j, c in enumerate(columns):
-        by = residuals_by_phase(res[j], ph)
-        means = [by[k]["mean"] if by[k]["mean"] is not None else 0.0 for k in PHASES]
-        ax.bar(x + (j - (p - 1) / 2) * width, means, width, label=c)
-    ax.axhline(0, color="k", lw=0.5)
-    ax.set_xticks(x)
-    ax.set_xticklabels([k.replace("_", " ") for k in PHASES], fontsize=8)
-    ax.set_ylabel("mean residual")
-    ax.legend(fontsize=7)
-    ax.set_title("residual by chamber phase", fontsize=9)
-    save(fig, "phases")
-    return names
+                      "runs": [r["name"] for r in runs]})

@@ -1,4 +1,4 @@
-"""The missing-physics loop (`thermojax investigate`, spec §5).
+"""The missing-physics loop (`thermojax investigate`, docs/formats.md §5).
 
 Fit the model; if its residuals are not white, score every candidate effect
 (`_candidates`), refit the best few, and add the best one the evidence supports;
@@ -44,7 +44,6 @@ from .._residual_analysis import ljung_box
 from ..model._spec import ModelSpec
 from ..measurements._telemetry import Telemetry
 
-STOP_REASONS = ("residuals_white", "no_supported_candidate", "max_steps")
 TIE_LR = float(stats.chi2.ppf(0.95, 1))  # 3.84
 
 
@@ -79,7 +78,7 @@ def _bias_runs(result, runs, bias):
 
 def evaluate(spec: ModelSpec, runs: list[Telemetry], likelihood: str, progress=None,
              holdout: int | None = None) -> Step:
-    """Fit `spec` to the runs, its bias channels too, and measure the fit (spec §5 keys)."""
+    """Fit `spec` to the runs, its bias channels too, and measure the fit (docs/formats.md §5 keys)."""
     result = fit(spec, _experiments(spec, runs), likelihood=likelihood, progress=progress,
                  holdout=holdout)
     lowered = result.lowered_spec
@@ -162,96 +161,87 @@ def unused_columns(spec: ModelSpec, runs: list[Telemetry]) -> dict[str, str]:
     return out
 
 
-def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits: int = 3,
-                  fdr: float = 0.05, say=print, white_p: float | None = None,
-                  initial: ModelSpec | None = None) -> list[Candidate]:
-    """Rank every candidate effect for the model of `step` (which it leaves unchanged).
-
-    A refit starts from the fitted model plus the effect's first guess and, with
-    `initial` (the model as the user wrote it), also from the user's values (a fit
-    without the effect may have bent the other parameters to mimic it); the better
-    likelihood is kept. With `white_p`, thermal candidates are only scored, not
-    refitted, when every sensor's residuals are already white at that level (the
-    misfit is in a bias channel)."""
-    spec, result = step.spec, step.result
-    if white_p is not None and all(
-            (step.record["whiteness_p"].get(c) or 0.0) > white_p for c in spec.sensor_columns):
-        refits = 0
-    unused = unused_columns(spec, runs)
-    lowered = result.lowered_spec
-    places = enumerate_places(spec, lowered, unused)
-    thermal = [(k, w) for k, w in places if k != "viscoelastic"]
+def _padded_columns(runs: list[Telemetry], names, T: int) -> dict[str, np.ndarray]:
+    """Data columns `names` as (runs, T) arrays on the padded time grid (each run's last
+    value repeated)."""
     columns = {}
-    exps = _experiments(lowered, runs)
-    data, weights, r, J = output_error_at(result, exps)
-    T = data.ts.shape[1]
-    for c in set(unused) | set(spec.input_columns):
+    for c in names:
         arr = np.zeros((len(runs), T))
         for i, t in enumerate(runs):
             v = t.column(c)
             arr[i, :len(v)] = v
             arr[i, len(v):] = v[-1]
         columns[c] = arr
-    say(f"scoring {len(places)} candidate effects")
-    cands = score_candidates(result, data, thermal, columns, weights, r, J)
-    # viscoelastic candidates are refitted directly (linear least squares, cheap)
+    return columns
+
+
+def _viscoelastic_candidates(step: Step, runs: list[Telemetry], places) -> list[Candidate]:
+    """Every `viscoelastic` place of `places`, refitted directly on its bias channel
+    (linear least squares and a τ search: cheap)."""
+    spec, result = step.spec, step.result
+    node_names = list(result.lowered_spec.node_names)
+    out = []
     for kind, where in places:
         if kind != "viscoelastic":
             continue
         bias = next(b for b in spec.biases if b.column == where[1])
-        bias_fit, lr = viscoelastic_candidate(
-            bias, list(spec.effects), _bias_runs(result, runs, bias),
-            list(lowered.node_names), where[0])
-        n_after = step.record["n_samples"]
-        cands.append(Candidate(kind, tuple(where), float(lr), refit_p_value(kind, lr, 2),
-                               method="refit", delta_bic=-lr + 2 * math.log(n_after),
-                               parameters={"time_constant": bias_fit.time_constants[
-                                   f"viscoelastic.{where[0]}"][0],
-                                   "k": float(dict(zip(bias_fit.names, bias_fit.coefficients))[
-                                       f"viscoelastic.{where[0]}.k"])}))
-    cands.sort(key=lambda c: -c.score)
-    holds = {c: column_hold(columns[c]) for c in unused}
-    # refit the best few thermal candidates
-    done = 0
-    for c in list(cands):
-        if done >= refits:
-            break
-        if c.method == "refit" or c.score <= 0:
+        bias_fit, lr = viscoelastic_candidate(bias, list(spec.effects),
+                                              _bias_runs(result, runs, bias), node_names,
+                                              where[0])
+        name = f"viscoelastic.{where[0]}"
+        k = float(dict(zip(bias_fit.names, bias_fit.coefficients))[f"{name}.k"])
+        out.append(Candidate(kind, tuple(where), float(lr), refit_p_value(kind, lr, 2),
+                             method="refit",
+                             delta_bic=-lr + 2 * math.log(step.record["n_samples"]),
+                             parameters={"time_constant": bias_fit.time_constants[name][0],
+                                         "k": k}))
+    return out
+
+
+def _refit(c: Candidate, step: Step, runs, likelihood, holds, initial, say) -> bool:
+    """Refit the model of `step` with candidate `c` added; on success `c` holds the
+    likelihood ratio, its p-value, Δ BIC, the extended step and the fitted parameters.
+
+    The refit starts from the fitted model plus the effect's first guess and, with
+    `initial`, also from the user's values; the better likelihood is kept."""
+    spec, lowered = step.spec, step.result.lowered_spec
+    effect = new_effect(spec, lowered, c.kind, c.where, holds)
+    say(f"refitting with {c.kind} {list(c.where)} (score {c.score:.1f})")
+    extended = spec.replace(effects=spec.effects + (effect,))
+    starts = [extended]
+    if initial is not None:
+        starts.append(with_spec_parameters(extended, spec_parameters(initial)))
+    ext = None
+    for start in starts:
+        try:
+            got = evaluate(start, runs, likelihood)
+        except Exception as err:  # one candidate's failure must not end the loop
+            c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
             continue
-        effect = new_effect(spec, lowered, c.kind, c.where, holds)
-        say(f"refitting with {c.kind} {list(c.where)} (score {c.score:.1f})")
-        extended = spec.replace(effects=spec.effects + (effect,))
-        starts = [extended]
-        if initial is not None:
-            starts.append(with_spec_parameters(extended, spec_parameters(initial)))
-        ext = None
-        for start in starts:
-            try:
-                got = evaluate(start, runs, likelihood)
-            except Exception as err:  # one candidate's failure must not end the loop
-                c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
-                continue
-            if ext is None or got.record["nll"] < ext.record["nll"]:
-                ext = got
-        if ext is None:
-            continue
-        done += 1
-        lr = 2 * (step.record["nll"] - ext.record["nll"])
-        n_new = ext.record["n_params"] - step.record["n_params"]
-        c.score, c.method = float(lr), "refit"
-        c.p_value = refit_p_value(c.kind, lr, max(n_new, 1))
-        c.delta_bic = ext.record["bic"] - step.record["bic"]
-        c.result = ext
-        added = next(e for e in ext.spec.effects if (e.kind, tuple(e.where)) == c.key)
-        c.parameters = {k: p.value for k, p in added.parameters.items()}
-    cands.sort(key=lambda c: (c.method != "refit", -c.score))
+        if ext is None or got.record["nll"] < ext.record["nll"]:
+            ext = got
+    if ext is None:
+        return False
+    lr = 2 * (step.record["nll"] - ext.record["nll"])
+    n_new = ext.record["n_params"] - step.record["n_params"]
+    c.score, c.method = float(lr), "refit"
+    c.p_value = refit_p_value(c.kind, lr, max(n_new, 1))
+    c.delta_bic = ext.record["bic"] - step.record["bic"]
+    c.result = ext
+    added = next(e for e in ext.spec.effects if (e.kind, tuple(e.where)) == c.key)
+    c.parameters = {k: p.value for k, p in added.parameters.items()}
+    return True
+
+
+def _judge(cands: list[Candidate], fdr: float) -> None:
+    """Mark the supported candidates (Benjamini-Hochberg at `fdr`, refitted, Δ BIC < 0)
+    and the near-ties among the refitted ones, in place."""
     ok = benjamini_hochberg([c.p_value for c in cands], fdr)
     for c, passed in zip(cands, ok):
         c.supported = bool(passed and c.method == "refit" and c.delta_bic is not None
                            and c.delta_bic < 0)
         if passed and c.method == "score":
             c.note = c.note or "significant by its score; not refitted (not among the best)"
-    # ties among refitted candidates
     refitted = [c for c in cands if c.method == "refit"]
     for c in refitted:
         c.tied_with = [d.key for d in refitted if d is not c and abs(d.score - c.score) < TIE_LR
@@ -261,6 +251,45 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
                       "χ²₁) of " + ", ".join(f"{k} {list(w)}" for k, w in c.tied_with) +
                       ", so the data cannot tell them apart; " +
                       separation_advice({c.kind, *(k for k, _ in c.tied_with)}))
+
+
+def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits: int = 3,
+                  fdr: float = 0.05, say=print, white_p: float | None = None,
+                  initial: ModelSpec | None = None) -> list[Candidate]:
+    """Rank every candidate effect for the model of `step` (which it leaves unchanged).
+
+    Thermal candidates are score-tested, the best `refits` of them refitted (see
+    `_refit`: with `initial`, the model as the user wrote it, a refit also starts from
+    the user's values, since a fit without the effect may have bent the other
+    parameters to mimic it); viscoelastic ones are always refitted. With `white_p`,
+    thermal candidates are only scored, not refitted, when every sensor's residuals
+    are already white at that level (the misfit is in a bias channel).
+
+    **Returns:** the candidates, refitted first, then by decreasing score."""
+    spec, result = step.spec, step.result
+    if white_p is not None and all(
+            (step.record["whiteness_p"].get(c) or 0.0) > white_p for c in spec.sensor_columns):
+        refits = 0
+    unused = unused_columns(spec, runs)
+    lowered = result.lowered_spec
+    places = enumerate_places(spec, lowered, unused)
+    thermal = [(k, w) for k, w in places if k != "viscoelastic"]
+    data, weights, r, J = output_error_at(result, _experiments(lowered, runs))
+    columns = _padded_columns(runs, set(unused) | set(spec.input_columns), data.ts.shape[1])
+    say(f"scoring {len(places)} candidate effects")
+    cands = score_candidates(result, data, thermal, columns, weights, r, J)
+    cands += _viscoelastic_candidates(step, runs, places)
+    cands.sort(key=lambda c: -c.score)
+    holds = {c: column_hold(columns[c]) for c in unused}
+    done = 0
+    for c in list(cands):  # refit the best few thermal candidates
+        if done >= refits:
+            break
+        if c.method == "refit" or c.score <= 0:
+            continue
+        done += _refit(c, step, runs, likelihood, holds, initial, say)
+    cands.sort(key=lambda c: (c.method != "refit", -c.score))
+    _judge(cands, fdr)
     return cands
 
 
@@ -308,18 +337,66 @@ def _holdout_gain(spec_base, spec_ext, runs, likelihood, sigma, say) -> float:
 # The loop
 
 
+def _choose(cands: list[Candidate], current: Step, runs, likelihood, holdout_check: bool,
+            say) -> Candidate | None:
+    """The first supported candidate that (unless viscoelastic, or without
+    `holdout_check`) also predicts held-out runs better; the others it tries are marked
+    unsupported."""
+    for c in cands:
+        if not c.supported:
+            continue
+        if holdout_check and c.kind != "viscoelastic":
+            sigma = np.array([current.record["parameters"].get(
+                f"sensors.{s}.noise", {"value": 0.01})["value"]
+                for s in current.spec.sensor_columns])
+            c.holdout_gain = _holdout_gain(current.spec, c.result.spec, runs, likelihood,
+                                           sigma, say)
+            if not c.holdout_gain > 0:
+                c.supported = False
+                c.note = "does not predict held-out runs better (leave one run out)"
+                continue
+        return c
+    return None
+
+
+def _extend(current: Step, chosen: Candidate, runs, likelihood) -> Step:
+    """The next step: the model of `current` with `chosen` added (its refit, or a new
+    evaluation for a viscoelastic effect), its record's `added` filled in."""
+    if chosen.kind == "viscoelastic":
+        from ..model._spec import Effect, Parameter
+
+        eff = Effect("viscoelastic", chosen.where, {
+            k: Parameter(v) for k, v in chosen.parameters.items()})
+        nxt = evaluate(current.spec.replace(effects=current.spec.effects + (eff,)), runs,
+                       likelihood)
+    else:
+        nxt = chosen.result
+    added = next(e for e in nxt.spec.effects if (e.kind, tuple(e.where)) == chosen.key)
+    nxt.record["added"] = {"kind": added.kind, "where": list(added.where),
+                           "parameters": {k: p.value for k, p in added.parameters.items()},
+                           **({"name": added.name} if added.name else {})}
+    return nxt
+
+
+def _unexplained(record: dict, white_p: float) -> str:
+    bad = [c for c, p in record["whiteness_p"].items() if p is None or p <= white_p]
+    return (f"the residuals of {', '.join(bad)} stay non-white: part of the error "
+            "is not explained by any effect of the vocabulary with the data "
+            "columns given (an unrecorded input, or physics outside the "
+            "vocabulary).")
+
+
 def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "output_error",
                 max_steps: int = 4, refits: int = 3, fdr: float = 0.05,
                 white_p: float = 0.01, out: Path | None = None, progress=None,
                 resume: bool = True, holdout_check: bool = True) -> dict:
-    """Run the loop; returns the `report.json` dict (spec §5). With `out`, writes the
+    """Run the loop; returns the `report.json` dict (docs/formats.md §5). With `out`, writes the
     report, every step's model, `model_final.toml`, the Markdown report and its plots,
     and a checkpoint after each finished step, from which a rerun resumes."""
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
     out = Path(out) if out is not None else None
     fingerprint = _fingerprint(spec, runs, likelihood)
-    steps: list[Step] = []
     records: list[dict] = []
     start_spec = spec
     if out is not None and resume:
@@ -335,7 +412,6 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
         records.append(current.record)
     steps_traces = [None] * (len(records) - 1) + [current.traces]
     stopped = "max_steps"
-    unexplained = None
     while True:
         i = len(records) - 1
         rec = records[-1]
@@ -350,22 +426,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
         t_step = time.perf_counter()
         cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say,
                               white_p=white_p, initial=spec)
-        chosen = None
-        for c in cands:
-            if not c.supported:
-                continue
-            if holdout_check and c.kind != "viscoelastic":
-                sigma = np.array([current.record["parameters"].get(
-                    f"sensors.{s}.noise", {"value": 0.01})["value"]
-                    for s in current.spec.sensor_columns])
-                c.holdout_gain = _holdout_gain(current.spec, c.result.spec, runs, likelihood,
-                                               sigma, say)
-                if not c.holdout_gain > 0:
-                    c.supported = False
-                    c.note = "does not predict held-out runs better (leave one run out)"
-                    continue
-            chosen = c
-            break
+        chosen = _choose(cands, current, runs, likelihood, holdout_check, say)
         rec["candidates"] = [c.as_json() for c in cands]
         rec["wall_time_s"] = time.perf_counter() - t_step
         if chosen is not None and chosen.tied_with:
@@ -374,36 +435,18 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
         if chosen is None:
             stopped = "no_supported_candidate"
             break
-        if chosen.kind == "viscoelastic":
-            from ..model._spec import Effect, Parameter
-
-            eff = Effect("viscoelastic", chosen.where, {
-                k: Parameter(v) for k, v in chosen.parameters.items()})
-            nxt = evaluate(current.spec.replace(effects=current.spec.effects + (eff,)), runs,
-                           likelihood)
-        else:
-            nxt = chosen.result
-        added = next(e for e in nxt.spec.effects if (e.kind, tuple(e.where)) == chosen.key)
-        nxt.record["added"] = {"kind": added.kind, "where": list(added.where),
-                               "parameters": {k: p.value for k, p in added.parameters.items()},
-                               **({"name": added.name} if added.name else {})}
-        say(f"added {added.kind} {list(added.where)}")
-        current = nxt
-        records.append(nxt.record)
-        steps_traces.append(nxt.traces)
+        current = _extend(current, chosen, runs, likelihood)
+        say(f"added {chosen.kind} {list(chosen.where)}")
+        records.append(current.record)
+        steps_traces.append(current.traces)
         if out is not None:
             _save_checkpoint(out, fingerprint, records, current.spec)
         release_compiled_if_crowded()  # rejected candidates' programs are not reused
-    if stopped != "residuals_white":
-        bad = [c for c, p in records[-1]["whiteness_p"].items() if p is None or p <= white_p]
-        unexplained = (f"the residuals of {', '.join(bad)} stay non-white: part of the error "
-                       "is not explained by any effect of the vocabulary with the data "
-                       "columns given (an unrecorded input, or physics outside the "
-                       "vocabulary).")
     report = {
         "schema": 1, "thermojax_version": _version(), "likelihood": likelihood,
         "steps": records, "stopped_because": stopped, "final_model": "model_final.toml",
-        "unexplained": unexplained,
+        "unexplained": (None if stopped == "residuals_white"
+                        else _unexplained(records[-1], white_p)),
         "significance_rule": (
             f"Benjamini-Hochberg at false-discovery rate {fdr} over all candidates of a "
             "step (one-sided boundary tests for positive effects), Δ BIC < 0 after "

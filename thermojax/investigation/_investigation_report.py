@@ -1,9 +1,10 @@
 """The human-readable side of `thermojax investigate`: `report.md` and its figures.
 
-Pure NumPy/matplotlib (no JAX). It reads the `report.json` dict of spec §5 and, per
-step, the run traces of the model fitted at that step, and tells the story: what was
-found, why the loop stopped, how the error fell, and per step the ranked candidates,
-the evidence for the effect added, and what the residual still looks like.
+No JAX; the figures come from `_diagnostic_plots`. It reads the `report.json` dict of
+docs/formats.md §5 and, per step, the run traces of the model fitted at that step, and tells the
+story: what was found, why the loop stopped, how the error fell, and per step the
+ranked candidates, the evidence for the effect added, and what the residual still
+looks like.
 """
 
 from __future__ import annotations
@@ -12,9 +13,8 @@ import json
 import math
 from pathlib import Path
 
-import numpy as np
-
-from ._diagnostics import diagnose_traces, diagnostic_plots
+from ._diagnostic_plots import diagnostic_plots, error_chart
+from ._diagnostics import diagnose_traces
 
 _TOP = 8  # candidates shown per step
 
@@ -140,64 +140,9 @@ def _candidate_table(cands: list[dict]) -> list[str]:
     return lines
 
 
-def _error_chart(path: Path, steps: list[dict], columns, noise: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.5, 3.6))
-    x = np.arange(len(steps))
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for j, c in enumerate(columns):
-        color = colors[j % len(colors)]
-        y = np.array([float(s.get("rmse", {}).get(c)) if isinstance(s.get("rmse", {}).get(c),
-                      (int, float)) else np.nan for s in steps])
-        y[~(y > 0)] = np.nan
-        if np.isfinite(y).any():
-            ax.plot(x, y, "o-", color=color, label=c)
-        sd = noise.get(c)
-        if isinstance(sd, (int, float)) and sd > 0:
-            ax.axhline(sd, color=color, ls="--", lw=0.8)
-    ax.set_yscale("log")
-    ax.set_xticks(x)
-    ax.set_xticklabels(["start" if not s.get("added") else
-                        f"+{s['added'].get('kind', '?')}" for s in steps],
-                       rotation=30, ha="right", fontsize=8)
-    ax.set_xlabel("step")
-    ax.set_ylabel("free-run RMSE")
-    ax.set_title("error per step" + (" (dashed: noise std)" if noise else ""), fontsize=9)
-    ax.grid(alpha=0.3, which="both")
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
-def write_investigation_report(out_dir, report: dict, step_traces: list, columns: list[str],
-                               input_names: list[str], boundary_inputs=()) -> Path:
-    """Write `report.md` (and its PNGs, plus `diagnostics.json`) into `out_dir`.
-
-    **Arguments:**
-
-    - `out_dir`: folder, created if needed.
-    - `report`: the `investigate` `report.json` dict (spec §5); optional keys used
-      when present: `noise` (column -> std), `significance_rule`, `likelihood`,
-      `unexplained`, `steps[*].wall_time_s`, `steps[*].separation`, and in candidates
-      `p_value`, `supported`, `method`, `note`.
-    - `step_traces`: `step_traces[i]` the run traces (see `_diagnostics`) of the
-      model fitted at step `i`; a missing entry just leaves that step without plots.
-    - `columns`, `input_names`, `boundary_inputs`: as `diagnose_traces` takes them.
-
-    **Returns:** the path of `report.md`.
-    """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    steps = list(report.get("steps") or [])
-    noise = {k: v for k, v in (report.get("noise") or {}).items() if v is not None}
-    first, last = (steps[0] if steps else {}), (steps[-1] if steps else {})
-
+def _diagnose_steps(out: Path, steps, step_traces, columns, input_names, boundary_inputs):
+    """Per step: `diagnose_traces` and `diagnostic_plots` of its traces (None for both
+    when the step has none)."""
     diagnoses, plots = [], []
     for i in range(len(steps)):
         traces = step_traces[i] if i < len(step_traces) else None
@@ -208,15 +153,14 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
         else:
             diagnoses.append(None)
             plots.append(None)
-    (out / "diagnostics.json").write_text(json.dumps(
-        {"steps": diagnoses}, indent=1, allow_nan=False, ensure_ascii=False))
-    _error_chart(out / "error_by_step.png", steps or [{}], columns, noise)
+    return diagnoses, plots
 
+
+def _summary(report: dict, steps: list[dict], columns, noise: dict) -> list[str]:
+    """The `## Summary` section: what was added, why the loop stopped, RMSE against noise."""
+    first, last = (steps[0] if steps else {}), (steps[-1] if steps else {})
     added = [(i, s["added"]) for i, s in enumerate(steps) if s.get("added")]
-    md = ["# Investigation report", ""]
-
-    # Summary
-    md += ["## Summary", ""]
+    md = ["## Summary", ""]
     if added:
         md.append(f"Starting from the given model, the investigation added {len(added)} "
                   f"effect{'s' if len(added) > 1 else ''}, in this order: "
@@ -258,10 +202,12 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
     if report.get("final_model"):
         md.append(f"Final model: [`{report['final_model']}`]({report['final_model']}).")
     md.append("")
-    md += ["![free-run RMSE per step](error_by_step.png)", ""]
+    return md + ["![free-run RMSE per step](error_by_step.png)", ""]
 
-    # Overview table
-    md += ["## Steps", ""]
+
+def _steps_table(steps: list[dict], columns) -> list[str]:
+    """The `## Steps` overview: one row per step (added effect, size, fit, RMSE, time)."""
+    md = ["## Steps", ""]
     head = ["step", "added", "parameters", "−log L", "AIC", "BIC"] + [f"RMSE {c}" for c in columns]
     timed = any("wall_time_s" in s for s in steps)
     if timed:
@@ -275,58 +221,102 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
             row.append(_num(s.get("wall_time_s"), ".3g"))
         md.append("| " + " | ".join(_cell(v) for v in row) + " |")
     md.append("")
+    return md
 
-    # Per step
-    for i, s in enumerate(steps):
-        title = "the given model" if i == 0 and not s.get("added") \
-            else f"added {_effect(s.get('added'))}"
-        md += [f"## Step {i}: {title}", ""]
-        if i > 0:
-            md += [_evidence(i, s, steps[i - 1], report, columns), ""]
-        pl, dg = plots[i], diagnoses[i]
-        if pl:
-            if i > 0 and plots[i - 1]:
-                md += ["Measured against model, before (previous step) and after this step:", "",
-                       f"![before: step {i - 1}]({plots[i - 1]['fit']})",
-                       f"![after: step {i}]({pl['fit']})", ""]
-            else:
-                md += ["Measured against model:", "", f"![step {i}]({pl['fit']})", ""]
-        md += ["### Residual whiteness", ""]
-        wp = s.get("whiteness_p") or {}
-        md += ["| column | whiteness p (report) | Ljung-Box p (traces) | lags | white |",
-               "|---|---:|---:|---:|---|"]
-        for c in columns:
-            lb = ((dg or {}).get("columns", {}).get(c) or {}).get("ljung_box") or {}
-            md.append("| " + " | ".join(_cell(v) for v in (
-                c, _num(wp.get(c), "p"), _num(lb.get("p"), "p"), _num(lb.get("lags"), ".0f"),
-                _yes_no(lb.get("white")))) + " |")
+
+def _whiteness_table(s: dict, dg: dict | None, columns) -> list[str]:
+    """`### Residual whiteness` of one step: the report's p against the traces' test."""
+    md = ["### Residual whiteness", ""]
+    wp = s.get("whiteness_p") or {}
+    md += ["| column | whiteness p (report) | Ljung-Box p (traces) | lags | white |",
+           "|---|---:|---:|---:|---|"]
+    for c in columns:
+        lb = ((dg or {}).get("columns", {}).get(c) or {}).get("ljung_box") or {}
+        md.append("| " + " | ".join(_cell(v) for v in (
+            c, _num(wp.get(c), "p"), _num(lb.get("p"), "p"), _num(lb.get("lags"), ".0f"),
+            _yes_no(lb.get("white")))) + " |")
+    md.append("")
+    return md
+
+
+def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagnoses
+                  ) -> list[str]:
+    """`## Step i`: the evidence for its effect, its fit, residual and candidates."""
+    s = steps[i]
+    title = "the given model" if i == 0 and not s.get("added") \
+        else f"added {_effect(s.get('added'))}"
+    md = [f"## Step {i}: {title}", ""]
+    if i > 0:
+        md += [_evidence(i, s, steps[i - 1], report, columns), ""]
+    pl, dg = plots[i], diagnoses[i]
+    if pl:
+        if i > 0 and plots[i - 1]:
+            md += ["Measured against model, before (previous step) and after this step:", "",
+                   f"![before: step {i - 1}]({plots[i - 1]['fit']})",
+                   f"![after: step {i}]({pl['fit']})", ""]
+        else:
+            md += ["Measured against model:", "", f"![step {i}]({pl['fit']})", ""]
+    md += _whiteness_table(s, dg, columns)
+    if dg:
+        md.append("Lags as stated; runs pooled by summing per-run autocovariances, each run "
+                  "about its own mean (a lag never straddles two runs).")
         md.append("")
-        if dg:
-            md.append("Lags as stated; runs pooled by summing per-run autocovariances, each run "
-                      "about its own mean (a lag never straddles two runs).")
-            md.append("")
-            if dg["findings"]:
-                md += ["What the residual shows:", ""] + [f"- {f}" for f in dg["findings"]] + [""]
-        if pl:
-            md += [f"Diagnostics: [autocorrelation]({pl['acf']}), "
-                   f"[cross-correlation with inputs]({pl['xcorr']}), "
-                   f"[cumulated periodogram]({pl['periodogram']}), "
-                   f"[residual by phase]({pl['phases']}).", ""]
-            md += [f"![residual by chamber phase]({pl['phases']})", ""]
-        else:
-            md += ["(No run traces for this step: no plots.)", ""]
-        cands = s.get("candidates") or []
-        md += ["### Candidates", ""]
-        if cands:
-            md.append("Ranked by evidence score (larger is stronger); Δ BIC = BIC after − BIC "
-                      "before; the first, if supported, is added at the next step.")
-            md.append("")
-            md += _candidate_table(cands) + [""]
-            if s.get("separation"):
-                md += [f"What would separate the tied candidates: {_sentence(s['separation'])}", ""]
-        else:
-            md += ["No candidate was evaluated at this step.", ""]
+        if dg["findings"]:
+            md += ["What the residual shows:", ""] + [f"- {f}" for f in dg["findings"]] + [""]
+    if pl:
+        md += [f"Diagnostics: [autocorrelation]({pl['acf']}), "
+               f"[cross-correlation with inputs]({pl['xcorr']}), "
+               f"[cumulated periodogram]({pl['periodogram']}), "
+               f"[residual by phase]({pl['phases']}).", ""]
+        md += [f"![residual by chamber phase]({pl['phases']})", ""]
+    else:
+        md += ["(No run traces for this step: no plots.)", ""]
+    cands = s.get("candidates") or []
+    md += ["### Candidates", ""]
+    if cands:
+        md.append("Ranked by evidence score (larger is stronger); Δ BIC = BIC after − BIC "
+                  "before; the first, if supported, is added at the next step.")
+        md.append("")
+        md += _candidate_table(cands) + [""]
+        if s.get("separation"):
+            md += [f"What would separate the tied candidates: {_sentence(s['separation'])}", ""]
+    else:
+        md += ["No candidate was evaluated at this step.", ""]
+    return md
 
+
+def write_investigation_report(out_dir, report: dict, step_traces: list, columns: list[str],
+                               input_names: list[str], boundary_inputs=()) -> Path:
+    """Write `report.md` (and its PNGs, plus `diagnostics.json`) into `out_dir`.
+
+    **Arguments:**
+
+    - `out_dir`: folder, created if needed.
+    - `report`: the `investigate` `report.json` dict (docs/formats.md §5); optional keys used
+      when present: `noise` (column -> std), `significance_rule`, `likelihood`,
+      `unexplained`, `steps[*].wall_time_s`, `steps[*].separation`, and in candidates
+      `p_value`, `supported`, `method`, `note`.
+    - `step_traces`: `step_traces[i]` the run traces (see `_diagnostics`) of the
+      model fitted at step `i`; a missing entry just leaves that step without plots.
+    - `columns`, `input_names`, `boundary_inputs`: as `diagnose_traces` takes them.
+
+    **Returns:** the path of `report.md`.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    steps = list(report.get("steps") or [])
+    noise = {k: v for k, v in (report.get("noise") or {}).items() if v is not None}
+    diagnoses, plots = _diagnose_steps(out, steps, step_traces, columns, input_names,
+                                       boundary_inputs)
+    (out / "diagnostics.json").write_text(json.dumps(
+        {"steps": diagnoses}, indent=1, allow_nan=False, ensure_ascii=False))
+    error_chart(out / "error_by_step.png", steps or [{}], columns, noise)
+
+    md = ["# Investigation report", ""]
+    md += _summary(report, steps, columns, noise)
+    md += _steps_table(steps, columns)
+    for i in range(len(steps)):
+        md += _step_section(i, steps, report, columns, plots, diagnoses)
     path = out / "report.md"
     path.write_text("\n".join(md) + "\n", encoding="utf-8")
     return path

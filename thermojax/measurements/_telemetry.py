@@ -1,4 +1,4 @@
-"""Telemetry CSV: read, check and write (formats spec §1; pure NumPy).
+"""Telemetry CSV: read, check and write (docs/formats.md §1; pure NumPy).
 
 A telemetry file is a CSV whose first column is `time_s` (seconds, strictly
 increasing) and whose other columns are channels named freely. Lines starting with
@@ -143,9 +143,29 @@ def read_telemetry(path: str | os.PathLike) -> Telemetry:
     a step that differs from the median step by more than 1 %.
     """
     file = str(path)
+    line_numbers, lines = _content_lines(_read_text(path, file))
+    if not lines:
+        raise InputError(f"the file has no header (it is empty or holds only comments); "
+                         f"expected a header line starting with '{TIME_COLUMN},' and data "
+                         "rows below it.", file=file)
+    header = _header(lines[0], line_numbers[0], file)
+    data = lines[1:]
+    data_lines = np.asarray(line_numbers[1:], dtype=np.int64)
+    if not data:
+        raise InputError("the file has a header but no data rows.", file=file,
+                         line=line_numbers[0])
+    values = _table(data, data_lines, header, file)
+    columns = [np.ascontiguousarray(values[:, j]) for j in range(len(header))]
+    _check_times(columns[0], data_lines, file)
+    channels = dict(zip(header[1:], columns[1:]))
+    return Telemetry(ts=columns[0], channels=channels, path=file, lines=data_lines)
+
+
+def _read_text(path, file: str) -> str:
+    """The file's text (UTF-8, a byte-order mark dropped)."""
     try:
         with open(path, encoding="utf-8-sig", newline="") as f:
-            text = f.read()
+            return f.read()
     except FileNotFoundError:
         raise InputError("no such file; check the path given to --data.", file=file) from None
     except IsADirectoryError:
@@ -154,40 +174,39 @@ def read_telemetry(path: str | os.PathLike) -> Telemetry:
         raise InputError(f"is not UTF-8 text ({e.reason} at byte {e.start}); save the "
                          "telemetry as a UTF-8 CSV file.", file=file) from None
 
-    physical = text.splitlines()
-    # keep a line unless it is blank or a comment ('#' after optional whitespace)
-    kept = [(i, line) for i, line in enumerate(physical, start=1)
-            if line and line[0] != "#" and (not line[0].isspace() or not _is_skipped(line))]
-    line_numbers = [i for i, _ in kept]
-    lines = [line for _, line in kept]
-    if not lines:
-        raise InputError(f"the file has no header (it is empty or holds only comments); "
-                         f"expected a header line starting with '{TIME_COLUMN},' and data "
-                         "rows below it.", file=file)
 
-    rows = _csv_rows(lines[:1], line_numbers[:1], file)
-    header_line = line_numbers[0]
-    header = [cell.strip() for cell in rows[0]]
+def _content_lines(text: str) -> tuple[list[int], list[str]]:
+    """The 1-based numbers and the text of the lines that are neither blank nor comments
+    ('#' after optional whitespace)."""
+    kept = [(i, line) for i, line in enumerate(text.splitlines(), start=1)
+            if line and line[0] != "#" and (not line[0].isspace() or not _is_skipped(line))]
+    return [i for i, _ in kept], [line for _, line in kept]
+
+
+def _header(line: str, line_number: int, file: str) -> list[str]:
+    """The column names of the header `line`: `time_s` first, each named, none twice."""
+    header = [cell.strip() for cell in _csv_rows([line], [line_number], file)[0]]
     if header[0] != TIME_COLUMN:
         raise InputError(f"the first column is {header[0]!r}, expected '{TIME_COLUMN}' "
                          f"(time in seconds); the header line must start with '{TIME_COLUMN},'.",
-                         file=file, line=header_line, field=header[0])
+                         file=file, line=line_number, field=header[0])
     seen: dict[str, int] = {}
     for k, name in enumerate(header):
         if not name:
             raise InputError(f"column {k + 1} of the header has no name; name every column.",
-                             file=file, line=header_line)
+                             file=file, line=line_number)
         if name in seen:
             raise InputError(f"column name {name!r} appears twice (columns {seen[name] + 1} and "
                              f"{k + 1}); column names must be unique.",
-                             file=file, line=header_line, field=name)
+                             file=file, line=line_number, field=name)
         seen[name] = k
+    return header
 
-    data = lines[1:]
-    data_lines = np.asarray(line_numbers[1:], dtype=np.int64)
+
+def _table(data: list[str], data_lines: np.ndarray, header: list[str], file: str) -> np.ndarray:
+    """The data rows as float64, shape `(rows, columns)`; every row must have one cell
+    per header column."""
     n_rows, n_cols = len(data), len(header)
-    if not n_rows:
-        raise InputError("the file has a header but no data rows.", file=file, line=header_line)
     if any('"' in line for line in data):  # quoted cells: let the csv module split them
         rows = _csv_rows(data, data_lines.tolist(), file)
         counts = np.fromiter(map(len, rows), dtype=np.int64, count=n_rows)
@@ -202,9 +221,12 @@ def read_telemetry(path: str | os.PathLike) -> Telemetry:
                          f"columns ({', '.join(header)}).", file=file, line=int(data_lines[k]))
     cells = (",".join(data).split(",") if rows is None
              else [cell for row in rows for cell in row])
-    values = _parse_cells(cells, header, data_lines, file).reshape(n_rows, n_cols)
-    columns = [np.ascontiguousarray(values[:, j]) for j in range(n_cols)]
-    ts = columns[0]
+    return _parse_cells(cells, header, data_lines, file).reshape(n_rows, n_cols)
+
+
+def _check_times(ts: np.ndarray, data_lines: np.ndarray, file: str) -> None:
+    """`time_s` (s, `(rows,)`) finite, at least two rows, strictly increasing, and
+    uniform up to `JITTER_TOLERANCE` of the median step."""
     bad = np.flatnonzero(~np.isfinite(ts))
     if bad.size:
         k = int(bad[0])
@@ -230,9 +252,6 @@ def read_telemetry(path: str | os.PathLike) -> Telemetry:
             f"but the median period is {period!r} s (only jitter under {JITTER_TOLERANCE:.0%} is "
             "tolerated). Resample the run to a uniform period or split it into separate "
             "files at the gap.", file=file, line=int(data_lines[k]), field=TIME_COLUMN)
-
-    channels = dict(zip(header[1:], columns[1:]))
-    return Telemetry(ts=ts, channels=channels, path=file, lines=data_lines)
 
 
 def _csv_rows(lines: Sequence[str], line_numbers: Sequence[int], file: str) -> list[list[str]]:

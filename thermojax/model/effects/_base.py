@@ -1,4 +1,4 @@
-"""The abstract effect: what one kind of missing physics (spec §3) contributes to a model.
+"""The abstract effect: what one kind of missing physics (docs/formats.md §3) contributes to a model.
 
 An effect kind is a stateless object. It enters a model in one of two ways:
 
@@ -153,17 +153,6 @@ def unique_name(spec: ModelSpec, stem: str) -> str:
     while name in names:
         name, i = f"{stem}_{i}", i + 1
     return name
-
-
-def lowpass(x: np.ndarray, dt: float, tau: float) -> np.ndarray:
-    """First-order lag (time constant `tau`, s) of signals sampled every `dt` s along
-    axis 0, exact for a piecewise-linear input, started at rest at the first sample."""
-    from scipy.signal import lfilter
-
-    a = np.exp(-dt / tau)
-    c = tau / dt * (1 - a)  # y[k+1] = a y[k] + (c - a) x[k] + (1 - c) x[k+1]
-    x0 = x[:1]
-    return x0 + lfilter([1 - c, c - a], [1.0, -a], x - x0, axis=0)
 
 
 class PathEffect(AbstractEffect):
