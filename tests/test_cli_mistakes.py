@@ -242,3 +242,32 @@ def test_progress_plain_when_not_a_terminal_and_silent_when_quiet(capsys, tmp_pa
     assert rc == 0, err
     assert "fitting 1 run(s)" not in out_quiet and "output error pass" not in out_quiet
     assert "RMSE" in out_quiet  # the results are still printed
+
+
+# ---------------------------------------------------------------------------
+# compilation cache
+
+
+@pytest.mark.slow
+def test_compilation_cache_is_written_reused_and_can_be_turned_off(tmp_path, shock_csv):
+    cache = tmp_path / "cache"
+
+    def fit(out, *extra):
+        env = dict(os.environ, JAX_PLATFORMS="cpu", THERMOJAX_CACHE_DIR=str(cache))
+        proc = subprocess.run([sys.executable, "-m", "thermojax", "fit", "--model", RTD2,
+                               "--data", str(shock_csv), "--out", str(tmp_path / out),
+                               "--quiet", *extra], env=env, capture_output=True, text=True,
+                              timeout=600)
+        assert proc.returncode == 0, proc.stderr
+        return (tmp_path / out / "model.toml").read_text()
+
+    no_cache = fit("a", "--no-cache")
+    assert not cache.exists()
+    first = fit("b")
+    (folder,) = cache.iterdir()
+    assert folder.name.startswith("jax-")  # one folder per JAX version
+    entries = sorted(p.name for p in folder.iterdir())
+    assert entries
+    second = fit("c")
+    assert sorted(p.name for p in folder.iterdir()) == entries  # all read back, none new
+    assert first == second == no_cache  # the same fitted model either way

@@ -1,4 +1,4 @@
-"""The `thermojax` command line (spec §5). Edges only: parse, call the library, report.
+"""The `thermojax` command line (docs/formats.md §5). Edges only: parse, call the library, report.
 
 Every command exits 0 on success and 2 on a user's mistake, with a one-paragraph
 message naming the file, line or row, and field; never a traceback for those.
@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import InputError
+from ._progress import Progress
 from ._outputs import (check_output_file, check_output_folder, mark_own, staged_file,
                        staged_folder)
 
@@ -113,8 +114,13 @@ def cmd_demo(args) -> int:
     i_pm, i_asic, i_mems = names.index("proof_mass"), names.index("asic"), names.index("mems")
     lag = states[:, i_pm] - states[:, i_asic]
     grad = states[:, i_pm] - states[:, i_mems]
-    print(f"  proof mass minus on-die (ASIC) sensor: {lag.min():+.3f} .. {lag.max():+.3f} K "
-          "(what a static polynomial on the ASIC sensor cannot see)")
+    # A static calibration maps the ASIC reading to the proof mass with a polynomial of
+    # that reading; what it cannot absorb is the dynamic part.
+    asic = states[:, i_asic]
+    dynamic = lag - np.polyval(np.polyfit(asic, lag, 3), asic)
+    print(f"  proof mass minus on-die (ASIC) sensor: {lag.min():+.3f} .. {lag.max():+.3f} K; "
+          f"a static cubic in the ASIC temperature absorbs all but {dynamic.min():+.3f} .. "
+          f"{dynamic.max():+.3f} K, the dynamic lag only an observer can follow")
     print(f"  proof mass minus MEMS die:             {grad.min():+.4f} .. {grad.max():+.4f} K")
     print(f"wrote {csv}")
     print(f"wrote {png}")
@@ -127,7 +133,7 @@ def cmd_demo(args) -> int:
           "the data are two chamber ramps with the die dissipating switched power. "
           "`investigate` fits, diagnoses, adds the best supported effect and refits until "
           "nothing systematic is left.")
-    report = run_demo(out, progress=_progress)
+    report = run_demo(out, progress=args.progress)
     _print_story(report)
     print(f"the report is {out / 'investigation' / 'report.md'} "
           f"(with {out / 'investigation' / 'report.json'} and plots)")
@@ -139,10 +145,6 @@ def _load_runs(spec, paths: list[str]):
     from ..measurements._telemetry import read_telemetry
 
     return [Experiment.from_telemetry(spec, read_telemetry(p), name=p) for p in paths]
-
-
-def _progress(msg: str) -> None:
-    print(f"  {msg}", flush=True)
 
 
 def cmd_fit(args) -> int:
@@ -157,13 +159,15 @@ def cmd_fit(args) -> int:
     spec = io.load_model(_resolve_model(args.model))
     _check_profile_names(spec, args.profile or [], args.likelihood)
     experiments = _load_runs(spec, args.data)
+    args.progress(f"fitting {len(experiments)} run(s) under the {args.likelihood} likelihood "
+                  "(the first evaluation compiles the model)")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         result = fit(spec, experiments, likelihood=args.likelihood, n_starts=args.starts,
-                     progress=_progress)
+                     progress=args.progress)
         profiles = {}
         for name in args.profile or []:
-            _progress(f"profile likelihood of {name}")
+            args.progress(f"profile likelihood of {name}")
             lower, upper = profile_interval(result, name)
             profiles[name] = {"level": 0.95, "lower": lower, "upper": upper}
     for w in caught:
@@ -223,6 +227,15 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _add_quiet(p) -> None:
+    """--quiet and --no-cache: every command that runs a model has both."""
+    p.add_argument("--quiet", action="store_true",
+                   help="print no progress (results and errors only)")
+    p.add_argument("--no-cache", action="store_true",
+                   help="do not read or write the persistent cache of compiled programs "
+                   "(default: on, in ~/.cache/thermojax or $THERMOJAX_CACHE_DIR)")
+
+
 def _add_force(p, what: str) -> None:
     p.add_argument("--force", action="store_true",
                    help=f"replace {what} even if thermojax did not write it")
@@ -236,6 +249,7 @@ def _add_fit_arguments(p) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error")
     _add_force(p, "an existing --out folder")
+    _add_quiet(p)
 
 
 def _add_fit(sub):
@@ -267,7 +281,8 @@ def cmd_diagnose(args) -> int:
     spec = io.load_model(_resolve_model(args.model))
     runs = _read_runs(args.data)
     with staged_folder(out) as tmp:
-        report = diagnose(spec, runs, likelihood=args.likelihood, out=tmp, progress=_progress)
+        report = diagnose(spec, runs, likelihood=args.likelihood, out=tmp,
+                          progress=args.progress)
     print(f"{'rank':>4}  {'kind':<24} {'where':<34} {'score':>10} {'p':>9}  supported")
     for i, c in enumerate(report["candidates"][:12]):
         print(f"{i + 1:>4}  {c['kind']:<24} {'-'.join(c['where']):<34} {c['score']:>10.1f} "
@@ -286,7 +301,8 @@ def cmd_investigate(args) -> int:
     runs = _read_runs(args.data)
     mark_own(out)  # finished steps are kept here; a rerun resumes from them
     report = investigate(spec, runs, likelihood=args.likelihood, out=out,
-                         max_steps=args.max_steps, resume=not args.restart, progress=_progress)
+                         max_steps=args.max_steps, resume=not args.restart,
+                         progress=args.progress)
     _print_story(report)
     print(f"wrote {out / 'report.json'}, {out / 'model_final.toml'} and {out / 'report.md'}")
     return 0
@@ -306,7 +322,7 @@ def _print_story(report: dict) -> None:
 def _add_diagnose(sub):
     p = sub.add_parser("diagnose", help="rank candidate effects for a model",
                        description="Fit a model to one or more runs and rank every candidate "
-                       "effect of the vocabulary (spec §3) at every place the model allows, "
+                       "effect of the vocabulary (docs/formats.md §3) at every place the model allows, "
                        "data columns it does not use included, without changing the model. "
                        "Writes DIR/report.json, DIR/report.md and diagnostic plots.")
     _add_fit_arguments(p)
@@ -331,7 +347,7 @@ def _add_investigate(sub):
 def cmd_run(args) -> int:
     from ._runner import run_config
 
-    folder = run_config(args.config, progress=_progress)
+    folder = run_config(args.config, progress=args.progress)
     print(f"results in {folder}")
     return 0
 
@@ -343,6 +359,7 @@ def _add_run(sub):
                        "new results folder with the resolved config, package versions and "
                        "outputs; nothing is overwritten.")
     p.add_argument("config", help="experiment config TOML")
+    _add_quiet(p)
     p.set_defaults(func=cmd_run)
 
 
@@ -366,7 +383,51 @@ def _add_simulate(sub):
     p.add_argument("--states", action="store_true",
                    help="also write every node temperature as a column state_<node>")
     _add_force(p, "an existing --out file")
+    _add_quiet(p)
     p.set_defaults(func=cmd_simulate)
+
+
+def cmd_resample(args) -> int:
+    from .. import io
+    from ..measurements._resample import resample
+
+    out = Path(args.out)
+    check_output_file(out, args.force)
+    telemetry = io.read_telemetry(args.data, uniform=False)
+    fill = ()
+    if args.model is not None:
+        spec = io.load_model(_resolve_model(args.model))
+        fill = tuple(spec.input_columns)
+    result = resample(telemetry, args.dt, max_gap=args.max_gap, fill=fill)
+    summary = result.summary()
+    with staged_file(out) as tmp:
+        io.write_telemetry(tmp, result.ts, result.channels, comments=[
+            f"written by thermojax resample from {args.data}", *summary])
+    for line in summary:
+        print(line)
+    print(f"wrote {out}")
+    return 0
+
+
+def _add_resample(sub):
+    p = sub.add_parser("resample", help="put a real logger file on a uniform time grid",
+                       description="Regularize a telemetry CSV with gaps, jitter or dropped "
+                       "cells onto a uniform grid: each channel interpolated linearly between "
+                       "its own samples; cells farther than --max-gap from a sample on either "
+                       "side are left empty (a dropped sample, which fitting skips), except the "
+                       "model's input columns (with --model), which are interpolated across "
+                       "gaps. Says what it did, on screen and as comments in the file.")
+    p.add_argument("--data", required=True, help="telemetry CSV to regularize")
+    p.add_argument("--out", required=True, help="new telemetry CSV")
+    p.add_argument("--dt", type=_positive_float, default=None,
+                   help="new sample period, s (default: the file's median step)")
+    p.add_argument("--max-gap", type=_positive_float, default=None,
+                   help="do not interpolate between samples farther apart than this, s "
+                   "(default 3 periods)")
+    p.add_argument("--model", default=None,
+                   help="model TOML or built-in name: its input columns are filled across gaps")
+    _add_force(p, "an existing --out file")
+    p.set_defaults(func=cmd_resample)
 
 
 def _add_demo(sub):
@@ -379,13 +440,16 @@ def _add_demo(sub):
     p.add_argument("--quick", action="store_true",
                    help="only the simulation part (the IMU through the calibration schedule)")
     _add_force(p, "an existing --out folder")
+    _add_quiet(p)
     p.set_defaults(func=cmd_demo)
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="thermojax",
-        description="Differentiable grey-box identification of lumped-parameter thermal networks.")
+        description="Differentiable grey-box identification of lumped-parameter thermal networks.",
+        epilog="File formats, the effect vocabulary, report keys and every command: docs/ in "
+        "the repository (docs/formats.md, docs/cli.md, docs/reports.md).")
     parser.add_argument("--version", action="version", version=f"thermojax {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_simulate(sub)
@@ -393,6 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_diagnose(sub)
     _add_investigate(sub)
     _add_run(sub)
+    _add_resample(sub)
     _add_demo(sub)
     return parser
 
@@ -412,8 +477,15 @@ def main(argv: list[str] | None = None) -> int:
     """
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.progress = Progress(args.command, quiet=getattr(args, "quiet", False))
+    if hasattr(args, "no_cache") and not args.no_cache and not os.environ.get(
+            "THERMOJAX_NO_CACHE"):
+        from .._cache import enable_compilation_cache
+
+        enable_compilation_cache()
     try:
-        return args.func(args)
+        with args.progress.running():
+            return args.func(args)
     except InputError as err:
         print(f"thermojax {args.command}: error: {err}", file=sys.stderr)
         return 2

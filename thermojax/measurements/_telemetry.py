@@ -126,12 +126,14 @@ def _is_skipped(line: str) -> bool:
     return not s or s.startswith("#")
 
 
-def read_telemetry(path: str | os.PathLike) -> Telemetry:
+def read_telemetry(path: str | os.PathLike, *, uniform: bool = True) -> Telemetry:
     """Read a telemetry CSV file.
 
     **Arguments:**
 
     - `path`: the CSV file.
+    - `uniform`: refuse steps that differ from the median by more than 1 % (the default;
+      `False` reads a raw logger file for `resample`).
 
     **Returns:** a `Telemetry` with `ts` (s), one float64 channel per other column
     (NaN for empty or `nan` cells) and the line number of each data row.
@@ -156,7 +158,7 @@ def read_telemetry(path: str | os.PathLike) -> Telemetry:
                          line=line_numbers[0])
     values = _table(data, data_lines, header, file)
     columns = [np.ascontiguousarray(values[:, j]) for j in range(len(header))]
-    _check_times(columns[0], data_lines, file)
+    _check_times(columns[0], data_lines, file, uniform)
     channels = dict(zip(header[1:], columns[1:]))
     return Telemetry(ts=columns[0], channels=channels, path=file, lines=data_lines)
 
@@ -224,9 +226,9 @@ def _table(data: list[str], data_lines: np.ndarray, header: list[str], file: str
     return _parse_cells(cells, header, data_lines, file).reshape(n_rows, n_cols)
 
 
-def _check_times(ts: np.ndarray, data_lines: np.ndarray, file: str) -> None:
-    """`time_s` (s, `(rows,)`) finite, at least two rows, strictly increasing, and
-    uniform up to `JITTER_TOLERANCE` of the median step."""
+def _check_times(ts: np.ndarray, data_lines: np.ndarray, file: str, uniform: bool) -> None:
+    """`time_s` (s, `(rows,)`) finite, at least two rows, strictly increasing, and (when
+    `uniform`) uniform up to `JITTER_TOLERANCE` of the median step."""
     bad = np.flatnonzero(~np.isfinite(ts))
     if bad.size:
         k = int(bad[0])
@@ -243,6 +245,8 @@ def _check_times(ts: np.ndarray, data_lines: np.ndarray, file: str) -> None:
                          f"line {int(data_lines[k - 1])}, has {float(ts[k - 1])!r}); times must be "
                          "strictly increasing.", file=file, line=int(data_lines[k]),
                          field=TIME_COLUMN)
+    if not uniform:
+        return
     period = float(np.median(steps))
     bad = np.flatnonzero(np.abs(steps - period) > JITTER_TOLERANCE * period)
     if bad.size:
@@ -250,8 +254,8 @@ def _check_times(ts: np.ndarray, data_lines: np.ndarray, file: str) -> None:
         raise InputError(
             f"irregular sampling: the step from the previous row is {float(steps[k - 1])!r} s "
             f"but the median period is {period!r} s (only jitter under {JITTER_TOLERANCE:.0%} is "
-            "tolerated). Resample the run to a uniform period or split it into separate "
-            "files at the gap.", file=file, line=int(data_lines[k]), field=TIME_COLUMN)
+            "tolerated). Put the run on a uniform grid with `thermojax resample`, or split it "
+            "into separate files at the gap.", file=file, line=int(data_lines[k]), field=TIME_COLUMN)
 
 
 def _csv_rows(lines: Sequence[str], line_numbers: Sequence[int], file: str) -> list[list[str]]:
