@@ -29,10 +29,12 @@ import numpy as np
 import pytest
 import scipy.stats
 
-import thermojax.fitting._fit as fit_module
+import thermojax.fitting._output_error as output_error_module
+import thermojax.fitting._problem as problem_module
 from thermojax import InputError, read_telemetry, write_telemetry
 from thermojax.measurements._data import Experiment
-from thermojax.fitting._fit import _check_finite, fit
+from thermojax.fitting._fit import fit
+from thermojax.fitting._problem import _check_finite
 
 from helpers import (CONFIGS, RTD2H_CORE_OFFSET, RTD2H_NAMES, RTD2H_Q, RTD2H_TEXT, RTD2H_TRUTH,
                      imu6_fit, model_matrices, np_simulate, np_steady, rtd2h_experiments, rtd2h_inputs,
@@ -231,6 +233,34 @@ def test_kalman_smoothed_states(kalman):
         assert np.all(std > 0) and np.all(std < 0.02)  # never less certain than one reading
 
 
+def test_max_steps_stops_the_default_solver(oe):
+    """`max_steps=1` allows each output-error pass one Jacobian evaluation and no step:
+    the fit stays at the file's values and reports that it did not converge."""
+    result = fit(rtd2h_spec(), oe["experiments"], max_steps=1)
+    assert not result.converged and result.message.startswith("stopped after")
+    assert result.n_steps <= 4  # one evaluation per re-weighting pass, at most 4 passes
+    for name, value in (("nodes.sheath.capacitance", 0.8), ("nodes.core.capacitance", 0.1),
+                        ("boundaries.sheath-T_fluid.conductance", 0.2)):
+        assert result.parameters[name]["value"] == pytest.approx(value, rel=1e-12)
+
+
+@pytest.mark.slow  # compiles an optimistix least-squares solve
+def test_max_steps_stops_an_optimistix_solver(oe):
+    """`max_steps` reaches a user-supplied optimistix solver: one step is not enough."""
+    import optimistix as optx
+
+    result = fit(rtd2h_spec(), oe["experiments"],
+                 solver=optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10), max_steps=1)
+    assert not result.converged and result.n_steps <= 4
+
+
+@pytest.mark.slow  # reuses the Kalman compilation of `kalman`
+def test_max_steps_stops_the_kalman_solver(kalman):
+    """`max_steps=1`: the Kalman stage takes a single Newton step and reports it."""
+    result = fit(rtd2h_spec(), kalman["experiments"], likelihood="kalman", max_steps=1)
+    assert not result.converged and result.n_steps == 1
+
+
 # ---------------------------------------------------------------------------------------------
 # Six-node IMU, started 3x off
 
@@ -366,7 +396,7 @@ def test_long_runs_do_not_warn(oe):
     checked explicitly on the cheap part: the run checks."""
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        fit_module._check_runs(rtd2h_spec(), oe["experiments"])
+        problem_module._check_runs(rtd2h_spec(), oe["experiments"])
 
 
 def test_check_finite_names_the_parameter():
@@ -385,7 +415,7 @@ def test_diverging_fit_is_an_input_error(monkeypatch):
     def runaway(theta, problem, solver, max_steps):
         return theta.at[1].set(jnp.inf), jnp.asarray(3), jnp.asarray(False)
 
-    monkeypatch.setattr(fit_module, "_solve_oe", runaway)
+    monkeypatch.setattr(output_error_module, "_solve_oe", runaway)
     with pytest.raises(InputError, match=r"diverged: nodes\.core\.capacitance"):
         fit(rtd2h_spec(), rtd2h_experiments(1))
 

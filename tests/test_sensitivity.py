@@ -2,7 +2,7 @@
 
 Truths, independent of the code under test:
 
-- `jax.jacfwd` of the residuals the fit defines (`_fit._oe_flat`: `simulate_dataset`
+- `jax.jacfwd` of the residuals the fit defines (`_output_error._oe_flat`: the blocked simulator
   through `ExactHold`, the official discretization, plain autodiff);
 - central finite differences of the same residuals;
 - `numpy.linalg.solve`, `scipy.linalg.expm` and `scipy.linalg.expm_frechet`, and
@@ -23,7 +23,9 @@ import numpy as np
 import pytest
 
 import thermojax as tj
-from thermojax.fitting import _fit
+from thermojax.fitting import _output_error
+from thermojax.fitting import _problem as problem_module
+from thermojax.model import free_parameters
 from thermojax.dynamics import _sensitivity
 from thermojax.measurements._data import Dataset, Experiment
 from thermojax.dynamics import _discretize
@@ -55,16 +57,16 @@ def _problem():
     k = len(model.initial_nodes)
     run_initial = jnp.broadcast_to(model.initial[np.array(model.initial_nodes)],
                                    (data.n_runs, k))
-    template = _fit.FitState(model, run_initial)
-    mask, names = _fit._masks(spec, model, data.n_runs, "output_error")
+    template = problem_module.FitState(model, run_initial)
+    mask, names = problem_module._masks(spec, model, data.n_runs, "output_error")
     index = FreeIndex(mask)
-    theta_true = _fit._free_parameters_np(template, index)
+    theta_true = free_parameters(template, index)
     # Away from the truth (every parameter ~20 % off, initial temperatures 1 °C off),
     # so that residuals and all their derivatives are far from zero.
     step = np.where([nm.endswith(".initial") for nm in names], 1.0,
                     0.2 * np.cos(np.arange(len(names))))
     theta = theta_true + jnp.asarray(step)
-    problem = _fit._Problem(template, index, data, jnp.asarray([0.01, 0.02, 0.015]),
+    problem = problem_module._Problem(template, index, data, jnp.asarray([0.01, 0.02, 0.015]),
                             theta_true, jnp.full(len(names), 0.3))
     return theta, problem, names
 
@@ -79,11 +81,11 @@ def sensitivities(problem):
     """Residuals and Jacobian as the solver sees them (padded to whole blocks, with the
     prior rows as a second leaf), and the predictions."""
     theta, prob, _ = problem
-    return jax.jit(_fit._oe_blocks_jacobian)(theta, prob)
+    return jax.jit(_output_error._oe_blocks_jacobian)(theta, prob)
 
 
 def _flat(sensitivities, prob):
-    """The data rows (padding dropped) and prior rows in the order of `_fit._oe_flat`,
+    """The data rows (padding dropped) and prior rows in the order of `_output_error._oe_flat`,
     and the Jacobian transposed."""
     ((r, prior), (J, prior_j), _) = sensitivities
     r, J = jnp.stack(r, axis=-1), jnp.stack(J, axis=2)
@@ -98,8 +100,8 @@ def test_jacobian_equals_jacfwd(problem, sensitivities):
     column's size (1e-10 asserted), the residuals to roundoff."""
     theta, prob, names = problem
     r, Jt = _flat(sensitivities, prob)
-    r_ref = jax.jit(_fit._oe_flat)(theta, prob)
-    J_ref = np.asarray(jax.jit(jax.jacfwd(_fit._oe_flat))(theta, prob))
+    r_ref = jax.jit(_output_error._oe_flat)(theta, prob)
+    J_ref = np.asarray(jax.jit(jax.jacfwd(_output_error._oe_flat))(theta, prob))
     assert Jt.shape == J_ref.T.shape
     np.testing.assert_allclose(r, r_ref, rtol=0, atol=1e-11 * float(jnp.max(jnp.abs(r_ref))))
     scale = np.max(np.abs(J_ref), axis=0)
@@ -112,7 +114,7 @@ def test_jacobian_against_finite_differences(problem, sensitivities):
     """Central differences of the official residuals along random directions."""
     theta, prob, _ = problem
     _, Jt = _flat(sensitivities, prob)
-    f = jax.jit(_fit._oe_flat)
+    f = jax.jit(_output_error._oe_flat)
     rng = np.random.default_rng(0)
     for _ in range(3):
         v = jnp.asarray(rng.standard_normal(theta.shape[0]))
@@ -123,21 +125,21 @@ def test_jacobian_against_finite_differences(problem, sensitivities):
 
 
 def test_predictions_and_fast_residuals(problem, sensitivities):
-    """The predictions returned with the Jacobian are `simulate_dataset`'s, and the
+    """The predictions returned with the Jacobian are the blocked simulator's, and the
     solver's residual function equals the official one."""
     theta, prob, _ = problem
     ((r_blocks, prior), _, y) = sensitivities
-    model, run_initial = _fit._model_of(theta, prob)
+    model, run_initial = problem_module._model_of(theta, prob)
     y_ref = tj.simulate_dataset(model, prob.data, run_initial)
     np.testing.assert_allclose(y, y_ref, rtol=0, atol=1e-10)
-    fast, fast_prior = jax.jit(_fit._oe_blocks)(theta, prob)
+    fast, fast_prior = jax.jit(_output_error._oe_blocks)(theta, prob)
     fast, r_blocks = jnp.stack(fast, axis=-1), jnp.stack(r_blocks, axis=-1)
     np.testing.assert_allclose(fast, r_blocks, rtol=0, atol=1e-9)
     np.testing.assert_allclose(fast_prior, prior, rtol=0, atol=0)
     T = prob.data.outputs.shape[1]
     assert fast.shape[1] % _sensitivity._BLOCK == 0 and np.all(np.asarray(fast[:, T:]) == 0)
     np.testing.assert_allclose(np.concatenate([np.ravel(fast[:, :T]), fast_prior]),
-                               jax.jit(_fit._oe_flat)(theta, prob), rtol=0, atol=1e-9)
+                               jax.jit(_output_error._oe_flat)(theta, prob), rtol=0, atol=1e-9)
 
 
 def reference_expm(M):
@@ -180,7 +182,7 @@ def test_reverse_mode_gradient_of_residual_sum_of_squares(problem):
     theta, prob, names = problem
 
     def ssr(t):
-        per_output, _ = _fit._oe_blocks(t, prob)
+        per_output, _ = _output_error._oe_blocks(t, prob)
         return sum(jnp.sum(r ** 2) for r in per_output)
 
     g_rev = np.asarray(jax.jit(jax.grad(ssr))(theta))

@@ -1,11 +1,11 @@
-"""A `FitResult` as files: `report.json` (spec §5), the fitted model, the plots, a table."""
+"""A `FitResult` as files: `report.json` (docs/formats.md §5), the fitted model, the plots, a table."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-from ._fit import FitResult
+from ._summary import FitResult
 from .._json import json_safe
 from ..model._model_file import save_model
 

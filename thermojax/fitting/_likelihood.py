@@ -1,6 +1,6 @@
 """The two likelihoods of measured runs: output error and the Kalman prediction error.
 
-Both follow spec §2 ("Likelihood"), the definitions of CTSM-R and pySIP:
+Both follow docs/formats.md §2 ("Likelihood"), the definitions of CTSM-R and pySIP:
 
 - output error: free-run simulation residuals `e = y - ŷ`, Gaussian with one
   std per sensor, `-log L = Σ_j [N_j/2 log(2π σ_j²) + Σ e²/(2σ_j²)]`;
@@ -17,51 +17,39 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ..measurements._data import Dataset
 from ..dynamics._discretize import discretize, discretize_process_noise
 from ..model._model import ThermalModel
-from ..dynamics._nonlinear import dataset_outputs_nonlinear, etd2_step, initial_state_nonlinear
-from ..dynamics._simulate import ExactHold
+from ..dynamics._nonlinear import etd2_step, initial_state_nonlinear
+from ..dynamics._sensitivity import dataset_block_outputs
 
 LOG_2PI = math.log(2 * math.pi)
 
 
-def simulate_dataset(model: ThermalModel, data: Dataset, run_initial=None,
-                     simulator: ExactHold = ExactHold()) -> Float[Array, "runs times outputs"]:
-    """Free-run outputs of every run, each from its own initial state."""
-    if model.is_nonlinear:
-        return dataset_outputs_nonlinear(model, data, run_initial)
-    system = model.linear_system()
-    offset = model.output_offset()
-
-    def one(ts, u, r0):
-        x0 = model.initial_state(system, u[0], r0)
-        return simulator.run(system, x0, u, ts).outputs + offset[None, :]
-
-    if run_initial is None:
-        return jax.vmap(lambda ts, u: one(ts, u, None))(data.ts, data.inputs)
-    return jax.vmap(one)(data.ts, data.inputs, run_initial)
+def simulate_dataset(model: ThermalModel, data: Dataset, run_initial=None
+                     ) -> Float[Array, "runs times outputs"]:
+    """Free-run outputs of every run (°C), each from its own initial state (`run_initial`:
+    (runs, len(model.initial_nodes)) °C, or the model's). The blocked exact-hold
+    recurrence of `dynamics._sensitivity`: the simulator the fit differentiates."""
+    return dataset_block_outputs(model, data, run_initial)[:, :data.outputs.shape[1]]
 
 
-def output_error_residuals(model, data: Dataset, run_initial=None, simulator=ExactHold()):
-    """`y - ŷ` for every run, zero where nothing was measured: (runs, times, outputs)."""
-    return jnp.where(data.mask, data.outputs - simulate_dataset(model, data, run_initial,
-                                                                simulator), 0.0)
-
-
-def output_error_nll(residuals, mask, sigma: Float[Array, " outputs"]) -> Float[Array, ""]:
-    """`-log L` of residuals with per-sensor std `sigma` (°C)."""
+def output_error_nll(residuals: np.ndarray, mask: np.ndarray, sigma: np.ndarray) -> float:
+    """`-log L` of residuals (runs, times, outputs) °C with per-sensor std `sigma` (outputs,)
+    °C, in NumPy."""
     n = mask.sum(axis=(0, 1))
-    ssr = jnp.sum(residuals ** 2, axis=(0, 1))
-    return jnp.sum(0.5 * n * (LOG_2PI + 2 * jnp.log(sigma)) + 0.5 * ssr / sigma ** 2)
+    ssr = (residuals ** 2).sum(axis=(0, 1))
+    return float(np.sum(0.5 * n * (LOG_2PI + 2 * np.log(sigma)) + 0.5 * ssr / sigma ** 2))
 
 
-def ml_sigma(residuals, mask) -> Float[Array, " outputs"]:
-    """The maximum-likelihood noise std per sensor, `sqrt(SSR_j / N_j)`."""
-    n = jnp.maximum(mask.sum(axis=(0, 1)), 1)
-    return jnp.sqrt(jnp.sum(residuals ** 2, axis=(0, 1)) / n)
+def ml_sigma(residuals: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The maximum-likelihood noise std per sensor `sqrt(SSR_j / N_j)` (outputs,) °C, in
+    NumPy."""
+    n = np.maximum(mask.sum(axis=(0, 1)), 1)
+    return np.sqrt((residuals ** 2).sum(axis=(0, 1)) / n)
 
 
 class KalmanOutput(eqx.Module):
@@ -137,15 +125,20 @@ def _transition(model, system, dt):
     return lambda m, u_k, u_k1: (disc.Phi @ m + disc.B0 @ u_k + disc.B1 @ u_k1, disc.Phi)
 
 
+def kalman_runs(model: ThermalModel, data: Dataset, run_initial, per_run):
+    """`per_run(ts, kalman_run(...))` of every run, stacked over runs."""
+    def one(ts, u, y, mask, r0):
+        return per_run(ts, kalman_run(model, ts, u, y, mask, r0))
+
+    if run_initial is None:
+        return jax.vmap(lambda ts, u, y, m: one(ts, u, y, m, None))(
+            data.ts, data.inputs, data.outputs, data.mask)
+    return jax.vmap(one)(data.ts, data.inputs, data.outputs, data.mask, run_initial)
+
+
 def kalman_nll(model: ThermalModel, data: Dataset, run_initial=None) -> Float[Array, ""]:
     """`-log L` of all runs under the Kalman filter."""
-    if run_initial is None:
-        out = jax.vmap(lambda ts, u, y, m: kalman_run(model, ts, u, y, m).nll)(
-            data.ts, data.inputs, data.outputs, data.mask)
-    else:
-        out = jax.vmap(lambda ts, u, y, m, r: kalman_run(model, ts, u, y, m, r).nll)(
-            data.ts, data.inputs, data.outputs, data.mask, run_initial)
-    return jnp.sum(out)
+    return jnp.sum(kalman_runs(model, data, run_initial, lambda ts, kf: kf.nll))
 
 
 def rts_smoother(model: ThermalModel, ts, kf: KalmanOutput):

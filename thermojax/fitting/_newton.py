@@ -26,16 +26,18 @@ from jaxtyping import Array, Bool, Float, Int
 class TruncatedNewton(eqx.Module):
     """Settings of `newton`: `min_curvature`, `max_step` (parameter units), `tol` (in
     `-log L`: 1e-2 is two orders below any likelihood-ratio threshold, and lets a
-    process noise whose optimum is zero stop creeping towards it), `max_steps`."""
+    process noise whose optimum is zero stop creeping towards it). The iteration limit
+    is `newton`'s `max_steps`, as in optimistix."""
 
     min_curvature: float = 1.0
     max_step: float = 1.0
     tol: float = 1e-2
-    max_steps: int = eqx.field(static=True, default=100)
     max_backtracks: int = eqx.field(static=True, default=30)
 
 
 class NewtonSolution(eqx.Module):
+    """What `newton` returns: the parameters, `-log L` there, steps taken, convergence."""
+
     value: Float[Array, " params"]
     loss: Float[Array, ""]
     num_steps: Int[Array, ""]
@@ -43,15 +45,17 @@ class NewtonSolution(eqx.Module):
 
 
 def newton(fn: Callable, theta0: Float[Array, " params"], args,
-           solver: TruncatedNewton = TruncatedNewton()) -> NewtonSolution:
-    """Minimise the scalar `fn(theta, args)`. Pure and jittable."""
+           solver: TruncatedNewton = TruncatedNewton(), max_steps=100) -> NewtonSolution:
+    """Minimise the scalar `fn(theta, args)` from `theta0` (params,) in at most `max_steps`
+    Newton steps (an int or an integer array: a traced limit does not recompile). Pure
+    and jittable."""
 
     def loss_of(theta):
         v = fn(theta, args)
         return jnp.where(jnp.isfinite(v), v, jnp.inf)
 
     def cond(carry):
-        return (carry[2] < solver.max_steps) & ~carry[3]
+        return (carry[2] < max_steps) & ~carry[3]
 
     def body(carry):
         theta, loss, k, _, _, lam = carry

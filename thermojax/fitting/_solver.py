@@ -34,7 +34,10 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
+
+from ._newton import TruncatedNewton
 
 
 class GaussNewtonSolution(eqx.Module):
@@ -67,7 +70,6 @@ class TruncatedGaussNewton(eqx.Module):
     - `tol`: stop when the Gauss-Newton model predicts a cost decrease below
       `tol` (cost ½χ²: `tol = 1e-4` is a change of 1e-4 in -log L, far below
       any statistical meaning).
-    - `max_steps`: give up after this many steps (`converged` False).
     - `initial_damping`: the first step's damping `λ`, relative to the largest
       squared singular value (1e-3: cautious, for a start far from the optimum;
       a warm start near the optimum can use far less).
@@ -75,12 +77,13 @@ class TruncatedGaussNewton(eqx.Module):
       Sethna 2012) to every step, at the price of one more residual evaluation
       per trial step; a step whose correction is larger than `max_acceleration`
       times the velocity (in norm) is rejected as too curved.
+
+    The iteration limit is `gauss_newton`'s `max_steps`, as in optimistix.
     """
 
     min_singular_value: float = 1.0
     max_step: float = 1.0
     tol: float = 1e-4
-    max_steps: int = eqx.field(static=True, default=100)
     max_backtracks: int = eqx.field(static=True, default=30)
     initial_damping: float = 1e-3
     acceleration: bool = eqx.field(static=True, default=True)
@@ -113,6 +116,11 @@ def _half_sum_squares(r):
     return jnp.where(jnp.isfinite(c), c, jnp.inf)
 
 
+def _capped(dx, max_step):
+    """`dx` scaled down to at most `max_step` in the max norm."""
+    return dx * jnp.minimum(1.0, max_step / jnp.maximum(jnp.max(jnp.abs(dx)), 1e-300))
+
+
 # Finite-difference step (relative to the velocity) of the directional second derivative.
 _ACCEL_H = 0.1
 # On an accepted step `λ` shrinks by at most this factor (Nielsen's rule allows 1/3; with
@@ -120,144 +128,174 @@ _ACCEL_H = 0.1
 _MIN_DAMPING_FACTOR = 0.1
 
 
+class _Linearization(eqx.Module):
+    """The residuals at `theta` and the truncated SVD of their Jacobian,
+    `J = U diag(s) Vᵀ` from the eigendecomposition of `JᵀJ`: what every trial step
+    of one iteration reuses."""
+
+    r: object  # residuals (pytree)
+    J: object  # Jacobian, each leaf (rows, params)
+    grams: object  # JᵀJ of each leaf (params, params)
+    cost: Float[Array, ""]  # ½ Σ r²
+    V: Float[Array, "params params"]
+    s: Float[Array, " params"]  # singular values
+    keep: Bool[Array, " params"]  # directions above `min_singular_value`
+    Ur: Float[Array, " params"]  # Uᵀ r on the kept directions
+
+    def project(self, x):
+        """`Uᵀ x` on the kept directions, for residual-shaped `x`."""
+        s_safe = jnp.where(self.keep, self.s, 1.0)
+        return jnp.where(self.keep, (self.V.T @ _jt_dot(self.J, x)) / s_safe, 0.0)
+
+    def velocity(self, lam, max_step):
+        """The damped truncated Gauss-Newton step `v` (params,), its filter factors `f`
+        and the cost decrease `½‖r‖² - ½‖r + J v‖²` it predicts."""
+        f = jnp.where(self.keep, self.s / (self.s ** 2 + lam), 0.0)
+        coef = f * self.Ur
+        scale = jnp.minimum(1.0, max_step / jnp.maximum(jnp.max(jnp.abs(self.V @ coef)),
+                                                        1e-300))
+        predicted = jnp.sum(scale * coef * self.s * self.Ur - 0.5 * (scale * coef * self.s) ** 2)
+        return -scale * (self.V @ coef), f, predicted
+
+
+def _linearize(r, J, solver: TruncatedGaussNewton) -> _Linearization:
+    J = _flat_rows(J)  # every use reads the same (rows, params) matrices
+    grams = _grams(J)
+    mu, V = jnp.linalg.eigh(sum(jax.tree.leaves(grams)))
+    s = jnp.sqrt(jnp.maximum(mu, 0.0))
+    keep = s > solver.min_singular_value
+    lin = _Linearization(r, J, grams, _half_sum_squares(r), V, s, keep, jnp.zeros_like(s))
+    return eqx.tree_at(lambda x: x.Ur, lin, lin.project(r))
+
+
+def _acceleration(lin: _Linearization, v, f, r_probe, solver: TruncatedGaussNewton):
+    """The accelerated, capped step `v + a/2` from the residuals `r_probe` at
+    `theta + h v`, and whether it is too curved (`‖a‖/2 > max_acceleration ‖v‖`)."""
+    r_vv = jax.tree.map(lambda a, b, c: (2.0 / _ACCEL_H) * ((a - b) / _ACCEL_H - c),
+                        r_probe, lin.r, _j_dot(lin.J, v, lin.r))
+    a = -(lin.V @ (f * lin.project(r_vv)))
+    curved = (2.0 * jnp.linalg.norm(a) > solver.max_acceleration * jnp.linalg.norm(v)) \
+        | ~jnp.all(jnp.isfinite(a))
+    return _capped(v + 0.5 * a, solver.max_step), curved
+
+
+def _trial_steps(fn, theta, args, lin: _Linearization, lam, stop, n_eval,
+                 solver: TruncatedGaussNewton):
+    """Trial steps from `theta` until one lowers the cost, one residual evaluation per
+    pass. With acceleration a trial takes two passes: a probe at `theta + h v` (for the
+    directional second derivative), then the cost at `theta + v + a/2`. A failed trial
+    raises `λ` (Nielsen: `λ ν`, `ν 2ν`). Returns the loop's final carry."""
+    accel = solver.acceleration
+
+    def body(t):
+        v, f, predicted = lin.velocity(t["lam"], solver.max_step)
+        probe = t["probe"]
+        point = theta + jnp.where(probe, _ACCEL_H * v, t["dx"] if accel else v)
+        r_pt = fn(point, args)
+        if accel:
+            dx, curved = jax.lax.cond(probe, lambda _: _acceleration(lin, v, f, r_pt, solver),
+                                      lambda _: (t["dx"], jnp.zeros((), bool)), None)
+        else:
+            dx, curved = v, jnp.zeros((), bool)
+        # A trial ends after its cost evaluation, or after a probe that found the step
+        # too curved (a failure).
+        new_cost = jnp.where(probe, jnp.inf, _half_sum_squares(r_pt))
+        rho = (lin.cost - new_cost) / jnp.maximum(predicted, 1e-300)
+        success = rho > 0
+        failed = (~probe | curved) & ~success
+        j = t["j"] + failed
+        return {
+            "lam": jnp.where(failed, t["lam"] * t["nu"], t["lam"]),
+            "nu": jnp.where(failed, 2 * t["nu"], t["nu"]),
+            "j": j,
+            "probe": failed if accel else probe,  # a new trial starts with a probe
+            "dx": dx, "rho": rho,
+            "over": success | (j > solver.max_backtracks),
+            "n_eval": t["n_eval"] + 1,
+        }
+
+    t0 = {"lam": lam, "nu": 2.0 * jnp.ones(()), "j": jnp.zeros((), int),
+          "probe": jnp.ones((), bool) if accel else jnp.zeros((), bool),
+          "dx": jnp.zeros_like(theta), "rho": -jnp.inf * jnp.ones(()), "over": stop,
+          "n_eval": n_eval}
+    return jax.lax.while_loop(lambda t: ~t["over"], body, t0)
+
+
+def _damping_after(lam, rho, accel: bool):
+    """Nielsen's update of `λ` after an accepted step with gain ratio `rho`."""
+    return lam * jnp.maximum(_MIN_DAMPING_FACTOR if accel else 1 / 3,
+                             1 - (2 * jnp.minimum(rho, 1.0) - 1) ** 3)
+
+
 def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
                  solver: TruncatedGaussNewton = TruncatedGaussNewton(),
-                 jac: Callable | None = None) -> GaussNewtonSolution:
+                 jac: Callable | None = None, max_steps=100) -> GaussNewtonSolution:
     """Minimise `½‖fn(theta, args)‖²`: truncated Gauss-Newton steps with geodesic
-    acceleration, damped Levenberg-Marquardt style (Nielsen's update of the damping
-    `λ`) and capped.
+    acceleration, damped Levenberg-Marquardt style (Nielsen's update of `λ`) and capped.
 
-    The residuals may be a pytree of arrays (e.g. data rows and prior rows, each in the
-    layout that is cheapest to produce). `jac(theta, args) -> (r, J, aux)` supplies the
-    residuals `r = fn(theta, args)`, their Jacobian `J` (the same pytree, each leaf with
-    the parameters last: (*rows, params), as `jax.jacfwd` gives it), and anything else
-    wanted at the solution (`aux`, e.g. the model's predictions), e.g. from forward
-    sensitivities; default `jax.jacfwd(fn)` with `aux = None`. Only the Gram matrices
-    of the leaves are kept between iterations (`GaussNewtonSolution.grams`).
+    **Arguments:**
 
-    Each iteration takes one Jacobian and the eigendecomposition of `JᵀJ` (the SVD of
-    `J`: `J = U diag(s) Vᵀ`, `JᵀJ = V diag(s²) Vᵀ`, `Uᵀr = diag(1/s) Vᵀ Jᵀr`); trial
-    steps reuse them, each costing one or two residual evaluations. The loops are
-    arranged so that `fn` and `jac` each appear once in the traced program (compile
-    time grows with every copy). Pure and jittable.
+    - `fn`: residuals `fn(theta, args)`, a pytree of arrays (e.g. data rows and prior
+      rows, each in the layout that is cheapest to produce).
+    - `theta0`: the start (params,).
+    - `solver`: the settings.
+    - `jac`: `jac(theta, args) -> (r, J, aux)`: the residuals, their Jacobian (the same
+      pytree, each leaf (*rows, params) as `jax.jacfwd` gives it) and anything wanted at
+      the solution (`aux`, e.g. predictions); default `jax.jacfwd(fn)`, `aux = None`.
+    - `max_steps`: Jacobian evaluations at most (an int or an integer array: a traced
+      limit does not recompile); the last one only evaluates.
+
+    **Returns:** a `GaussNewtonSolution`, ending on an evaluation at its `value`.
+
+    Each iteration takes one Jacobian and the eigendecomposition of `JᵀJ`; trial steps
+    reuse them, each costing one or two residual evaluations. `fn` and `jac` each appear
+    once in the traced program (compile time grows with every copy). Pure and jittable.
     """
     if jac is None:
         def jac(theta, args):
             J, r = jax.jacfwd(lambda t: (fn(t, args),) * 2, has_aux=True)(theta)
             return r, J, None
 
-    accel = solver.acceleration
     r_like, _, aux_like = jax.eval_shape(jac, theta0, args)
+
+    def body(c):
+        theta, k = c["theta"], c["k"]
+        r, J, aux = jac(theta, args)
+        lin = _linearize(r, J, solver)
+        done = (0.5 * jnp.sum(lin.Ur ** 2) < solver.tol) & jnp.isfinite(lin.cost)
+        # The last allowed iteration only evaluates (the solution ends on an evaluation).
+        stop = done | (k + 1 >= max_steps) | ~jnp.isfinite(lin.cost)
+        lam = jnp.where(k == 0, solver.initial_damping * jnp.max(lin.s) ** 2, c["lam"])
+        t = _trial_steps(fn, theta, args, lin, lam, stop, c["n_eval"], solver)
+        better = ~stop & (t["rho"] > 0)
+        return {
+            "theta": jnp.where(better, theta + t["dx"], theta), "k": k + 1,
+            "lam": jnp.where(better, _damping_after(t["lam"], t["rho"], solver.acceleration),
+                             t["lam"]),
+            "finished": ~better, "converged": done, "n_out": jnp.sum(~lin.keep),
+            "cost": lin.cost, "r": r, "grams": lin.grams, "aux": aux, "n_eval": t["n_eval"],
+        }
 
     def zeros(x):
         return jnp.zeros(x.shape, x.dtype)
-
-    sq = _half_sum_squares
-
-    def outer_cond(c):
-        return ~c["finished"]
-
-    def outer_body(c):
-        theta, k, lam = c["theta"], c["k"], c["lam"]
-        r, J, aux = jac(theta, args)
-        J = _flat_rows(J)  # every use reads the same (rows, params) matrices
-        cost = sq(r)
-        grams = _grams(J)
-        mu, V = jnp.linalg.eigh(sum(jax.tree.leaves(grams)))
-        s = jnp.sqrt(jnp.maximum(mu, 0.0))
-        keep = s > solver.min_singular_value
-        s_safe = jnp.where(keep, s, 1.0)
-
-        def project(x):  # Uᵀ x on the kept directions
-            return jnp.where(keep, (V.T @ _jt_dot(J, x)) / s_safe, 0.0)
-
-        Ur = project(r)
-        done = (0.5 * jnp.sum(Ur ** 2) < solver.tol) & jnp.isfinite(cost)
-        # The last allowed iteration only evaluates (the solution ends on an evaluation).
-        stop = done | (k + 1 >= solver.max_steps) | ~jnp.isfinite(cost)
-        lam = jnp.where(k == 0, solver.initial_damping * jnp.max(s) ** 2, lam)
-
-        def capped(dx):
-            size = jnp.max(jnp.abs(dx))
-            return dx * jnp.minimum(1.0, solver.max_step / jnp.maximum(size, 1e-300))
-
-        def velocity(lam):
-            f = jnp.where(keep, s / (s ** 2 + lam), 0.0)
-            coef = f * Ur
-            scale = jnp.minimum(1.0, solver.max_step / jnp.maximum(
-                jnp.max(jnp.abs(V @ coef)), 1e-300))
-            # ½‖r‖² - ½‖r + J v‖² in the SVD basis (v = -scale Σ coef v_i).
-            predicted = jnp.sum(scale * coef * s * Ur - 0.5 * (scale * coef * s) ** 2)
-            return -scale * (V @ coef), f, predicted
-
-        # Trial steps, one residual evaluation per pass. With acceleration a trial takes
-        # two passes: `probe` at theta + h v (for the directional second derivative),
-        # then the cost at theta + v + a/2. A failed trial raises λ (Nielsen: λ ν, ν 2ν).
-        def inner_cond(t):
-            return ~t["over"]
-
-        def inner_body(t):
-            v, f, predicted = velocity(t["lam"])
-            probe = t["probe"]
-            point = theta + jnp.where(probe, _ACCEL_H * v, t["dx"] if accel else v)
-            r_pt = fn(point, args)
-            if accel:
-                def after_probe(_):
-                    r_vv = jax.tree.map(lambda a, b, c: (2.0 / _ACCEL_H) * ((a - b) / _ACCEL_H - c),
-                                        r_pt, r, _j_dot(J, v, r))
-                    a = -(V @ (f * project(r_vv)))
-                    curved = (2.0 * jnp.linalg.norm(a) > solver.max_acceleration
-                              * jnp.linalg.norm(v)) | ~jnp.all(jnp.isfinite(a))
-                    return capped(v + 0.5 * a), curved
-
-                dx, curved = jax.lax.cond(probe, after_probe,
-                                          lambda _: (t["dx"], jnp.zeros((), bool)), None)
-            else:
-                dx, curved = v, jnp.zeros((), bool)
-            # A trial ends after its cost evaluation, or after a probe that found the
-            # step too curved (a failure).
-            new_cost = jnp.where(probe, jnp.inf, sq(r_pt))
-            rho = (cost - new_cost) / jnp.maximum(predicted, 1e-300)
-            trial_over = ~probe | curved
-            success = rho > 0
-            failed = trial_over & ~success
-            j = t["j"] + failed
-            return {
-                "lam": jnp.where(failed, t["lam"] * t["nu"], t["lam"]),
-                "nu": jnp.where(failed, 2 * t["nu"], t["nu"]),
-                "j": j,
-                "probe": failed if accel else probe,  # a new trial starts with a probe
-                "dx": dx, "rho": rho, "new_cost": new_cost,
-                "over": success | (j > solver.max_backtracks),
-                "n_eval": t["n_eval"] + 1,
-            }
-
-        t0 = {"lam": lam, "nu": 2.0 * jnp.ones(()), "j": jnp.zeros((), int),
-              "probe": jnp.ones((), bool) if accel else jnp.zeros((), bool),
-              "dx": jnp.zeros_like(theta), "rho": -jnp.inf * jnp.ones(()),
-              "new_cost": jnp.inf * jnp.ones(()), "over": stop, "n_eval": c["n_eval"]}
-        t = jax.lax.while_loop(inner_cond, inner_body, t0)
-        better = ~stop & (t["rho"] > 0)
-        lam = t["lam"]
-        shrink = jnp.maximum(_MIN_DAMPING_FACTOR if accel else 1 / 3,
-                             1 - (2 * jnp.minimum(t["rho"], 1.0) - 1) ** 3)
-        return {
-            "theta": jnp.where(better, theta + t["dx"], theta),
-            "k": k + 1,
-            "lam": jnp.where(better, lam * shrink, lam),
-            "finished": ~better,
-            "converged": done,
-            "n_out": jnp.sum(~keep),
-            "cost": cost, "r": r, "grams": grams, "aux": aux, "n_eval": t["n_eval"],
-        }
 
     false = jnp.zeros((), bool)
     init = {"theta": theta0, "k": jnp.zeros((), int), "lam": jnp.ones(()), "finished": false,
             "converged": false, "n_out": jnp.zeros((), int), "cost": jnp.zeros(()),
             "r": jax.tree.map(zeros, r_like),
-            "grams": jax.tree.map(lambda _: jnp.zeros((theta0.shape[0],) * 2, theta0.dtype), r_like),
-            "aux": jax.tree.map(zeros, aux_like),
-            "n_eval": jnp.zeros((), int)}
-    c = jax.lax.while_loop(outer_cond, outer_body, init)
+            "grams": jax.tree.map(lambda _: jnp.zeros((theta0.shape[0],) * 2, theta0.dtype),
+                                  r_like),
+            "aux": jax.tree.map(zeros, aux_like), "n_eval": jnp.zeros((), int)}
+    c = jax.lax.while_loop(lambda c: ~c["finished"], body, init)
     return GaussNewtonSolution(c["theta"], c["cost"], c["k"], c["converged"], c["n_out"],
                                c["r"], c["grams"], c["aux"], c["n_eval"])
+
+
+def traced_settings(solver, max_steps: int):
+    """`(solver, max_steps)`, for a truncated solver (`TruncatedGaussNewton`,
+    `TruncatedNewton`) as arrays, so that other tolerances, dampings or limits share one
+    compilation; an optimistix solver's unchanged (optimistix wants a static limit)."""
+    if not isinstance(solver, (TruncatedGaussNewton, TruncatedNewton)):
+        return solver, max_steps
+    return (jax.tree.map(lambda x: jax.device_put(np.asarray(x, float)), solver),
+            jax.device_put(np.asarray(max_steps)))

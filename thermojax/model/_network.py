@@ -59,6 +59,19 @@ class Topology:
                 len(self.input_holds) != m:
             raise ValueError("`Topology` got lists of mismatched lengths.")
 
+    def link_incidence(self) -> np.ndarray:
+        """`(links, nodes)`: +1 at a link's first node, −1 at its second (static)."""
+        E = np.zeros((len(self.links), self.n_nodes))
+        for k, (i, j) in enumerate(self.links):
+            E[k, i], E[k, j] = 1.0, -1.0
+        return E
+
+    def boundary_incidence(self) -> np.ndarray:
+        """`(boundaries, nodes)`: 1 at each boundary entry's node (static)."""
+        E = np.zeros((len(self.boundary_nodes), self.n_nodes))
+        E[np.arange(len(self.boundary_nodes)), list(self.boundary_nodes)] = 1.0
+        return E
+
     @classmethod
     def from_spec(cls, spec: ModelSpec) -> "Topology":
         idx = {name: i for i, name in enumerate(spec.node_names)}
@@ -157,17 +170,7 @@ class ThermalNetwork(eqx.Module):
 
     def conductance_matrix(self) -> Float[Array, "nodes nodes"]:
         """`K = L + diag(g_b)` (W/K): symmetric, positive semidefinite."""
-        t = self.topology
-        n = t.n_nodes
-        K = jnp.zeros((n, n))
-        if t.links:
-            i, j = (np.array(a) for a in zip(*t.links))
-            g = self.conductance
-            K = K.at[i, j].add(-g).at[j, i].add(-g).at[i, i].add(g).at[j, j].add(g)
-        if t.boundary_nodes:
-            K = K.at[np.array(t.boundary_nodes), np.array(t.boundary_nodes)].add(
-                self.boundary_conductance)
-        return K
+        return conductance_matrix(self.topology, self.conductance, self.boundary_conductance)
 
     def input_matrix(self) -> Float[Array, "nodes inputs"]:
         """Heat flow per unit input (W/K for temperatures, 1 for powers), before `C⁻¹`."""
@@ -196,10 +199,27 @@ class ThermalNetwork(eqx.Module):
 
     def time_constants(self) -> Float[Array, " nodes"]:
         """The network's time constants (s), ascending: `1/eig(C^-½ K C^-½)`."""
-        c = self.capacitance
-        s = jnp.sqrt(c)
-        S = self.conductance_matrix() / s[:, None] / s[None, :]
-        return jnp.sort(1.0 / jnp.linalg.eigvalsh(0.5 * (S + S.T)))
+        return time_constants(self.capacitance, self.conductance_matrix())
+
+
+def conductance_matrix(topology: Topology, conductance, boundary_conductance):
+    """`K = Eᵀ diag(g) E + E_bᵀ diag(g_b) E_b` (W/K, `(nodes, nodes)`) from the link and
+    boundary incidences. NumPy in, NumPy out (host-side checks need no compilation);
+    JAX arrays in, JAX out (traced in a fit)."""
+    xp = np if isinstance(conductance, np.ndarray) else jnp
+    E, Eb = topology.link_incidence(), topology.boundary_incidence()
+    g, gb = xp.asarray(conductance), xp.asarray(boundary_conductance)
+    return E.T @ (g[:, None] * E) + Eb.T @ (gb[:, None] * Eb)
+
+
+def time_constants(capacitance, K):
+    """Time constants (s, ascending) `1/eig(C^-½ K C^-½)` of capacitances (J/K) and a
+    conductance matrix `K` (W/K); inf for a node set with no path to a boundary.
+    NumPy or JAX, as `conductance_matrix`."""
+    xp = np if isinstance(K, np.ndarray) else jnp
+    s = xp.sqrt(xp.asarray(capacitance))
+    S = K / s[:, None] / s[None, :]
+    return xp.sort(1.0 / xp.linalg.eigvalsh(0.5 * (S + S.T)))
 
 
 class StableDynamics(eqx.Module):

@@ -5,7 +5,9 @@ capacitance of six). So the filter spec here is a pytree shaped like the model
 whose leaves are boolean NumPy arrays, `True` where the element is free.
 `free_parameters` gathers those elements into one flat vector (what an
 optimizer sees) and `with_free_parameters` scatters a vector back. Inside
-`jit`, pass `FreeIndex(mask)` instead: the same information, hashable.
+`jit`, pass `FreeIndex(mask)` instead: the same information, hashable. Both
+work in NumPy on concrete arrays (no XLA compilation: what a fit does on the host) and
+in `jax.numpy` under tracing.
 """
 
 from __future__ import annotations
@@ -56,16 +58,25 @@ def _index(mask) -> FreeIndex:
     return mask if isinstance(mask, FreeIndex) else FreeIndex(mask)
 
 
+def _xp(*arrays):
+    """NumPy for concrete arrays, `jax.numpy` under tracing: eager `jax.numpy` would
+    compile a small XLA program per shape (a dozen on a first fit)."""
+    return jnp if any(isinstance(a, jax.core.Tracer) for a in arrays) else np
+
+
 def free_parameters(tree, mask) -> jax.Array:
-    """The free elements of `tree`'s array leaves, flattened in leaf order."""
+    """The free elements of `tree`'s array leaves, flattened in leaf order: (free,)."""
     leaves = jax.tree.leaves(eqx.filter(tree, eqx.is_array))
-    parts = [jnp.ravel(leaf)[np.array(ix, dtype=int)]
+    xp = _xp(*leaves)
+    parts = [xp.ravel(leaf)[np.array(ix, dtype=int)]
              for leaf, ix in zip(leaves, _index(mask).per_leaf)]
-    return jnp.concatenate(parts) if parts else jnp.zeros((0,))
+    out = xp.concatenate(parts) if parts else xp.zeros((0,))
+    return out if xp is jnp else jax.device_put(out)
 
 
 def with_free_parameters(tree, mask, theta: jax.Array):
-    """`tree` with its free elements replaced by `theta` (inverse of `free_parameters`)."""
+    """`tree` with its free elements replaced by `theta` (free,), the inverse of
+    `free_parameters`."""
     index = _index(mask)
     dynamic, static = eqx.partition(tree, eqx.is_array)
     leaves, treedef = jax.tree.flatten(dynamic)
@@ -75,11 +86,19 @@ def with_free_parameters(tree, mask, theta: jax.Array):
     if index.size != theta.shape[0]:
         raise ValueError(f"`with_free_parameters` got {theta.shape[0]} values for {index.size} "
                          "free parameters.")
+    xp = _xp(theta, *leaves)
+    if xp is np:
+        theta = np.asarray(theta)  # slicing a concrete jax.Array would compile too
     out, offset = [], 0
     for leaf, ix in zip(leaves, index.per_leaf):
         if ix:
-            flat = jnp.ravel(leaf).at[np.array(ix, dtype=int)].set(theta[offset:offset + len(ix)])
-            leaf = flat.reshape(leaf.shape)
+            values, ix = theta[offset:offset + len(ix)], np.array(ix, dtype=int)
+            if xp is jnp:
+                leaf = jnp.ravel(leaf).at[ix].set(values).reshape(leaf.shape)
+            else:
+                flat = np.array(leaf).reshape(-1)
+                flat[ix] = values
+                leaf = jax.device_put(flat.reshape(np.shape(leaf)))
         out.append(leaf)
         offset += len(ix)
     return eqx.combine(jax.tree.unflatten(treedef, out), static)

@@ -1,0 +1,226 @@
+"""Output error: weighted free-run residuals of every run, and their solve.
+
+One simulator serves every use: the blocked exact-hold recurrence
+(`dataset_block_outputs`), its outputs padded to whole blocks and the residuals zero
+where nothing was measured. The default solver takes their Jacobian from forward
+sensitivities (`output_sensitivity_parts`, equal to `jax.jacfwd` to roundoff);
+optimistix solvers, the profile likelihood and the diagnosis use the same functions.
+Estimated noise stds are re-weighted to their ML values between warm-started passes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ..dynamics._sensitivity import dataset_block_outputs, output_sensitivity_parts, pad_to_blocks
+from ._likelihood import ml_sigma, output_error_nll
+from ._problem import (FitState, Prepared, Solution, _check_finite, _model_of, _perturbed_starts,
+                       _prior, _Problem, dataset, make_problem, template_at)
+from ._solver import TruncatedGaussNewton, _flat_rows, _grams, gauss_newton, traced_settings
+from ..model._parameters import free_parameters, with_free_parameters
+from ..measurements._data import Experiment
+
+if TYPE_CHECKING:
+    from ._summary import FitResult
+
+
+def _by_output(x):
+    """(runs, times, outputs, ...) -> a tuple of (runs, times, ...), one per output."""
+    return tuple(x[:, :, k] for k in range(x.shape[2]))
+
+
+def _data_residuals(y, problem: _Problem):
+    """Weighted data residuals (runs, blocks L, outputs) from predictions `y` padded to
+    whole blocks (°C)."""
+    data = problem.data
+    r = jnp.where(pad_to_blocks(data.mask), pad_to_blocks(data.outputs) - y, 0.0)
+    return r / problem.sigma[None, None, :]
+
+
+def _oe_blocks(theta, problem: _Problem):
+    """The residuals `(per_output, prior)`: `per_output` a tuple with each output's
+    weighted data residuals (runs, blocks L), zero in the padding and where nothing was
+    measured, so that `gauss_newton` returns each output's `JᵀJ`; `prior` (free,)."""
+    model, run_initial = _model_of(theta, problem)
+    y = dataset_block_outputs(model, problem.data, run_initial)
+    return _by_output(_data_residuals(y, problem)), _prior(theta, problem)
+
+
+def _oe_flat(theta, problem: _Problem):
+    """`_oe_blocks` as one vector (optimistix solvers): data rows in (runs, times,
+    outputs) order without the padding, then the prior rows."""
+    (r, prior), T = _oe_blocks(theta, problem), problem.data.outputs.shape[1]
+    return jnp.concatenate([jnp.stack(r, axis=-1)[:, :T].reshape(-1), prior])
+
+
+def _oe_blocks_jacobian(theta, problem: _Problem):
+    """`(_oe_blocks(theta, problem), its Jacobian, the predictions)` by forward
+    sensitivities. The Jacobian has the residuals' structure, each output's leaf (runs,
+    blocks L, free), the prior's (free, free); predictions (runs, times, outputs) °C."""
+    data = problem.data
+    y, jacobian = output_sensitivity_parts(lambda t: _model_of(t, problem), theta, data)
+    J = jnp.where(pad_to_blocks(data.mask)[..., None],
+                  -jacobian() / problem.sigma[None, None, :, None], 0.0)
+    return ((_by_output(_data_residuals(y, problem)), _prior(theta, problem)),
+            (_by_output(J), jnp.diag(problem.prior_weight)), y[:, :data.outputs.shape[1]])
+
+
+class _OEEvaluation(eqx.Module):
+    """The output-error problem at one `theta`, for the fit's reports."""
+
+    residuals: jax.Array  # weighted, data rows only, (runs, times, outputs)
+    gram: jax.Array  # JᵀJ of each output's weighted data rows, (outputs, free, free)
+    predictions: jax.Array  # (runs, times, outputs) °C
+    num_evaluations: jax.Array | None = None  # residual evaluations at trial points
+
+
+@eqx.filter_jit
+def _oe_evaluate(theta, problem: _Problem, full_jacobian: bool = False):
+    """At `theta`: an `_OEEvaluation`; with `full_jacobian`, the weighted data residuals
+    (runs, times, outputs) and their Jacobian (runs, times, outputs, free) instead."""
+    T, p = problem.data.outputs.shape[1:]
+    if theta.shape[0] == 0:  # nothing free (a Kalman fit of the noise alone): no Jacobian
+        model, run_initial = _model_of(theta, problem)
+        y = dataset_block_outputs(model, problem.data, run_initial)
+        r = _data_residuals(y, problem)[:, :T]
+        if full_jacobian:
+            return r, jnp.zeros((*r.shape, 0))
+        return _OEEvaluation(r, jnp.zeros((p, 0, 0)), y[:, :T])
+    (r, _), (J, _), y = _oe_blocks_jacobian(theta, problem)
+    if full_jacobian:
+        return jnp.stack(r, axis=-1)[:, :T], jnp.stack(J, axis=2)[:, :T]
+    return _OEEvaluation(jnp.stack(r, axis=-1)[:, :T], jnp.stack(_grams(_flat_rows(J))), y)
+
+
+def _solve_oe(theta0, problem: _Problem, solver, max_steps: int):
+    """`(theta, steps, converged, _OEEvaluation at theta)` from `gauss_newton` or an
+    optimistix least-squares solver, in at most `max_steps` iterations."""
+    return _solve_oe_jit(theta0, problem, *traced_settings(solver, max_steps))
+
+
+@eqx.filter_jit
+def _solve_oe_jit(theta0, problem, solver, max_steps):
+    if isinstance(solver, TruncatedGaussNewton):
+        sol = gauss_newton(_oe_blocks, theta0, problem, solver, jac=_oe_blocks_jacobian,
+                           max_steps=max_steps)
+        T = problem.data.outputs.shape[1]
+        return sol.value, sol.num_steps, sol.converged, _OEEvaluation(
+            jnp.stack(sol.residuals[0], axis=-1)[:, :T], jnp.stack(sol.grams[0]), sol.aux,
+            sol.num_evaluations)
+    sol = optx.least_squares(_oe_flat, solver, theta0, problem, max_steps=max_steps,
+                             throw=False)
+    return (sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
+            _oe_evaluate(sol.value, problem))
+
+
+def _chi_square(theta, problem: _Problem) -> float:
+    """χ² of the weighted data residuals at `theta` (prior rows excluded): one
+    Gauss-Newton evaluation without a step, so the fit's compilation serves."""
+    residuals = _solve_oe(theta, problem, TruncatedGaussNewton(), 1)[3].residuals
+    return float(np.sum(np.asarray(residuals) ** 2))
+
+
+# Damping of the first step of a warm-started pass (relative to the largest squared
+# singular value): the start is the previous pass's optimum, moved only by re-weighting.
+_WARM_DAMPING = 1e-9
+
+
+@dataclass
+class _Pass:
+    """The last of a start's re-weighting passes."""
+
+    theta: jax.Array  # (free,)
+    n_steps: int  # over all passes
+    converged: bool
+    sigma: np.ndarray  # (outputs,) °C, ML update of `used`
+    used: np.ndarray  # (outputs,) °C, the weights of the last pass
+    evaluation: _OEEvaluation  # at theta, weighted by `used`
+    n_evaluations: int
+    nll: float  # -log L at theta with the noise stds `sigma`
+
+
+def _reweighted(start, prep: Prepared, theta0, solver, max_steps: int, say, outer: int = 4
+                ) -> _Pass:
+    """Solve from `start`, re-weighting estimated noise stds to their ML values until they
+    settle (up to `outer` passes, each warm-started from the last)."""
+    theta, total, evals = start, 0, 0
+    sig, mask = prep.sigma, np.asarray(prep.data.mask)
+    for it in range(outer):
+        problem = make_problem(prep.template, prep.index, prep.data, sig, theta0)
+        if theta.shape[0]:
+            theta, steps, ok, *evaluation = _solve_oe(theta, problem, solver, max_steps)
+        else:  # nothing physical to move (a Kalman fit of the noise alone)
+            steps, ok, evaluation = 0, True, []
+        sol = evaluation[0] if evaluation else _oe_evaluate(theta, problem)
+        total += int(steps)
+        if sol.num_evaluations is not None:
+            evals += int(sol.num_evaluations)
+        used = sig
+        if prep.fixed_sigma.all():
+            break
+        new = np.where(prep.fixed_sigma, sig,
+                       np.maximum(ml_sigma(np.asarray(sol.residuals) * sig, mask), 1e-12))
+        say(f"output error pass {it + 1}: noise std {np.array2string(new, precision=4)}")
+        settled = np.all(np.abs(np.log(new / sig)) < 1e-3)
+        sig = new
+        if settled:
+            break
+        if isinstance(solver, TruncatedGaussNewton):
+            solver = eqx.tree_at(lambda t: t.initial_damping, solver,
+                                 min(float(solver.initial_damping), _WARM_DAMPING))
+    nll = output_error_nll(np.asarray(sol.residuals) * used, mask, sig)
+    return _Pass(theta, total, bool(ok), sig, used, sol, evals, nll)
+
+
+def fit_output_error(prep: Prepared, solver, max_steps: int, n_starts: int, seed: int,
+                     say) -> Solution:
+    """The output-error stage: the best of `n_starts` starts by likelihood (the first at
+    the file's values, the others perturbed), each solved with `_reweighted`."""
+    solver = solver or TruncatedGaussNewton()
+    theta0 = free_parameters(prep.template, prep.index)
+    best = None
+    starts = [theta0] + _perturbed_starts(theta0, prep.names, n_starts - 1, seed)
+    for i, start in enumerate(starts):
+        run = _reweighted(start, prep, theta0, solver, max_steps, say)
+        if n_starts > 1:
+            say(f"start {i + 1}/{len(starts)}: -log L = {run.nll:.2f}")
+        if best is None or (np.isfinite(run.nll) and run.nll < best.nll):
+            best = run
+    _check_finite(best.theta, theta0, prep.names)
+    sigma = best.sigma
+    state = with_free_parameters(prep.template, prep.index, best.theta)
+    state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model,
+                                 jax.device_put(np.log(sigma))), state.run_initial)
+    # JᵀJ at theta from the last pass, re-weighted to the final stds.
+    info = np.einsum("j,jab->ab", (best.used / sigma) ** 2, np.asarray(best.evaluation.gram))
+    # Estimated noise stds are parameters too (ML: std(σ) = σ / sqrt(2 N)).
+    n_meas = np.asarray(prep.data.mask).sum(axis=(0, 1))
+    noise = {f"sensors.{c}.noise": (float(sigma[j]),
+                                    float(sigma[j] / np.sqrt(2 * max(n_meas[j], 1))))
+             for j, c in enumerate(prep.spec.sensor_columns) if not prep.fixed_sigma[j]}
+    return Solution(make_problem(prep.template, prep.index, prep.data, sigma, theta0),
+                    np.asarray(best.theta), state, prep.names, info, best.nll, best.n_steps,
+                    best.converged, np.asarray(best.evaluation.predictions), noise,
+                    best.n_evaluations)
+
+
+def output_error_at(result: FitResult, experiments: list[Experiment]):
+    """The output-error problem at a fit's values: `(data, weights, residuals, jacobian)`,
+    `weights` (runs, T, p) = 1/σ where measured (σ the fitted noise stds, °C),
+    `residuals` (N,) weighted and flattened, `jacobian` (N, P) in the fit's free
+    physical parameters. `experiments` in the input order of `result.lowered_spec`."""
+    data = dataset(experiments)
+    template, index = template_at(result.lowered_spec, result.state.run_initial, data.n_runs)
+    theta = free_parameters(template, index)
+    sigma = np.exp(np.asarray(template.model.log_noise))
+    problem = make_problem(template, index, data, sigma, theta)
+    weights = np.asarray(data.mask) / sigma[None, None, :]
+    r, J = _oe_evaluate(theta, problem, full_jacobian=True)
+    return data, weights, np.asarray(r).reshape(-1), np.asarray(J).reshape(-1, theta.shape[0])

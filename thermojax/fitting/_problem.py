@@ -1,0 +1,295 @@
+"""A fit as a problem in one flat vector `theta`: the structure, the data and the layout.
+
+`prepare(spec, experiments, ...)` is the first stage of `fit`: it lowers structural
+effects into plain entries, checks and pads the runs into a `Dataset`, and builds the
+`FitState` template with the mask of its free elements. `theta` holds logs of the
+positive parameters (J/K, W/K, noise stds) and initial temperatures in °C. Residual
+and loss functions take `(theta, problem)`, `problem` a `_Problem` passed as
+optimistix's `args`, so a second fit of the same structure reuses the compilation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from .._errors import InputError
+from ..measurements._data import Dataset, Experiment
+from ..model._model import ThermalModel
+from ..model._network import Topology, conductance_matrix, time_constants
+from ..model._parameters import FreeIndex, with_free_parameters
+from ..model._spec import EFFECT_KINDS, ModelSpec
+from ..model.effects import Lowered, lower_effects
+
+LIKELIHOODS = ("output_error", "kalman")
+
+
+class FitState(eqx.Module):
+    """Everything a fit moves: the model and each run's estimated initial temperatures."""
+
+    model: ThermalModel
+    run_initial: jax.Array  # (runs, len(model.initial_nodes)), °C
+
+
+class _Problem(eqx.Module):
+    """What the residual and loss functions need besides `theta` (optimistix `args`)."""
+
+    template: FitState
+    index: FreeIndex = eqx.field(static=True)
+    data: Dataset
+    sigma: jax.Array  # (outputs,) °C, weights of the output-error residuals
+    prior_mean: jax.Array  # (free,)
+    prior_weight: jax.Array  # (free,) 1/std of the prior; a huge weight pins a parameter
+
+
+def make_problem(template: FitState, index: FreeIndex, data: Dataset, sigma, prior_mean,
+                 prior_weight=0.0) -> _Problem:
+    """A `_Problem` whose arrays go to the device from NumPy (no eager XLA programs)."""
+    prior_mean = np.asarray(prior_mean, float)
+    weight = np.broadcast_to(np.asarray(prior_weight, float), prior_mean.shape)
+    return _Problem(template, index, data, *jax.device_put(
+        (np.asarray(sigma, float), prior_mean, np.array(weight))))
+
+
+def _state(theta, problem: _Problem) -> FitState:
+    return with_free_parameters(problem.template, problem.index, theta)
+
+
+def _model_of(theta, problem: _Problem):
+    """`(model, run_initial)` at `theta`."""
+    s = _state(theta, problem)
+    return s.model, s.run_initial
+
+
+def _prior(theta, problem: _Problem):
+    """Weighted prior rows (free,)."""
+    return (theta - problem.prior_mean) * problem.prior_weight
+
+
+@dataclass
+class Solution:
+    """A solved problem: what `_summary.summarize` turns into a `FitResult`."""
+
+    problem: _Problem  # at the final noise stds, without prior
+    theta: np.ndarray  # (free,)
+    state: FitState
+    names: list[str]  # dotted names of theta's elements (lowered spec)
+    information: np.ndarray  # (free, free) Fisher information in theta
+    nll: float
+    n_steps: int
+    converged: bool
+    predictions: np.ndarray  # (runs, times, outputs) °C, free run
+    # Noise stds estimated outside theta (output error, ML): name -> (value, std) °C.
+    noise: dict[str, tuple[float, float]] = field(default_factory=dict)
+    n_evaluations: int | None = None  # residual evaluations at trial points
+
+
+# ---------------------------------------------------------------------------
+# Preparation
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A model and its runs made ready to fit (`prepare`)."""
+
+    lowered: Lowered  # the spec as given (`original`) and lowered (`spec`)
+    experiments: list[Experiment]  # inputs in the lowered spec's column order
+    data: Dataset
+    template: FitState  # starting values
+    index: FreeIndex  # free elements under output error
+    names: list[str]  # their dotted names
+    fixed_sigma: np.ndarray  # (outputs,) bool: noise std fixed in the file
+
+    @property
+    def spec(self) -> ModelSpec:
+        return self.lowered.spec
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """Starting noise stds (outputs,), °C."""
+        return np.exp(np.asarray(self.template.model.log_noise))
+
+    def free(self, likelihood: str) -> tuple[FreeIndex, list[str]]:
+        """The free elements of `template` under `likelihood`, and their dotted names."""
+        if likelihood == "output_error":
+            return self.index, self.names
+        return _free_elements(self.spec, self.template.model, self.data.n_runs, likelihood)
+
+
+def prepare(spec: ModelSpec, experiments: list[Experiment], likelihood: str,
+            holdout: int | None = None) -> Prepared:
+    """Lower `spec`'s structural effects, check and pad the runs, and lay out `theta`.
+
+    `holdout`: index of a run whose measurements are masked out of the likelihood.
+    """
+    if likelihood not in LIKELIHOODS:
+        raise InputError(f"unknown likelihood '{likelihood}'; use one of {list(LIKELIHOODS)}.",
+                         field="--likelihood")
+    lowered = lower_effects(spec)
+    spec = lowered.spec
+    experiments = _reorder_inputs(experiments, lowered.original.input_columns,
+                                  spec.input_columns)
+    _check_runs(spec, experiments)
+    data = dataset(experiments)
+    if holdout is not None:
+        mask = np.array(data.mask)
+        mask[holdout] = False
+        data = dataclasses.replace(data, mask=jax.device_put(mask))
+    model = ThermalModel.from_spec(spec)
+    initial = np.asarray(model.initial)[np.array(model.initial_nodes, dtype=int)]
+    run_initial = np.broadcast_to(initial, (data.n_runs, len(model.initial_nodes)))
+    template = FitState(model, jax.device_put(np.array(run_initial)))
+    index, names = _free_elements(spec, model, data.n_runs, "output_error")
+    if not names and likelihood == "output_error":
+        raise InputError("nothing to fit: every parameter is fixed. Make at least one "
+                         "capacitance, conductance or gain a bare number.", file=spec.source)
+    fixed_sigma = np.array([s.noise is not None and s.noise.fixed for s in spec.sensors])
+    return Prepared(lowered, experiments, data, template, index, names, fixed_sigma)
+
+
+def dataset(experiments: list[Experiment]) -> Dataset:
+    """The runs padded into a `Dataset`, without names (names would recompile)."""
+    return dataclasses.replace(Dataset.from_experiments(experiments), names=())
+
+
+def template_at(spec: ModelSpec, run_initial, n_runs: int) -> tuple[FitState, FreeIndex]:
+    """The output-error template of `spec`'s values with `run_initial` (runs, k) °C."""
+    model = ThermalModel.from_spec(spec)
+    index, _ = _free_elements(spec, model, n_runs, "output_error")
+    return FitState(model, jax.device_put(np.asarray(run_initial))), index
+
+
+def _free_elements(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
+    """`(FreeIndex, free names)` of a `FitState` under `likelihood`."""
+    mask, names = _masks(spec, model, n_runs, likelihood)
+    return FreeIndex(mask), names
+
+
+def _masks(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
+    """Boolean masks shaped like `FitState` (True = free) and the dotted name of every
+    free element."""
+    kalman = likelihood == "kalman"
+    nodes = spec.node_names
+    net_masks = [
+        ([not n.capacitance.fixed for n in spec.nodes],
+         [f"nodes.{n.name}.capacitance" for n in spec.nodes]),
+        ([not k.conductance.fixed for k in spec.links],
+         [f"links.{k.key}.conductance" for k in spec.links]),
+        ([not b.conductance.fixed for b in spec.boundaries],
+         [f"boundaries.{b.key}.conductance" for b in spec.boundaries]),
+        ([not h.gain.fixed for h in spec.heat_inputs],
+         [f"heat_inputs.{h.key}.gain" for h in spec.heat_inputs]),
+        ([kalman and not (s.noise is not None and s.noise.fixed) for s in spec.sensors],
+         [f"sensors.{s.column}.noise" for s in spec.sensors]),
+        ([kalman and not (n.process_noise is not None and n.process_noise.fixed)
+          for n in spec.nodes], [f"nodes.{n.name}.process_noise" for n in spec.nodes]),
+        ([False] * len(nodes), [f"nodes.{n}.initial" for n in nodes]),
+        ([False] * len(nodes), [f"nodes.{n}.initial_std" for n in nodes]),
+    ]
+    effects = {(e.kind, e.where): e for e in spec.effects}
+    net_masks.append((
+        [not (p in effects[(t.kind, t.where)].parameters
+              and effects[(t.kind, t.where)].parameters[p].fixed)
+         for t in model.effect_terms for p in t.parameters],
+        [f"effects.{t.kind}.{'-'.join(t.where)}.{p}" for t in model.effect_terms
+         for p in t.parameters]))
+    init_free = [not spec.nodes[i].initial.fixed for i in model.initial_nodes]
+    run_mask = np.array([init_free] * n_runs, dtype=bool).reshape(n_runs, len(init_free))
+    run_names = [[f"runs.{r}.nodes.{nodes[i]}.initial" for i in model.initial_nodes]
+                 for r in range(n_runs)]
+    arrays = [np.array(m, dtype=bool) for m, _ in net_masks]
+    template_mask = FitState(
+        ThermalModel(
+            eqx.tree_at(lambda n: (n.log_capacitance, n.log_conductance,
+                                   n.log_boundary_conductance, n.log_heat_gain),
+                        model.network, tuple(arrays[:4])),
+            arrays[4], arrays[5], arrays[6], arrays[7], model.initial_nodes, arrays[8],
+            model.effect_terms),
+        run_mask)
+    names = [nm for _, nms in net_masks for nm in nms] + [nm for row in run_names for nm in row]
+    flat_mask = np.concatenate([*arrays, run_mask.reshape(-1)])
+    free_names = [nm for nm, f in zip(names, flat_mask) if f]
+    return template_mask, free_names
+
+
+def _reorder_inputs(experiments, columns, order):
+    """Experiments with their input columns rearranged from `columns` to `order` (a
+    lowered spec lists the same columns, maybe in another order)."""
+    if tuple(columns) == tuple(order):
+        return experiments
+    idx = [list(columns).index(c) for c in order]
+    return [dataclasses.replace(e, inputs=e.inputs[:, idx]) for e in experiments]
+
+
+def _slowest_time_constant(spec: ModelSpec) -> float:
+    """The slowest time constant of `spec`'s network at its file values (s; inf when a
+    node has no path to a boundary), computed in NumPy: a fit compiles nothing for it."""
+    K = conductance_matrix(Topology.from_spec(spec),
+                           np.array([k.conductance.value for k in spec.links], float),
+                           np.array([b.conductance.value for b in spec.boundaries], float))
+    with np.errstate(divide="ignore"):
+        return float(time_constants(np.array([n.capacitance.value for n in spec.nodes]),
+                                    K)[-1])
+
+
+def _check_runs(spec: ModelSpec, experiments: list[Experiment]) -> None:
+    if not experiments:
+        raise InputError("no runs given; pass at least one --data file.", field="--data")
+    slowest = _slowest_time_constant(spec)
+    for e in experiments:
+        measured = np.isfinite(e.outputs)
+        if not measured.any():
+            raise InputError("no sensor data in this run: every sensor cell is empty or NaN.",
+                             file=e.name, field=",".join(spec.sensor_columns))
+        for j in np.flatnonzero(~measured.any(axis=0)):
+            col = spec.sensor_columns[j] if j < len(spec.sensor_columns) else f"output {j}"
+            raise InputError(f"sensor column {col!r} has no readings in this run (every cell is "
+                             "empty or nan); drop it from the model or use a run that measured "
+                             "it.", file=e.name, field=col)
+        if e.ts[-1] - e.ts[0] < slowest:
+            warnings.warn(f"{e.name}: the run lasts {e.ts[-1] - e.ts[0]:.0f} s, shorter than the "
+                          f"slowest time constant of the starting model ({slowest:.0f} s); the "
+                          "slow parameters will be poorly determined.", stacklevel=4)
+
+
+# ---------------------------------------------------------------------------
+# theta's layout
+
+
+def _is_log(name: str) -> bool:
+    """Whether the optimizer moves this parameter's log (positive parameters)."""
+    if name.startswith("effects."):
+        parts = name.split(".")
+        return parts[-1] in EFFECT_KINDS[parts[1]].positive
+    return not name.endswith(".initial")
+
+
+def _perturbed_starts(theta0, names: list[str], n: int, seed: int) -> list[jax.Array]:
+    """`n` starts around `theta0`: log-parameters by a factor e^N(0, 0.5²), initial
+    temperatures by N(0, 1) °C."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(max(n, 0)):
+        step = np.array([rng.normal(0, 0.5) if _is_log(nm) else rng.normal(0, 1.0)
+                         for nm in names])
+        out.append(jax.device_put(np.asarray(theta0) + step))
+    return out
+
+
+def _check_finite(theta, theta0, names):
+    """Raise an `InputError` naming the parameter that ran away to a non-finite value."""
+    theta = np.asarray(theta)
+    if np.all(np.isfinite(theta)):
+        return
+    bad = [nm for nm, t in zip(names, theta) if not np.isfinite(t)]
+    jump = np.abs(np.nan_to_num(theta - np.asarray(theta0), nan=np.inf))
+    worst = names[int(np.argmax(jump))] if len(names) else "?"
+    raise InputError(f"the fit diverged: {', '.join(bad) or worst} ran away to a non-finite "
+                     f"value (largest move: {worst}). Check that parameter's starting value and "
+                     "units, fix it from design data, or give the data more excitation.")
+
