@@ -1,0 +1,27 @@
+"""The reference observer a firmware engineer can run and trust bit for bit.
+
+NumPy and the standard library only (no JAX): the filter-form observer with
+first-order-hold inputs in float64/float32 and in fixed point (Q16.16, Q8.24, Q15), the
+firmware's channel supervision (plausibility, open circuit, ADC rails, wire break,
+reduced-order fallback gains), multi-rate bias interpolation through a double buffer,
+the derived fixed-point error bound, and a C99 generator that repeats all of it.
+"""
+
+from ._bound import ErrorBound, error_series, quantization_error_bound
+from ._c_source import CSource, generate_c
+from ._faults import ChannelMonitor, FaultConfig
+from ._fixed import FixedObserver, FixedScaling
+from ._float import FloatObserver
+from ._formats import (FORMATS, Q15, Q8_24, Q16_16, FixedFormat, decode, encode, fixed_format,
+                       round_shift, saturate)
+from ._multirate import BiasInterpolator, DoubleBuffer, MultiRateRun, run_multirate
+from ._run import ObserverRun
+from ._system import ObserverSystem
+
+__all__ = [
+    "BiasInterpolator", "CSource", "ChannelMonitor", "DoubleBuffer", "ErrorBound",
+    "FORMATS", "FaultConfig", "FixedFormat", "FixedObserver", "FixedScaling",
+    "FloatObserver", "MultiRateRun", "ObserverRun", "ObserverSystem", "Q15", "Q16_16",
+    "Q8_24", "decode", "encode", "error_series", "fixed_format", "generate_c",
+    "quantization_error_bound", "round_shift", "run_multirate", "saturate",
+]

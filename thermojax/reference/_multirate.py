@@ -1,0 +1,110 @@
+"""Multi-rate execution: the thermal step at 10…50 Hz, bias corrections at 1…4 kHz.
+
+The thermal task computes the bias correction `b[k] = b0 + K x[k]` after each observer
+step and publishes it through a `DoubleBuffer`: it writes the slot the reader is not
+using, then flips the index and bumps a sequence number (on a microcontroller, a single
+word store, so the reader never sees a half-written vector). The inertial task reads the
+published slot at every high-rate tick. When it sees a new sequence number it starts a
+linear ramp from the value it is *currently outputting* to the new target, over
+`ratio = f_inertial / f_thermal` ticks, then holds the target. Starting from the current
+output (not from the previous target) keeps the output continuous even when a
+publication comes early or late; with regular publications each ramp ends exactly where
+the next starts, and the largest tick-to-tick change is `max_k |b[k] - b[k-1]| / ratio`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+
+class DoubleBuffer:
+    """Two slots, an index of the published one and a sequence number."""
+
+    def __init__(self, size: int):
+        self.slots = [np.zeros(size), np.zeros(size)]
+        self.published = 0
+        self.sequence = 0
+
+    def publish(self, values) -> None:
+        back = 1 - self.published
+        self.slots[back][:] = values      # write the slot nobody reads
+        self.published = back             # then flip (one word store)
+        self.sequence += 1
+
+    def read(self) -> tuple[int, np.ndarray]:
+        return self.sequence, self.slots[self.published].copy()
+
+
+class BiasInterpolator:
+    """The inertial task's reader: linear ramps between published bias vectors."""
+
+    def __init__(self, size: int, ratio: int, initial=None):
+        if int(ratio) < 1:
+            raise ValueError(f"`BiasInterpolator(ratio={ratio})`: need ratio >= 1.")
+        self.ratio = int(ratio)
+        self.output = np.zeros(size) if initial is None else np.array(initial, float)
+        self.start = self.output.copy()
+        self.target = self.output.copy()
+        self.tick_in_ramp = self.ratio
+        self.seen = 0
+
+    def tick(self, buffer: DoubleBuffer) -> np.ndarray:
+        seq, values = buffer.read()
+        if seq != self.seen:
+            self.seen, self.start, self.target, self.tick_in_ramp = seq, self.output, values, 0
+        if self.tick_in_ramp < self.ratio:
+            self.tick_in_ramp += 1
+            if self.tick_in_ramp == self.ratio:
+                self.output = self.target.copy()
+            else:
+                self.output = self.start + (self.target - self.start) * (self.tick_in_ramp
+                                                                          / self.ratio)
+        return self.output
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class MultiRateRun:
+    """`bias (T, q)` at the thermal rate, `inertial (T * ratio, q)` at the inertial rate,
+    `published_at (T,)` the inertial tick of each publication."""
+
+    bias: np.ndarray
+    inertial: np.ndarray
+    published_at: np.ndarray
+
+
+def run_multirate(observer, x0, u, y, bias_matrix, bias_offset=None, ratio: int = 100,
+                  open_circuit=None, delay_ticks=None) -> MultiRateRun:
+    """Run `observer` (a `FloatObserver`) at the thermal rate and interpolate its bias
+    corrections to the inertial rate.
+
+    **Arguments:**
+
+    - `observer`, `x0`, `u (T, m)`, `y (T, p)`, `open_circuit`: as `FloatObserver.run`.
+    - `bias_matrix (q, n)`, `bias_offset (q,)`: `b = bias_offset + bias_matrix @ x`.
+    - `ratio`: inertial ticks per thermal step (2000 Hz / 20 Hz = 100).
+    - `delay_ticks (T,)`: ticks after the start of its period at which step `k`'s result
+      is published (the thermal task's run time, with jitter); default 0.
+
+    The interpolator starts at `b[0]` (the bias of `x0`).
+    """
+    K = np.atleast_2d(np.asarray(bias_matrix, float))
+    b0 = np.zeros(K.shape[0]) if bias_offset is None else np.asarray(bias_offset, float)
+    run = observer.run(x0, u, y, open_circuit)
+    bias = b0 + np.asarray(run.states, float) @ K.T
+    T = bias.shape[0]
+    delay = np.zeros(T, int) if delay_ticks is None else np.asarray(delay_ticks, int)
+    if np.any(delay < 0) or np.any(delay >= ratio):
+        raise ValueError(f"`run_multirate(delay_ticks=...)` must lie in 0..{ratio - 1}.")
+    at = np.arange(T) * ratio + delay
+    buf = DoubleBuffer(K.shape[0])
+    reader = BiasInterpolator(K.shape[0], ratio, initial=b0 + K @ np.asarray(x0, float))
+    out = np.empty((T * ratio, K.shape[0]))
+    k = 0
+    for t in range(T * ratio):
+        while k < T and at[k] == t:
+            buf.publish(bias[k])
+            k += 1
+        out[t] = reader.tick(buf)
+    return MultiRateRun(bias, out, at)

@@ -1,0 +1,41 @@
+"""What a playback returns, for every observer of the reference."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ObserverRun:
+    """A playback's record, one row per observer step.
+
+    - `states (T, n)`: corrected estimates `x[k]` (physical units for float observers,
+      integer codes for fixed-point ones; `FixedObserver.decode_states` converts).
+    - `residuals (T, p)`: prediction residuals `y - C x⁻ - D u` (same units).
+    - `in_use (T,)`: bit mask of the channels used in the correction.
+    - `healthy (T,)`, `wire_break (T,)`: bit masks of the channel flags after the step.
+    """
+
+    states: np.ndarray
+    residuals: np.ndarray
+    in_use: np.ndarray
+    healthy: np.ndarray
+    wire_break: np.ndarray
+
+
+def check_playback(name: str, u, y, open_circuit, m: int, p: int, dtype):
+    u = np.asarray(u, dtype=dtype)
+    y = np.asarray(y, dtype=dtype)
+    if u.ndim != 2 or u.shape[1] != m or y.ndim != 2 or y.shape != (u.shape[0], p):
+        raise ValueError(f"`{name}.run` got inputs {u.shape} and measurements {y.shape}; "
+                         f"expected (T, {m}) and (T, {p}).")
+    if open_circuit is None:
+        oc = np.zeros((u.shape[0], p), dtype=bool)
+    else:
+        oc = np.asarray(open_circuit, dtype=bool)
+        if oc.shape != y.shape:
+            raise ValueError(f"`{name}.run(open_circuit=...)` has shape {oc.shape}; expected "
+                             f"{y.shape} (one flag per measurement).")
+    return u, y, oc
