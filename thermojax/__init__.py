@@ -27,6 +27,9 @@ _STAGES = {
                 "simulate_dataset", "identifiability", "comparison_table", "write_fit_outputs",
                 "fit_bias"],
     "investigation": ["investigate", "diagnose", "evaluate"],
+    "observer": ["Observer", "run_observer", "design_observer", "observability",
+                 "sensor_placement", "observer_poles", "place_observer_gain",
+                 "steady_state_kalman", "reconstruction_observer"],
     "cli": ["perturbed", "demo_runs"],
 }
 _LAZY = {name: "." + stage for stage, names in _STAGES.items() for name in names}

@@ -1,0 +1,22 @@
+"""Observer design: observability and sensor placement, gains (pole placement and the
+steady-state Kalman filter), the observer in JAX, and lag compensation by input
+reconstruction."""
+
+from .. import _x64  # noqa: F401  (float64 before any array is made)
+from ._design import design_observer
+from ._input_reconstruction import augment_unknown_input, reconstruction_observer
+from ._kalman import KalmanGain, discrete_process_covariance, steady_state_kalman
+from ._observability import (Observability, observability, observability_gramian,
+                             observability_matrix, observability_rank)
+from ._observer import Observer, ObserverRun, run_observer
+from ._placement import SensorSet, sensor_placement
+from ._pole_placement import ObserverPoles, observer_poles, place_observer_gain
+from ._response import estimate_noise_std, rise_time
+
+__all__ = [
+    "KalmanGain", "Observability", "Observer", "ObserverPoles", "ObserverRun", "SensorSet",
+    "augment_unknown_input", "design_observer", "discrete_process_covariance",
+    "estimate_noise_std", "observability", "observability_gramian", "observability_matrix",
+    "observability_rank", "observer_poles", "place_observer_gain", "reconstruction_observer",
+    "rise_time", "run_observer", "sensor_placement", "steady_state_kalman",
+]
