@@ -91,7 +91,7 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from .._plots import plot_simulation
+    from .._plots import plot_simulation, time_constant_groups
 
     out = Path(args.out)
     check_output_folder(out, args.force)
@@ -105,12 +105,6 @@ def cmd_demo(args) -> int:
         model, "calibration", csv, noise=True, seed=0, dt=1.0, baseline_power=0.05,
         write_states=True)
     names = spec.node_names
-    png = plot_simulation(
-        out / "imu6_calibration.png", ts,
-        {c: inputs[:, j] for j, c in enumerate(spec.input_columns)},
-        {n: states[:, i] for i, n in enumerate(names)},
-        {c: measured[:, j] for j, c in enumerate(spec.sensor_columns)},
-        reference="asic", title="imu6 through the calibration schedule")
     i_pm, i_asic, i_mems = names.index("proof_mass"), names.index("asic"), names.index("mems")
     lag = states[:, i_pm] - states[:, i_asic]
     grad = states[:, i_pm] - states[:, i_mems]
@@ -118,6 +112,15 @@ def cmd_demo(args) -> int:
     # that reading; what it cannot absorb is the dynamic part.
     asic = states[:, i_asic]
     dynamic = lag - np.polyval(np.polyfit(asic, lag, 3), asic)
+    png = plot_simulation(
+        out / "imu6_calibration.png", ts,
+        {c: inputs[:, j] for j, c in enumerate(spec.input_columns)},
+        {n: states[:, i] for i, n in enumerate(names)},
+        {c: measured[:, j] for j, c in enumerate(spec.sensor_columns)},
+        reference="asic", title="The six-node IMU through the calibration schedule",
+        groups=time_constant_groups(_local_time_constants(spec)),
+        dynamic={"proof mass − ASIC, total": lag,
+                 "left after a static cubic in the ASIC temperature": dynamic})
     print(f"  proof mass minus on-die (ASIC) sensor: {lag.min():+.3f} .. {lag.max():+.3f} K; "
           f"a static cubic in the ASIC temperature absorbs all but {dynamic.min():+.3f} .. "
           f"{dynamic.max():+.3f} K, the dynamic lag only an observer can follow")
@@ -140,6 +143,17 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def _local_time_constants(spec) -> dict[str, float]:
+    """Each node's own time constant, s: its capacitance over the conductances touching it."""
+    g = {n.name: 0.0 for n in spec.nodes}
+    for link in spec.links:
+        for n in link.between:
+            g[n] += link.conductance.value
+    for b in spec.boundaries:
+        g[b.node] += b.conductance.value
+    return {n.name: n.capacitance.value / g[n.name] for n in spec.nodes if g[n.name] > 0}
+
+
 def _load_runs(spec, paths: list[str]):
     from ..measurements._data import Experiment
     from ..measurements._telemetry import read_telemetry
@@ -152,7 +166,8 @@ def cmd_fit(args) -> int:
 
     from .. import io
     from ..fitting._fit import fit, profile_interval
-    from ..fitting._fit_report import comparison_table, write_fit_outputs
+    from ..fitting._fit_report import (file_values, comparison_table, format_parameter_table,
+                                       parameter_rows, write_fit_outputs)
 
     out = Path(args.out)
     check_output_folder(out, args.force)
@@ -173,9 +188,12 @@ def cmd_fit(args) -> int:
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
     with staged_folder(out) as tmp:
-        write_fit_outputs(result, experiments, tmp, list(args.data), profiles)
+        report = write_fit_outputs(result, experiments, tmp, list(args.data), profiles,
+                                   initial=spec)
+    print(format_parameter_table(parameter_rows(report, file_values(spec))))
+    print()
     print(comparison_table(result))
-    print(f"wrote {out / 'model.toml'}, {out / 'report.json'} and plots")
+    print(f"wrote {out / 'model.toml'}, {out / 'report.json'}, {out / 'report.md'} and plots")
     return 0
 
 
@@ -197,24 +215,23 @@ def _check_profile_names(spec, names: list[str], likelihood: str) -> None:
                              f"{', '.join(free)}.", file=str(spec.source), field="--profile")
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
+def _whole_number(minimum: int):
+    """An argparse type: a whole number of at least `minimum`, named in the message."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < minimum:
+            words = "0 or more" if minimum == 0 else f"at least {minimum}"
+            raise argparse.ArgumentTypeError(f"must be {words}, got {value}")
+        return value
+
+    return parse
 
 
-def _nonnegative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
-    return value
+_positive_int, _nonnegative_int = _whole_number(1), _whole_number(0)
 
 
 def _positive_float(text: str) -> float:

@@ -31,7 +31,7 @@ import numpy as np
 
 from ._faults import ChannelMonitor, FaultConfig
 from ._formats import FixedFormat, decode, encode, fixed_format, round_shift, saturate
-from ._run import ObserverRun, check_playback
+from ._run import ObserverRun, play
 from ._system import ObserverSystem
 
 _ACC_LIMIT = 1 << 62
@@ -236,18 +236,7 @@ class FixedObserver:
 
     def run(self, x0_codes, u_codes, y_codes, open_circuit=None) -> ObserverRun:
         """Play back input and measurement codes `(T, m)`, `(T, p)` from state codes `x0`."""
-        s = self.system
-        u, y, oc = check_playback("FixedObserver", u_codes, y_codes, open_circuit,
-                                  s.n_inputs, s.n_outputs, np.int64)
-        T = u.shape[0]
-        X = np.empty((T, s.n_states), np.int64)
-        R = np.empty((T, s.n_outputs), np.int64)
-        flags = np.empty((3, T), np.uint8)
-        self.reset(x0_codes)
-        for k in range(T):
-            X[k], R[k], flags[0, k] = self.step(u[k], y[k], oc[k])
-            flags[1, k], flags[2, k] = self.monitor.flags()
-        return ObserverRun(X, R, flags[0], flags[1], flags[2])
+        return play(self, "FixedObserver", x0_codes, u_codes, y_codes, open_circuit, np.int64)
 
     def run_physical(self, x0, u, y, open_circuit=None) -> ObserverRun:
         """`run` on physical values: encodes `x0`, `u`, `y` (NaN readings count as open

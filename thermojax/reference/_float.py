@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._faults import ChannelMonitor, FaultConfig
-from ._run import ObserverRun, check_playback
+from ._run import ObserverRun, play
 from ._system import ObserverSystem
 
 
@@ -94,15 +94,4 @@ class FloatObserver:
 
     def run(self, x0, u, y, open_circuit=None) -> ObserverRun:
         """Play back `u (T, m)` and `y (T, p)` from `x0`; `open_circuit (T, p)` flags."""
-        s = self.system
-        u, y, oc = check_playback("FloatObserver", u, y, open_circuit, s.n_inputs,
-                                  s.n_outputs, self.dtype)
-        T = u.shape[0]
-        X = np.empty((T, s.n_states), self.dtype)
-        R = np.empty((T, s.n_outputs), self.dtype)
-        flags = np.empty((3, T), np.uint8)
-        self.reset(x0)
-        for k in range(T):
-            X[k], R[k], flags[0, k] = self.step(u[k], y[k], oc[k])
-            flags[1, k], flags[2, k] = self.monitor.flags()
-        return ObserverRun(X, R, flags[0], flags[1], flags[2])
+        return play(self, "FloatObserver", x0, u, y, open_circuit, self.dtype)

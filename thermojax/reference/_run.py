@@ -39,3 +39,19 @@ def check_playback(name: str, u, y, open_circuit, m: int, p: int, dtype):
             raise ValueError(f"`{name}.run(open_circuit=...)` has shape {oc.shape}; expected "
                              f"{y.shape} (one flag per measurement).")
     return u, y, oc
+
+
+def play(observer, name: str, x0, u, y, open_circuit, dtype) -> ObserverRun:
+    """Reset `observer` to `x0` and step it through `u (T, m)` and `y (T, p)` (in its own
+    units and `dtype`), recording states, residuals and channel flags."""
+    s = observer.system
+    u, y, oc = check_playback(name, u, y, open_circuit, s.n_inputs, s.n_outputs, dtype)
+    T = u.shape[0]
+    X = np.empty((T, s.n_states), dtype)
+    R = np.empty((T, s.n_outputs), dtype)
+    flags = np.empty((3, T), np.uint8)
+    observer.reset(x0)
+    for k in range(T):
+        X[k], R[k], flags[0, k] = observer.step(u[k], y[k], oc[k])
+        flags[1, k], flags[2, k] = observer.monitor.flags()
+    return ObserverRun(X, R, flags[0], flags[1], flags[2])

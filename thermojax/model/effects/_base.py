@@ -210,3 +210,29 @@ class PathEffect(AbstractEffect):
         if ctx.is_node(where[1]):
             w[..., ctx.node(where[1])] -= flow
         return w
+
+
+class ScaledPathEffect(PathEffect):
+    """A path whose conductance is `G0 (1 + s)`: the extra heat into `a` is
+    `G0 · s · (T_b − T_a)` (W), with the scale `s` given by `scale` (traced) and
+    `scale_direction` (the score test's NumPy form, per unit parameter)."""
+
+    def scale(self, term, values, ta, tb, u):
+        """`s` at one time (traced): `values` the effect parameters, `u` the inputs."""
+        raise NotImplementedError
+
+    def scale_direction(self, ctx, where, ta, tb):
+        """`∂s/∂parameter` (NumPy, (runs, T)) for the score test."""
+        raise NotImplementedError
+
+    def heat(self, term, values, T, u, network):
+        ta, tb = T[term.a], self.far(term, T, u)
+        g0 = self.path_conductance(term, network)
+        return self.into_a(term, g0 * self.scale(term, values, ta, tb, u) * (tb - ta), T)
+
+    def score_direction(self, ctx, where):
+        ta = ctx.T[..., ctx.node(where[0])]
+        tb = ctx.temperature(where[1])
+        g0 = ctx.path_conductance(where)
+        flow = g0 * self.scale_direction(ctx, where, ta, tb) * (tb - ta)
+        return "heat", [self.split(ctx, where, flow)]

@@ -2,17 +2,17 @@
 
 from __future__ import annotations
 
-from ._base import PathEffect
+from ._base import ScaledPathEffect
 
 
-class ConductanceInput(PathEffect):
+class ConductanceInput(ScaledPathEffect):
     kind = "conductance_input"
 
-    def heat(self, term, values, T, u, network):
-        c = values[term.slot]
-        ta, tb = T[term.a], self.far(term, T, u)
-        g0 = self.path_conductance(term, network)
-        return self.into_a(term, g0 * c * u[term.column] * (tb - ta), T)
+    def scale(self, term, values, ta, tb, u):
+        return values[term.slot] * u[term.column]
+
+    def scale_direction(self, ctx, where, ta, tb):
+        return ctx.column(where[2])
 
     def places(self, spec, columns):
         cols = [c for c, role in columns.items() if role != "temperature"]
@@ -20,9 +20,3 @@ class ConductanceInput(PathEffect):
 
     def initial_parameters(self, spec, where):
         return {"coefficient": 0.0}
-
-    def score_direction(self, ctx, where):
-        ta = ctx.T[..., ctx.node(where[0])]
-        tb = ctx.temperature(where[1])
-        g0 = ctx.path_conductance(where)
-        return "heat", [self.split(ctx, where, g0 * ctx.column(where[2]) * (tb - ta))]

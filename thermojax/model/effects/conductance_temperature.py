@@ -2,23 +2,17 @@
 
 from __future__ import annotations
 
-from ._base import T_REF, PathEffect
+from ._base import T_REF, ScaledPathEffect
 
 
-class ConductanceTemperature(PathEffect):
+class ConductanceTemperature(ScaledPathEffect):
     kind = "conductance_temperature"
 
-    def heat(self, term, values, T, u, network):
-        alpha = values[term.slot]
-        ta, tb = T[term.a], self.far(term, T, u)
-        g0 = self.path_conductance(term, network)
-        return self.into_a(term, g0 * alpha * (0.5 * (ta + tb) - T_REF) * (tb - ta), T)
+    def scale(self, term, values, ta, tb, u):
+        return values[term.slot] * (0.5 * (ta + tb) - T_REF)
+
+    def scale_direction(self, ctx, where, ta, tb):
+        return 0.5 * (ta + tb) - T_REF
 
     def initial_parameters(self, spec, where):
         return {"alpha": 0.0}
-
-    def score_direction(self, ctx, where):
-        ta = ctx.T[..., ctx.node(where[0])]
-        tb = ctx.temperature(where[1])
-        g0 = ctx.path_conductance(where)
-        return "heat", [self.split(ctx, where, g0 * (0.5 * (ta + tb) - T_REF) * (tb - ta))]
