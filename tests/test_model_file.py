@@ -593,3 +593,19 @@ def test_example_model_with_bias_channels():
     assert visco.where == ("mems", "accel_x_ug")
     assert visco.parameters["time_constant"].value == 1500.0
     assert without_source(parse_model(dump_model(spec))) == without_source(spec)
+
+
+@pytest.mark.parametrize("text, value", [("0.3", 0.3), ("{ value = 0.3, fixed = true }", 0.3)])
+def test_initial_std_as_number_or_fixed_table(text, value):
+    spec = parse_model(f'name = "one"\n[[nodes]]\nname = "a"\ncapacitance = 1.0\n'
+                       f'initial_std = {text}\n[[boundaries]]\nnode = "a"\ninput = "T"\n'
+                       'conductance = 0.1\n[[sensors]]\nnode = "a"\ncolumn = "T_a"\n')
+    assert spec.nodes[0].initial_std == value
+    assert parse_model(dump_model(spec)).nodes[0].initial_std == value
+
+
+def test_initial_std_table_must_be_fixed():
+    with pytest.raises(InputError, match=r"nodes\[0\]\.initial_std.*not estimated"):
+        parse_model('name = "one"\n[[nodes]]\nname = "a"\ncapacitance = 1.0\n'
+                    'initial_std = { value = 0.3, fixed = false }\n[[boundaries]]\nnode = "a"\n'
+                    'input = "T"\nconductance = 0.1\n[[sensors]]\nnode = "a"\ncolumn = "T_a"\n')

@@ -103,6 +103,17 @@ class _Reader:
             return Parameter(self.number(v["value"], table, i, fld), fixed)
         return Parameter(self.number(v, table, i, fld), False)
 
+    def known_number(self, v: Any, table: str, i: int, fld: str) -> float:
+        """A number the fit never estimates: bare, or written as a fixed parameter table
+        `{ value = 0.1, fixed = true }` (docs/formats.md §2's general rule)."""
+        if isinstance(v, dict):
+            p = self.param(v, table, i, fld)
+            if not p.fixed:
+                self.fail(f"{fld} is not estimated; write a number or "
+                          "{ value = ..., fixed = true }.", table, i, fld)
+            return p.value
+        return self.number(v, table, i, fld)
+
     def opt_param(self, e: dict, key: str, table: str, i: int) -> Parameter | None:
         return self.param(e[key], table, i, key) if key in e else None
 
@@ -129,7 +140,8 @@ class _Reader:
             capacitance=self.param(e["capacitance"], "nodes", i, "capacitance"),
             process_noise=self.opt_param(e, "process_noise", "nodes", i),
             initial=self.opt_param(e, "initial", "nodes", i),
-            initial_std=None if std is None else self.number(std, "nodes", i, "initial_std"),
+            initial_std=None if std is None else self.known_number(std, "nodes", i,
+                                                                   "initial_std"),
         )
 
     def link(self, e: dict, i: int) -> Link:
