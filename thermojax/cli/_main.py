@@ -16,6 +16,7 @@ import numpy as np
 
 from .._errors import InputError
 from ._progress import Progress
+from ._export import add_export
 from ._outputs import (check_output_file, check_output_folder, mark_own, staged_file,
                        staged_folder)
 
@@ -119,8 +120,9 @@ def cmd_demo(args) -> int:
         {c: measured[:, j] for j, c in enumerate(spec.sensor_columns)},
         reference="asic", title="The six-node IMU through the calibration schedule",
         groups=time_constant_groups(_local_time_constants(spec)),
-        dynamic={"proof mass − ASIC, total": lag,
-                 "left after a static cubic in the ASIC temperature": dynamic})
+        dynamic={"proof mass − ASIC, after a static cubic in the ASIC temperature": dynamic},
+        dynamic_title=f"Proof mass − ASIC is {lag.min():+.2f} .. {lag.max():+.2f} K, mostly a "
+        f"static offset; a static calibration leaves this dynamic part")
     print(f"  proof mass minus on-die (ASIC) sensor: {lag.min():+.3f} .. {lag.max():+.3f} K; "
           f"a static cubic in the ASIC temperature absorbs all but {dynamic.min():+.3f} .. "
           f"{dynamic.max():+.3f} K, the dynamic lag only an observer can follow")
@@ -300,10 +302,22 @@ def cmd_diagnose(args) -> int:
     with staged_folder(out) as tmp:
         report = diagnose(spec, runs, likelihood=args.likelihood, out=tmp,
                           progress=args.progress)
-    print(f"{'rank':>4}  {'kind':<24} {'where':<34} {'score':>10} {'p':>9}  supported")
+    print(f"{'rank':>4}  {'candidate':<44} {'score test':>11} {'LR':>9} {'p':>9}  supported")
     for i, c in enumerate(report["candidates"][:12]):
-        print(f"{i + 1:>4}  {c['kind']:<24} {'-'.join(c['where']):<34} {c['score']:>10.1f} "
+        st, lr = c.get("score_test"), c.get("likelihood_ratio")
+        print(f"{i + 1:>4}  {_effect_text(c['kind'], c['where']):<44} "
+              f"{'–' if st is None else f'{st:.1f}':>11} {'–' if lr is None else f'{lr:.1f}':>9} "
               f"{c['p_value']:>9.2g}  {'yes' if c['supported'] else 'no'}")
+        if c.get("tied_with"):
+            print(f"{'':6}near-tie with {_ties_text(c)}")
+    print("score test: evidence without refitting; LR: likelihood-ratio statistic "
+          "2 (-log L before - after) of a refit")
+    if not any(c["supported"] for c in report["candidates"]):
+        bad = [col for col, p in (report.get("whiteness_p") or {}).items()
+               if p is not None and p <= 0.05]
+        if bad:
+            print(f"unexplained: the residuals of {', '.join(bad)} are not white and no "
+                  "candidate effect is supported")
     print(f"wrote {Path(args.out) / 'report.json'}, {Path(args.out) / 'report.md'} and plots")
     return 0
 
@@ -325,15 +339,35 @@ def cmd_investigate(args) -> int:
     return 0
 
 
+def _effect_text(kind, where) -> str:
+    return f"{kind} ({'-'.join(str(w) for w in where)})"
+
+
+def _ties_text(c: dict) -> str:
+    ties = c.get("tied_with") or []
+    return ", ".join(_effect_text(k, w) for k, w in ties)
+
+
 def _print_story(report: dict) -> None:
-    for i, step in enumerate(report["steps"]):
+    steps = report["steps"]
+    for i, step in enumerate(steps):
         added = step["added"]
-        what = "start" if added is None else f"+ {added['kind']} {added['where']}"
+        what = "start" if added is None else f"+ {_effect_text(added['kind'], added['where'])}"
         rmse = ", ".join(f"{c} {v:.4g}" for c, v in step["rmse"].items())
         print(f"  step {i}: {what:<48} RMSE {rmse}")
+        if added is not None and i > 0:
+            prev = steps[i - 1]
+            chosen = next((c for c in prev.get("candidates") or []
+                           if c["kind"] == added["kind"] and list(c["where"]) ==
+                           list(added["where"])), None)
+            if chosen and chosen.get("tied_with"):
+                print(f"          near-tie: the data could not tell it apart from "
+                      f"{_ties_text(chosen)}")
+                if prev.get("separation"):
+                    print(f"          what would separate them: {prev['separation']}")
     print(f"  stopped because: {report['stopped_because']}")
-    if report.get("unexplained"):
-        print(f"  {report['unexplained']}")
+    if "unexplained" in report:
+        print(f"  unexplained: {report['unexplained'] or 'nothing is flagged as left unexplained'}")
 
 
 def _add_diagnose(sub):
@@ -476,6 +510,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run(sub)
     _add_resample(sub)
     _add_demo(sub)
+    add_export(sub)
     return parser
 
 

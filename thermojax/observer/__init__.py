@@ -4,6 +4,7 @@ reconstruction."""
 
 from .. import _x64  # noqa: F401  (float64 before any array is made)
 from ._design import design_observer
+from ._export import ExportResult, export_observer
 from ._input_reconstruction import augment_unknown_input, reconstruction_observer
 from ._kalman import KalmanGain, discrete_process_covariance, steady_state_kalman
 from ._observability import (Observability, observability, observability_gramian,
@@ -14,9 +15,10 @@ from ._pole_placement import ObserverPoles, observer_poles, place_observer_gain
 from ._response import estimate_noise_std, rise_time
 
 __all__ = [
-    "KalmanGain", "Observability", "Observer", "ObserverPoles", "ObserverRun", "SensorSet",
-    "augment_unknown_input", "design_observer", "discrete_process_covariance",
-    "estimate_noise_std", "observability", "observability_gramian", "observability_matrix",
-    "observability_rank", "observer_poles", "place_observer_gain", "reconstruction_observer",
-    "rise_time", "run_observer", "sensor_placement", "steady_state_kalman",
+    "ExportResult", "KalmanGain", "Observability", "Observer", "ObserverPoles", "ObserverRun",
+    "SensorSet", "augment_unknown_input", "design_observer", "discrete_process_covariance",
+    "estimate_noise_std", "export_observer", "observability", "observability_gramian",
+    "observability_matrix", "observability_rank", "observer_poles", "place_observer_gain",
+    "reconstruction_observer", "rise_time", "run_observer", "sensor_placement",
+    "steady_state_kalman",
 ]

@@ -7,6 +7,7 @@ reduced-order fallback gains), multi-rate bias interpolation through a double bu
 the derived fixed-point error bound, and a C99 generator that repeats all of it.
 """
 
+from ._artifact import ArtifactError, ObserverArtifact, load_observer
 from ._bound import ErrorBound, error_series, quantization_error_bound
 from ._c_source import CSource, generate_c
 from ._faults import ChannelMonitor, FaultConfig
@@ -19,9 +20,10 @@ from ._run import ObserverRun
 from ._system import ObserverSystem
 
 __all__ = [
-    "BiasInterpolator", "CSource", "ChannelMonitor", "DoubleBuffer", "ErrorBound",
-    "FORMATS", "FaultConfig", "FixedFormat", "FixedObserver", "FixedScaling",
-    "FloatObserver", "MultiRateRun", "ObserverRun", "ObserverSystem", "Q15", "Q16_16",
-    "Q8_24", "decode", "encode", "error_series", "fixed_format", "generate_c",
-    "quantization_error_bound", "round_shift", "run_multirate", "saturate",
+    "ArtifactError", "BiasInterpolator", "CSource", "ChannelMonitor", "DoubleBuffer",
+    "ErrorBound", "FORMATS", "FaultConfig", "FixedFormat", "FixedObserver", "FixedScaling",
+    "FloatObserver", "MultiRateRun", "ObserverArtifact", "ObserverRun", "ObserverSystem",
+    "Q15", "Q16_16", "Q8_24", "decode", "encode", "error_series", "fixed_format",
+    "generate_c", "load_observer", "quantization_error_bound", "round_shift",
+    "run_multirate", "saturate",
 ]

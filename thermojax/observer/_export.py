@@ -1,0 +1,413 @@
+"""Export a model's observer as a versioned artifact a firmware engineer can run and trust.
+
+`export_observer` samples the model at the observer rate, designs one gain per nonempty
+sensor subset (the fault fallback of `thermojax.reference`), and writes into a folder:
+
+- `observer.json`: metadata (`"schema": 1`, `"thermojax_version"`, the model, the rate,
+  state/input/output names and units, the hold of each input, plausibility limits,
+  fault settings, the fixed-point format and scales, bias coefficients, and for a model
+  with nonlinear effects the operating point of its linearization);
+- `observer.npz`: the arrays (`Phi`, `B0`, `B1`, `C`, `D`, `gain_table`, the offsets);
+- `tj_observer.c`/`.h` (the float64 build) and, with `fixed`, `tj_observer_<fmt>.c`/`.h`
+  (the fixed-point build), each with a playback harness `*_main.c`.
+
+`thermojax.reference.load_observer` reads the artifact back (NumPy only) and checks it.
+
+Coordinates: states, inputs and readings are physical (°C, W) in every artifact. A model
+with nonlinear effects (radiation, temperature-dependent conductance or capacitance) is
+linearized at a uniform temperature `T_op` with zero power. Its heat flows vanish at every
+uniform temperature, so the linearization has no constant term and every uniform
+temperature (35 °C, the fixed-point reference, included) stays an equilibrium.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from .._errors import InputError
+
+SCHEMA = 1
+LIMITS = (-55.0, 125.0)       # °C, plausibility limits (the seed)
+T_REF = 35.0                  # °C, fixed-point reference: middle of −55…+125 °C
+FLOAT_PREFIX = "tj_observer"
+
+
+@dataclasses.dataclass(frozen=True)
+class ExportResult:
+    """What `export_observer` wrote and found.
+
+    - `folder`: the artifact folder.
+    - `files`: file name → size in bytes.
+    - `metadata`: the contents of `observer.json`.
+    - `arrays`: the contents of `observer.npz`.
+    - `warnings`: the warnings raised (also issued with `warnings.warn`).
+    """
+
+    folder: Path
+    files: dict
+    metadata: dict
+    arrays: dict
+    warnings: tuple
+
+
+def _load_spec(spec_or_model):
+    from ..model._model import ThermalModel
+    from ..model._model_file import load_model
+    from ..model._spec import ModelSpec
+
+    if isinstance(spec_or_model, (str, Path)):
+        spec = load_model(spec_or_model)
+        return spec, ThermalModel.from_spec(spec), str(spec_or_model)
+    if isinstance(spec_or_model, ModelSpec):
+        return spec_or_model, ThermalModel.from_spec(spec_or_model), \
+            str(getattr(spec_or_model, "source", None) or spec_or_model.name)
+    if isinstance(spec_or_model, ThermalModel):
+        return None, spec_or_model, "model"
+    raise TypeError("`export_observer(spec_or_model=...)` takes a model file path, a "
+                    f"`ModelSpec` or a `ThermalModel`, got {type(spec_or_model).__name__}.")
+
+
+def _linearize(model, system, power_inputs, T_op: float, where: str):
+    """`(A, B)` of the model linearized at uniform `T_op` °C, zero power."""
+    import jax
+    import jax.numpy as jnp
+
+    n, m = system.A.shape[0], system.B.shape[1]
+    x_op = jnp.full(n, T_op)
+    u_op = jnp.asarray([0.0 if j in power_inputs else T_op for j in range(m)])
+    rate = lambda x, u: model.nonlinear_rate(system, x, u)
+    f = np.asarray(system.A @ x_op + system.B @ u_op + rate(x_op, u_op))
+    if np.abs(f).max() > 1e-9 * (1 + abs(T_op)):
+        raise InputError(f"the nonlinear model is not at rest at a uniform {T_op} °C with no "
+                         f"power (dT/dt up to {np.abs(f).max():.3g} K/s); the export "
+                         "linearizes at such an equilibrium only.", file=where,
+                         field="--operating-point")
+    Nx, Nu = jax.jacfwd(rate, argnums=(0, 1))(x_op, u_op)
+    return system.A + Nx, system.B + Nu, np.asarray(x_op), np.asarray(u_op)
+
+
+def _gain(discrete_full, system_c, rows, dt, method, noise, q, names, speedup):
+    """The filter-form gain for sensor rows `rows` (the same steps as `design_observer`)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from ..dynamics._discretize import discretize
+    from ._kalman import discrete_process_covariance, steady_state_kalman
+    from ._pole_placement import observer_poles, place_observer_gain
+
+    idx = jnp.asarray(np.array(rows, dtype=int))
+    sub = eqx.tree_at(lambda s: (s.C, s.D), system_c, (system_c.C[idx], system_c.D[idx]))
+    discrete = discretize(sub, dt)
+    if method == "kalman":
+        Qd = discrete_process_covariance(sub.A, q, dt)
+        return np.asarray(steady_state_kalman(discrete, Qd, noise[rows] ** 2).gain)
+    poles = observer_poles(sub, dt, speedup)
+    return np.asarray(place_observer_gain(discrete, poles, state_names=names))
+
+
+def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: str = "kalman",
+                    sensors=None, operating_point: float = 25.0, speedup: float = 4.0,
+                    faults=None, power_scale: float = 1.0) -> ExportResult:
+    """Write the reference-observer artifact of a model (see the module docstring).
+
+    The full sensor set must observe every state (else `InputError` naming the lost
+    states and the sensor that would restore them). Each nonempty subset gets its own
+    gain by `method`; a subset whose poles cannot be placed falls back to the Kalman gain
+    (recorded in `observer.json`). Every gain must give stable error dynamics
+    `(I − L C) Phi` at this rate, also after quantization with `fixed`.
+
+    **Arguments:**
+
+    - `spec_or_model`: a model file path, a `ModelSpec` (bias channels exported) or a
+      `ThermalModel`.
+    - `rate_hz`: the observer rate (Hz); the sample period is `1 / rate_hz`.
+    - `out_dir`: the folder to write (created; existing files of the same names replaced).
+    - `fixed`: `None`, `"q16.16"`, `"q8.24"`, `"q15"` or a `thermojax.reference.FixedFormat`.
+    - `method`: `"kalman"` (steady-state Kalman gains) or `"poles"` (the seed's rule).
+    - `sensors`: sensor column names to use (default all).
+    - `operating_point`: `T_op` (°C) of the linearization of a nonlinear model.
+    - `speedup`: observer poles × open-loop poles for `method="poles"`.
+    - `faults`: a `thermojax.reference.FaultConfig` (default: limits −55…+125 °C).
+    - `power_scale`: W per format unit of a power input in the fixed build.
+
+    **Returns:** an `ExportResult`. Warnings (a nonlinear effect linearized, a coefficient
+    that rounds to zero in the fixed format) are issued with `warnings.warn` and listed.
+    """
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from .. import __version__
+    from .. import reference as ref
+    from ..dynamics._discretize import discretize
+    from ..model.effects import KINDS
+    from ._design import METHODS, _sensor_rows
+    from ._observability import observability_rank
+    from ._pole_placement import check_observable
+
+    if method not in METHODS:
+        raise InputError(f"unknown method {method!r}; expected one of {list(METHODS)}.",
+                         field="--method")
+    try:
+        rate_hz = float(rate_hz)
+    except (TypeError, ValueError):
+        raise InputError(f"expected a number of Hz, got {rate_hz!r}.", field="--rate") from None
+    if not np.isfinite(rate_hz) or rate_hz <= 0:
+        raise InputError(f"the observer rate must be a positive number of Hz, got {rate_hz}.",
+                         field="--rate")
+    dt = 1.0 / rate_hz
+    spec, model, where = _load_spec(spec_or_model)
+    faults = ref.FaultConfig(limits=LIMITS) if faults is None else faults
+    fmt = None if fixed is None else _format(fixed)
+    caught: list[str] = []
+
+    def warn(text):
+        caught.append(text)
+        warnings.warn(text, stacklevel=3)
+
+    net = model.network
+    t = net.topology
+    names, inputs, all_sensors = t.node_names, t.input_names, t.sensor_names
+    power_inputs = set(t.heat_inputs)
+    rows = _sensor_rows(sensors, all_sensors)
+    sensor_names = [all_sensors[i] for i in rows]
+    p = len(rows)
+    if p > 8:
+        raise InputError(f"{p} sensors; the gain table of the reference (one gain per sensor "
+                         "subset) is limited to 8. Choose sensors with --sensor.",
+                         file=where, field="--sensor")
+
+    system = model.linear_system()
+    idx = jnp.asarray(np.array(rows, dtype=int))
+    system = eqx.tree_at(lambda s: (s.C, s.D), system, (system.C[idx], system.D[idx]))
+    linearization = None
+    if model.is_nonlinear:
+        A, B, x_op, u_op = _linearize(model, system, power_inputs, float(operating_point), where)
+        system = eqx.tree_at(lambda s: (s.A, s.B), system, (A, B))
+        effects = [e.key for e in (spec.effects if spec is not None else ())
+                   if KINDS[e.kind].nonlinear] or \
+            [f"{tm.kind}" for tm in model.effect_terms if KINDS[tm.kind].nonlinear]
+        linearization = {"operating_point_C": float(operating_point),
+                         "states_C": x_op.tolist(), "inputs": u_op.tolist(),
+                         "effects": effects}
+        warn(f"model '{where}' has nonlinear effect(s) {', '.join(effects)}: the exported "
+             f"observer is its linearization at a uniform {operating_point:g} °C with no "
+             "power, accurate near that temperature only.")
+    discrete = discretize(system, dt)
+    Phi, B0, B1, C, D = (np.asarray(a, float) for a in
+                         (discrete.Phi, discrete.B0, discrete.B1, discrete.C, discrete.D))
+    call = f"export --sensor {' '.join(sensor_names)}"
+    A_c = np.asarray(system.A, float)
+    tau = np.sort(-1.0 / np.linalg.eigvals(A_c).real)
+    if observability_rank(discrete) < len(names):
+        fast = discretize(system, min(dt, tau[0] / 10))
+        try:
+            check_observable(fast, names, call)          # the sensors themselves
+        except InputError as err:
+            raise InputError(str(err), file=where, field="--sensor") from None
+        # observable at a fast rate: the sampling loses the modes
+        raise InputError(f"at {rate_hz:g} Hz (dt {dt:g} s) the sampled observer cannot see "
+                         f"every state: the fastest time constants ({', '.join(f'{v:.3g}' for v in tau[:3])} s) "
+                         "decay to nothing within one sample, so its poles cannot be placed "
+                         "and the estimate of those states is not corrected. Raise the rate.",
+                         file=where, field="--rate")
+
+    noise = np.asarray(model.noise, float)[rows]
+    q = np.asarray(model.process_noise, float)
+    gains, subset_info = {}, []
+    for r in range(1, p + 1):
+        for s in itertools.combinations(range(p), r):
+            s = list(s)
+            used = method
+            try:
+                L = _gain(discrete, system, s, dt, method, noise, q, names, speedup)
+            except InputError as err:
+                if r == p:
+                    raise InputError(f"at {rate_hz:g} Hz (dt {dt:g} s) no observer gain: {err}",
+                                     file=where, field="--rate") from None
+                used = f"kalman (poles not placed: {err})"
+                L = _gain(discrete, system, s, dt, "kalman", noise, q, names, speedup)
+            gains[tuple(s)] = L
+            Ae = (np.eye(len(names)) - L @ C[s]) @ Phi
+            rho = float(np.abs(np.linalg.eigvals(Ae)).max())
+            sub = _Pair(Phi, C[s])
+            subset_info.append({"sensors": [sensor_names[j] for j in s],
+                                "mask": int(sum(1 << j for j in s)), "method": used,
+                                "spectral_radius": rho,
+                                "observable_states": int(observability_rank(sub))})
+            if not rho < 1.0:
+                raise InputError(f"at {rate_hz:g} Hz (dt {dt:g} s) the observer with sensors "
+                                 f"{[sensor_names[j] for j in s]} is unstable (error-dynamics "
+                                 f"spectral radius {rho:.6g} >= 1); change the rate.",
+                                 file=where, field="--rate")
+    obs_system = ref.ObserverSystem.build(Phi, B0, B1, C, D, gains)
+
+    # references of the fixed-point representation (also useful to a float build)
+    m = len(inputs)
+    x_ref = np.full(len(names), T_REF)
+    u_ref = np.array([0.0 if j in power_inputs else T_REF for j in range(m)])
+    y_ref = C @ x_ref + D @ u_ref
+    u0 = np.array([0.0 if j in power_inputs else float(operating_point) for j in range(m)])
+    x_steady = np.asarray(system.steady_state(jnp.asarray(u0)))
+    arrays = {"Phi": Phi, "B0": B0, "B1": B1, "C": C, "D": D,
+              "gain_table": obs_system.gain_table, "x_ref": x_ref, "u_ref": u_ref,
+              "y_ref": y_ref, "u_steady": u0, "x_steady": x_steady,
+              "output_offset": np.asarray(model.output_offset(), float)[rows]}
+    fixed_meta = None
+    fixed_obs = None
+    if fmt is not None:
+        u_scale = np.array([power_scale if j in power_inputs else fmt.state_scale
+                            for j in range(m)])
+        scaling = ref.FixedScaling(x_ref, y_ref, u_ref, u_scale)
+        try:
+            fixed_obs = ref.FixedObserver(obs_system, fmt, scaling, faults)
+        except ValueError as err:
+            raise InputError(str(err), file=where, field="--fixed") from None
+        arrays["u_scale"] = u_scale
+        for name in fixed_obs.MATRICES:
+            arrays[f"fixed_{name}"] = fixed_obs.coef[name]
+        fixed_meta = {"format": fmt.name, "word_bits": fmt.word_bits,
+                      "frac_bits": fmt.frac_bits, "state_scale_K": fmt.state_scale,
+                      "lsb_K": fmt.lsb, "state_range_K": list(fmt.state_range),
+                      "reference_C": T_REF, "input_scale": u_scale.tolist(),
+                      "coefficient_frac_bits": {k: int(v) for k, v in fixed_obs.coef_frac.items()},
+                      "representation": "value = reference + code * 2**-frac_bits * scale"}
+        _check_fixed(fixed_obs, obs_system, np.asarray(system.A), np.asarray(system.B), names,
+                     inputs, sensor_names, rate_hz, dt, where, warn)
+
+    meta = {
+        "schema": SCHEMA, "thermojax_version": __version__,
+        "model": model_name(spec, where), "model_file": where,
+        "rate_hz": rate_hz, "dt_s": dt, "method": method,
+        "states": [{"name": nm, "units": "°C"} for nm in names],
+        "inputs": [{"name": nm, "units": "W" if j in power_inputs else "°C",
+                    "hold": t.input_holds[j]} for j, nm in enumerate(inputs)],
+        "outputs": [{"name": nm, "units": "°C"} for nm in sensor_names],
+        "form": "filter: x⁻[k] = Phi x[k-1] + B0 u[k-1] + B1 u[k]; "
+                "x[k] = x⁻[k] + L_S (y[k] - C x⁻[k] - D u[k]); readings minus output_offset",
+        "gain_table": "gain_table[mask] is the gain when exactly the sensors whose bit is "
+                      "set in mask are in use (bit j: outputs[j]); mask 0: prediction only",
+        "subsets": subset_info,
+        "plausibility_limits_C": list(faults.limits),
+        "faults": {"limits_C": list(faults.limits),
+                   "rails_C": _finite_or_none(faults.rails_array(p)),
+                   "residual_threshold_K": _finite_or_none(faults.threshold_array(p)),
+                   "wire_break_after": int(faults.wire_break_after),
+                   "recover_after": int(faults.recover_after)},
+        "fixed": fixed_meta,
+        "biases": _biases(spec),
+        "linearization": linearization,
+        "warnings": caught,
+    }
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    meta["files"] = {}
+    sources = [ref.generate_c(ref.FloatObserver(obs_system, faults), FLOAT_PREFIX)]
+    if fixed_obs is not None:
+        sources.append(ref.generate_c(fixed_obs, fixed_prefix(fmt.name)))
+    for src in sources:
+        for key, path in src.write(out).items():
+            meta["files"][path.name] = key
+    meta["files"]["observer.npz"] = "arrays"
+    np.savez(out / "observer.npz", **arrays)
+    (out / "observer.json").write_text(json.dumps(meta, indent=2, ensure_ascii=False) + "\n",
+                                       encoding="utf-8")
+    files = {f: (out / f).stat().st_size for f in [*meta["files"], "observer.json"]}
+    return ExportResult(out, files, meta, arrays, tuple(caught))
+
+
+def fixed_prefix(fmt_name: str) -> str:
+    """The C prefix of a fixed build: `tj_observer_q16_16`, `tj_observer_q8_24`, ..."""
+    return f"{FLOAT_PREFIX}_{fmt_name.replace('.', '_')}"
+
+
+def model_name(spec, where):
+    return spec.name if spec is not None else where
+
+
+def _format(fixed):
+    from .. import reference as ref
+
+    try:
+        return ref.fixed_format(fixed)
+    except ValueError:
+        raise InputError(f"unknown fixed-point format {fixed!r}; expected one of "
+                         f"{sorted(ref.FORMATS)}.", field="--fixed") from None
+
+
+@dataclasses.dataclass(frozen=True)
+class _Pair:
+    Phi: np.ndarray
+    C: np.ndarray
+
+
+def _finite_or_none(a):
+    return [[None if not np.isfinite(v) else float(v) for v in row] if np.ndim(row) else
+            (None if not np.isfinite(row) else float(row)) for row in np.asarray(a, float)]
+
+
+def _biases(spec) -> list:
+    if spec is None or not spec.biases:
+        return []
+    out = []
+    for b in spec.biases:
+        visco = [{"time_constant_s": e.parameters["time_constant"].value,
+                  "k": e.parameters["k"].value, "node": e.where[0]}
+                 for e in spec.effects if e.kind == "viscoelastic" and e.where[1] == b.column]
+        terms = [f"poly{i}" for i in range(b.order + 1)] + \
+            [f"gradient {a}-{c}" for a, c in b.gradients] + [f"rate {r}" for r in b.rates]
+        out.append({"column": b.column, "temperature": b.temperature, "order": b.order,
+                    "polynomial_reference_C": 25.0,
+                    "gradients": [list(g) for g in b.gradients], "rates": list(b.rates),
+                    "terms": terms,
+                    "coefficients": None if b.coefficients is None else list(b.coefficients),
+                    "viscoelastic": visco,
+                    "formula": "b = Σ c_p (T − 25)^p + Σ d_g (T_a − T_b) + Σ e_r dT_n/dt "
+                               "+ Σ k_v (T_v − ε_v), dε_v/dt = (T_v − ε_v)/τ_v "
+                               "(docs/formats.md §4)"})
+    return out
+
+
+def _check_fixed(fx, system, A, B, names, inputs, sensors, rate_hz, dt, where, warn) -> None:
+    """Couplings the format rounds to zero (a warning) and stability after quantization.
+
+    A coupling is an entry of `Phi`, `B0`, `B1` whose continuous counterpart (`A`, `B`) is
+    nonzero (a link, a boundary, a heat input: not the tiny fill-in of the exponential),
+    a nonzero entry of `C` or `D`, or a gain entry above 1e-3 of its column's largest."""
+    labels = {"Phi": (names, names), "B0": (names, inputs), "B1": (names, inputs),
+              "C": (sensors, names), "D": (sensors, inputs)}
+    exact = {"Phi": system.Phi, "B0": system.B0, "B1": system.B1, "C": system.C,
+             "D": system.D, "L": system.L}
+    direct = {"Phi": (A != 0) & ~np.eye(len(names), dtype=bool), "B0": B != 0, "B1": B != 0,
+              "C": system.C != 0, "D": system.D != 0}
+    zeroed = []
+    for name, (rows, cols) in labels.items():
+        q = fx.coef[name]
+        for i, j in zip(*np.nonzero(direct[name] & (exact[name] != 0) & (q == 0))):
+            zeroed.append(f"{name}[{rows[i]}, {cols[j]}] = {exact[name][i, j]:.3g}")
+    qL = fx.coef["L"][system.full_mask]
+    big = np.abs(exact["L"]) >= 1e-3 * np.abs(exact["L"]).max(axis=0, keepdims=True)
+    for i, j in zip(*np.nonzero(big & (exact["L"] != 0) & (qL == 0))):
+        zeroed.append(f"L[{names[i]}, {sensors[j]}] = {exact['L'][i, j]:.3g}")
+    if zeroed:
+        shown = "; ".join(zeroed[:8]) + (f"; and {len(zeroed) - 8} more" if len(zeroed) > 8 else "")
+        warn(f"fixed-point format {fx.fmt.name} (LSB {fx.fmt.lsb:.3g} K) rounds "
+             f"{len(zeroed)} nonzero coefficient(s) to zero, losing those couplings: {shown}. "
+             "Use a format with more fractional bits (q8.24) or a lower rate.")
+    n = system.n_states
+    for mask in range(1, system.full_mask + 1):
+        Phi_q = fx.coef["Phi"] * 2.0 ** -fx.coef_frac["Phi"]
+        C_q = fx.coef["C"] * 2.0 ** -fx.coef_frac["C"]
+        L_q = fx.coef["L"][mask] * 2.0 ** -fx.coef_frac["L"]
+        rho = float(np.abs(np.linalg.eigvals((np.eye(n) - L_q @ C_q) @ Phi_q)).max())
+        if not rho < 1.0:
+            used = [sensors[j] for j in range(system.n_outputs) if mask >> j & 1]
+            raise InputError(f"at {rate_hz:g} Hz (dt {dt:g} s) the {fx.fmt.name} observer with "
+                             f"sensors {used} is unstable after quantizing its coefficients "
+                             f"(spectral radius {rho:.6g} >= 1); use a lower rate or a format "
+                             "with more fractional bits.", file=where, field="--fixed")

@@ -1,0 +1,182 @@
+"""Read back the observer artifact written by `thermojax export` (NumPy and the standard
+library only), checking its schema version and every array before anything runs."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .._errors import InputError
+from ._faults import FaultConfig
+from ._fixed import FixedObserver, FixedScaling
+from ._float import FloatObserver
+from ._formats import FixedFormat
+from ._system import ObserverSystem
+
+SCHEMA = 1
+META = "observer.json"
+ARRAYS = "observer.npz"
+REQUIRED_FIELDS = ("schema", "thermojax_version", "model", "rate_hz", "dt_s", "states",
+                   "inputs", "outputs", "plausibility_limits_C", "faults", "fixed", "biases")
+REQUIRED_ARRAYS = ("Phi", "B0", "B1", "C", "D", "gain_table", "x_ref", "u_ref", "y_ref",
+                   "output_offset")
+
+
+class ArtifactError(InputError):
+    """An observer artifact that cannot be used: missing file, field or array, another
+    schema version, or inconsistent shapes. The message names the file and the item."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ObserverArtifact:
+    """An artifact read by `load_observer`.
+
+    - `folder`: where it was read from.
+    - `metadata`: `observer.json` as a dict.
+    - `arrays`: `observer.npz` as a dict of arrays.
+    - `system`: the `ObserverSystem` (matrices and gain table, float64).
+    - `faults`: the `FaultConfig` of the artifact.
+    """
+
+    folder: Path
+    metadata: dict
+    arrays: dict
+    system: ObserverSystem
+    faults: FaultConfig
+
+    @property
+    def state_names(self) -> list[str]:
+        return [s["name"] for s in self.metadata["states"]]
+
+    @property
+    def input_names(self) -> list[str]:
+        return [s["name"] for s in self.metadata["inputs"]]
+
+    @property
+    def output_names(self) -> list[str]:
+        return [s["name"] for s in self.metadata["outputs"]]
+
+    @property
+    def dt(self) -> float:
+        return float(self.metadata["dt_s"])
+
+    def float_observer(self, dtype=np.float64) -> FloatObserver:
+        """The float reference observer (float64 or float32) of the artifact."""
+        return FloatObserver(self.system, self.faults, dtype=dtype)
+
+    def fixed_observer(self) -> FixedObserver:
+        """The fixed-point reference observer of the artifact (exported with `--fixed`);
+        its integer coefficients are checked against the stored ones."""
+        fx = self.metadata["fixed"]
+        if fx is None:
+            raise ArtifactError("the artifact has no fixed-point build (exported without "
+                                "--fixed).", file=str(self.folder / META), field="fixed")
+        fmt = FixedFormat(fx["format"], int(fx["word_bits"]), int(fx["frac_bits"]),
+                          float(fx["state_scale_K"]))
+        a = self.arrays
+        if "u_scale" not in a:
+            raise ArtifactError("the array 'u_scale' is missing (needed by the fixed build).",
+                                file=str(self.folder / ARRAYS), field="u_scale")
+        obs = FixedObserver(self.system, fmt,
+                            FixedScaling(a["x_ref"], a["y_ref"], a["u_ref"], a["u_scale"]),
+                            self.faults)
+        for name in obs.MATRICES:
+            key = f"fixed_{name}"
+            if key not in a:
+                raise ArtifactError(f"the array '{key}' is missing (the fixed build's "
+                                    "integer coefficients).", file=str(self.folder / ARRAYS),
+                                    field=key)
+            if not np.array_equal(a[key], obs.coef[name]):
+                raise ArtifactError(f"the stored integer coefficients '{key}' differ from "
+                                    f"those the reference computes from the float matrices; "
+                                    "the artifact was modified or written by an "
+                                    "incompatible version.", file=str(self.folder / ARRAYS),
+                                    field=key)
+        return obs
+
+
+def _rail_pairs(rails):
+    if rails is None:
+        return None
+    return [[-np.inf if lo is None else lo, np.inf if hi is None else hi] for lo, hi in rails]
+
+
+def load_observer(folder) -> ObserverArtifact:
+    """Read and check an observer artifact folder (`observer.json` + `observer.npz`).
+
+    **Arguments:**
+
+    - `folder`: the folder `thermojax export --out` wrote.
+
+    **Returns:** an `ObserverArtifact`.
+
+    **Raises:** `ArtifactError` (an `InputError`, so a `ValueError`) naming the file and the
+    missing or bad field or array, or the schema version found and the one expected.
+    """
+    folder = Path(folder)
+    meta_path, npz_path = folder / META, folder / ARRAYS
+    if not meta_path.is_file():
+        raise ArtifactError(f"no {META} in '{folder}': not an observer artifact (write one "
+                            "with `thermojax export`).", file=str(meta_path))
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ArtifactError(f"not valid JSON ({err}).", file=str(meta_path)) from None
+    if not isinstance(meta, dict):
+        raise ArtifactError("expected a JSON object.", file=str(meta_path))
+    if "schema" not in meta:
+        raise ArtifactError("the field 'schema' is missing.", file=str(meta_path),
+                            field="schema")
+    if meta["schema"] != SCHEMA:
+        raise ArtifactError(f"schema version {meta['schema']!r}, but this thermojax reads "
+                            f"schema {SCHEMA}; export the observer again with this version.",
+                            file=str(meta_path), field="schema")
+    for key in REQUIRED_FIELDS:
+        if key not in meta:
+            raise ArtifactError(f"the field '{key}' is missing.", file=str(meta_path),
+                                field=key)
+    if not npz_path.is_file():
+        raise ArtifactError(f"the array file is missing from '{folder}'.", file=str(npz_path))
+    try:
+        with np.load(npz_path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as err:
+        raise ArtifactError(f"cannot be read as .npz ({err}).", file=str(npz_path)) from None
+    for key in REQUIRED_ARRAYS:
+        if key not in arrays:
+            raise ArtifactError(f"the array '{key}' is missing.", file=str(npz_path), field=key)
+    n, m, p = len(meta["states"]), len(meta["inputs"]), len(meta["outputs"])
+    shapes = {"Phi": (n, n), "B0": (n, m), "B1": (n, m), "C": (p, n), "D": (p, m),
+              "gain_table": (1 << p, n, p), "x_ref": (n,), "u_ref": (m,), "y_ref": (p,),
+              "output_offset": (p,)}
+    for key, shape in shapes.items():
+        a = arrays[key]
+        if a.shape != shape:
+            raise ArtifactError(f"the array '{key}' has shape {a.shape}; {META} names {n} "
+                                f"states, {m} inputs and {p} outputs, so expected {shape}.",
+                                file=str(npz_path), field=key)
+        if not np.issubdtype(a.dtype, np.floating) or not np.all(np.isfinite(a)):
+            raise ArtifactError(f"the array '{key}' must hold finite floats.",
+                                file=str(npz_path), field=key)
+    a = arrays
+    gains = {tuple(j for j in range(p) if mask >> j & 1):
+             a["gain_table"][mask][:, [j for j in range(p) if mask >> j & 1]]
+             for mask in range(1, 1 << p)}
+    system = ObserverSystem.build(a["Phi"], a["B0"], a["B1"], a["C"], a["D"], gains)
+    if not np.array_equal(system.gain_table, a["gain_table"]):
+        raise ArtifactError("the array 'gain_table' has nonzero gains for sensors outside "
+                            "their subset.", file=str(npz_path), field="gain_table")
+    f = meta["faults"]
+    try:
+        faults = FaultConfig(limits=tuple(f["limits_C"]), rails=_rail_pairs(f["rails_C"]),
+                             residual_threshold=[np.inf if v is None else v
+                                                 for v in f["residual_threshold_K"]],
+                             wire_break_after=int(f["wire_break_after"]),
+                             recover_after=int(f["recover_after"]))
+    except (KeyError, TypeError, ValueError) as err:
+        raise ArtifactError(f"the fault settings are incomplete or invalid ({err!r}).",
+                            file=str(meta_path), field="faults") from None
+    return ObserverArtifact(folder, meta, arrays, system, faults)
