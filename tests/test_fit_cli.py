@@ -290,3 +290,56 @@ perturb = 0.2
                                                                                       rel=0.15)
     # The first folder was not touched by the second run.
     assert (tmp_path / "results" / made[0] / "report.json").read_text() == first_report
+
+
+def _png_width(path) -> int:
+    import struct
+
+    data = path.read_bytes()[:24]
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    return struct.unpack(">I", data[16:20])[0]
+
+
+def test_parameter_table_on_screen_matches_report(oe_cli):
+    """Every parameter is printed with the value and std of report.json, its 95 % interval
+    (Wald on the log scale for a positive parameter, by hand here) and its unit."""
+    report = strict_json((oe_cli["dir"] / "report.json").read_text())
+    lines = oe_cli["out"].splitlines()
+    assert any(line.split()[:4] == ["parameter", "value", "std", "95"] for line in lines)
+    for name, p in report["parameters"].items():
+        row = next(line for line in lines if line.startswith(name + " "))
+        cells = row.split()
+        assert float(cells[1]) == pytest.approx(p["value"], rel=1e-3), name
+        if p["std"] is None:
+            assert cells[2] == "–"
+            continue
+        assert float(cells[2]) == pytest.approx(p["std"], rel=0.05), name
+        lo, hi = (float(x) for x in re.findall(r"\[([^,]+), ([^\]]+)\]", row)[0])
+        v, sd = p["value"], p["std"]
+        if name.endswith(".initial"):
+            assert "(W)" in row and row.rstrip().endswith("°C")
+            want = (v - 1.96 * sd, v + 1.96 * sd)
+        else:
+            assert "(Wl)" in row
+            want = (v * math.exp(-1.96 * sd / v), v * math.exp(1.96 * sd / v))
+        assert (lo, hi) == pytest.approx(want, rel=1e-3), name
+    gain = next(line for line in lines if line.startswith("heat_inputs.sheath-P_heater.gain"))
+    assert gain.rstrip().endswith("fixed")
+    units = {"nodes.sheath.capacitance": "J/K", "links.sheath-core.conductance": "W/K",
+             "sensors.T_core.noise": "°C"}
+    for name, unit in units.items():
+        assert f" {unit} " in next(line for line in lines if line.startswith(name)) + " "
+
+
+def test_fit_writes_report_md_naming_its_plots(oe_cli):
+    d = oe_cli["dir"]
+    md = (d / "report.md").read_text(encoding="utf-8")
+    assert md.startswith("# Fit report")
+    refs = re.findall(r"\]\(([^)\s]+\.png)\)", md)
+    assert refs == ["fit_run0.png", "fit_run1.png"]
+    for ref in refs:
+        assert _png_width(d / ref) >= 1000
+    assert "| nodes.sheath.capacitance |" in md and "Wald" in md
+    # T_sheath's noise is fixed in the model file, T_core's estimated: said so
+    assert re.search(r"\| T_sheath \|.*\| given \(fixed\) \|", md)
+    assert re.search(r"\| T_core \|.*\| estimated \|", md)

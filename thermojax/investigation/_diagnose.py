@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ._diagnostic_plots import diagnostic_plots
+from ._diagnostic_plots import PLOT_KEYS
 from ._diagnostics import diagnose_traces
 from ._investigate import diagnose_step, evaluate, _noise, _version
 from .._json import json_safe
@@ -48,12 +48,12 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
 
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        report["plots"] = diagnostic_plots(out, "diagnose", columns, step.traces, inputs,
-                                           boundary)
-        (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
         story = {"steps": [{**rec, "candidates": report["candidates"]}],
                  "stopped_because": "diagnosis only", "likelihood": likelihood,
                  "noise": report["noise"], "significance_rule": report["significance_rule"]}
+        # report.md and every plot, each written once (`diagnose_<key>.png`)
         write_investigation_report(out, json_safe(story), [step.traces], columns, inputs,
-                                   boundary)
+                                   boundary, diagnosis=True)
+        report["plots"] = {k: f"diagnose_{k}.png" for k in PLOT_KEYS}
+        (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
     return report

@@ -13,12 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .._plots import new_figure
+from .._plots import WIDTH_IN, new_figure, save_figure
 from .._residual_analysis import (PHASES, cross_correlation, cumulated_periodogram,
                                  pooled_autocorrelation, residuals_by_phase)
-from ._diagnostics import _check_runs, _dt, _label, _max_lag, _phases, _signals, _split_inputs
+from ._diagnostics import _check_runs, _dt, _label, _phases, _signals, _split_inputs
 
-_DPI = 80
+#: The keys of `diagnostic_plots`, one PNG each.
+PLOT_KEYS = ("fit", "acf", "xcorr", "periodogram", "phases")
 
 
 def _stride(n: int, points: int = 1500) -> int:
@@ -26,18 +27,49 @@ def _stride(n: int, points: int = 1500) -> int:
 
 
 def _save(fig, path: Path) -> None:
-    """Write `fig` with fixed margins (tight_layout costs as much as drawing it)."""
-    w, h = fig.get_size_inches()
-    fig.subplots_adjust(left=min(1.0 / w, 0.3), right=1 - min(0.2 / w, 0.1),
-                        bottom=min(0.6 / h, 0.3), top=1 - min(0.35 / h, 0.15),
-                        hspace=0.45, wspace=0.3)
-    fig.savefig(path, dpi=_DPI)
+    save_figure(fig, path)
 
 
-def _fit_figure(columns, runs, res):
+def settling_time(parameters: dict) -> float | None:
+    """The model's slowest time constant, s, estimated from a fit's `parameters`
+    (dotted name -> {"value", ...}): total capacitance over total boundary conductance
+    (exact for a single node; for a network, the time the whole unit takes to follow
+    its surroundings). None when the parameters do not say."""
+    cap = sum(float(p["value"]) for k, p in parameters.items()
+              if k.startswith("nodes.") and k.endswith(".capacitance") and p.get("value"))
+    g = sum(float(p["value"]) for k, p in parameters.items()
+            if k.startswith("boundaries.") and k.endswith(".conductance") and p.get("value"))
+    return cap / g if cap > 0 and g > 0 else None
+
+
+def _lags_for(time_scale, dt: float, shortest: int, max_lag) -> int:
+    """Lags, samples: `max_lag` if given, else two slowest time constants (`time_scale`,
+    s), at most a third of the shortest run; without either the default of `_max_lag`."""
+    if max_lag is not None or not time_scale:
+        return _max_lag_runs(shortest, max_lag)
+    return max(1, min(int(math.ceil(2.0 * time_scale / dt)), shortest // 3, shortest - 1))
+
+
+def _max_lag_runs(shortest: int, max_lag) -> int:
+    lag = int(max_lag) if max_lag is not None else max(1, min(30, shortest // 5))
+    return max(0, min(lag, shortest - 1))
+
+
+def _lag_axis(lags_s: np.ndarray) -> tuple[np.ndarray, str]:
+    """Lags in s, or in min when they span more than 10 min."""
+    if lags_s.size and np.max(np.abs(lags_s)) > 600:
+        return lags_s / 60.0, "min"
+    return lags_s, "s"
+
+
+def _run_title(name) -> str:
+    return Path(str(name)).name
+
+
+def _fit_figure(columns, runs, res, units, title):
     """Rows: (column, residual) pairs; one column of panels per run; time in h."""
     p, nr = len(columns), len(runs)
-    fig = new_figure(figsize=(min(4.0 * nr, 16.0), 2.6 * p + 0.6))
+    fig = new_figure(figsize=(max(WIDTH_IN, min(6.0 * nr, 18.0)), 3.2 * p + 1.0))
     axes = fig.subplots(2 * p, nr, squeeze=False, gridspec_kw={"height_ratios": [2, 1] * p})
     for i, r in enumerate(runs):
         t_h = r["ts"] / 3600.0
@@ -47,92 +79,118 @@ def _fit_figure(columns, runs, res):
             ax.plot(t_h[::s], r["measured"][::s, j], ".", ms=2, color="0.4", label="measured")
             ax.plot(t_h[::s], r["predicted"][::s, j], color="tab:blue", lw=1.0, label="model")
             if i == 0:
-                ax.set_ylabel(c)
+                ax.set_ylabel(f"{c}, {units.get(c, '°C')}")
             if j == 0:
-                ax.set_title(r["name"], fontsize=9)
+                ax.set_title(f"run {i}: {_run_title(r['name'])}")
             if i == 0 and j == 0:
-                ax.legend(fontsize=7, loc="best")
+                ax.legend(loc="best")
             ax = axes[2 * j + 1, i]
             ax.plot(t_h[::s], res[j][i][::s], color="tab:red", lw=0.6)
             ax.axhline(0, color="k", lw=0.5)
             if i == 0:
-                ax.set_ylabel("residual", fontsize=8)
+                ax.set_ylabel(f"residual, {units.get(c, '°C')}")
         axes[-1, i].set_xlabel("time, h")
-    for ax in axes.ravel():
-        ax.grid(alpha=0.3)
-        ax.tick_params(labelsize=7)
+    fig.suptitle(f"{title}\nmeasured against model, residual below each")
     return fig
 
 
-def _acf_figure(columns, res, dt: float, shortest: int):
-    """Pooled residual autocorrelation per column, lags in s, with the ±1.96/√N band."""
+def _acf_figure(columns, res, dt: float, shortest: int, lag: int, title: str):
+    """Pooled residual autocorrelation per column over `lag` samples (two slowest time
+    constants: a slow residual is seen to decay instead of sitting at 1), with the
+    ±1.96/√N band."""
     p = len(columns)
-    acf_lags = max(1, min(50, shortest - 1))
-    fig = new_figure(figsize=(6, 1.9 * p + 0.4))
+    acf_lags = max(1, min(lag, shortest - 1))
+    fig = new_figure(figsize=(WIDTH_IN, 3.0 * p + 1.0))
     axes = fig.subplots(p, 1, squeeze=False)
+    k = np.arange(1, acf_lags + 1)
+    x, unit = _lag_axis(k * dt)
     for j, c in enumerate(columns):
         ax = axes[j, 0]
         rho, n = pooled_autocorrelation(res[j], acf_lags)
-        k = np.arange(1, acf_lags + 1)
-        ax.vlines(k * dt, 0, rho, color="tab:blue")
+        if acf_lags > 60:
+            ax.plot(x, rho, color="tab:blue", lw=1.2)
+        else:
+            ax.vlines(x, 0, rho, color="tab:blue")
         band = 1.96 / math.sqrt(max(n, 1))
         ax.axhspan(-band, band, color="0.85")
         ax.axhline(0, color="k", lw=0.5)
-        ax.set_ylabel(f"{c}\nACF", fontsize=8)
-    axes[-1, 0].set_xlabel("lag, s")
-    axes[0, 0].set_title("pooled residual autocorrelation (grey: ±1.96/√N)", fontsize=9)
+        ax.set_ylim(-1.05, 1.05)
+        ax.set_ylabel("autocorrelation")
+        ax.set_title(f"{c}")
+    axes[-1, 0].set_xlabel(f"lag, {unit}")
+    fig.suptitle(f"{title}\nresidual autocorrelation, runs pooled "
+                 "(grey: ±1.96/√N, where white noise stays)")
     return fig
 
 
-def _xcorr_figure(columns, runs, res, input_names, dt: float, lag: int):
-    """One panel per column: its residual against every input and derivative, 95 % band."""
+def _xcorr_figure(columns, runs, res, input_names, dt: float, lag: int, title: str):
+    """Per column two panels: its residual against every input, and against every
+    input's rate of change, over ±`lag` samples; 95 % band."""
     p = len(columns)
     signals = [_signals(r, input_names) for r in runs]
-    fig = new_figure(figsize=(7, 2.2 * p + 0.6))
-    axes = fig.subplots(p, 1, squeeze=False)
+    fig = new_figure(figsize=(WIDTH_IN, 3.2 * p + 1.0))
+    axes = fig.subplots(p, 2, squeeze=False, sharey=True)
+    unit = "s"
     for j, c in enumerate(columns):
-        ax = axes[j, 0]
-        band = None
-        for s in range(2 * len(input_names)):
-            name, deriv, _ = signals[0][s]
-            lags, ccf, band = cross_correlation(res[j], [sg[s][2] for sg in signals], lag)
-            ax.plot(lags * dt, ccf, lw=1.0, ls="--" if deriv else "-", label=_label(name, deriv))
-        if band is not None:
-            ax.axhspan(-band, band, color="0.85")
-            ax.legend(fontsize=6, ncol=2, loc="best")
-        ax.axhline(0, color="k", lw=0.5)
-        ax.set_ylabel(f"{c}\ncorrelation", fontsize=8)
-    axes[-1, 0].set_xlabel("lag, s (positive: input leads)")
-    axes[0, 0].set_title("residual vs inputs and their derivatives (grey: 95 % band)", fontsize=9)
+        for col, want in enumerate((False, True)):
+            ax = axes[j, col]
+            band = None
+            for s in range(2 * len(input_names)):
+                name, deriv, _ = signals[0][s]
+                if bool(deriv) != want:
+                    continue
+                lags, ccf, band = cross_correlation(res[j], [sg[s][2] for sg in signals], lag)
+                x, unit = _lag_axis(lags * dt)
+                ax.plot(x, ccf, lw=1.2, label=_label(name, deriv))
+            if band is not None:
+                ax.axhspan(-band, band, color="0.85")
+                ax.legend(loc="best")
+            ax.axhline(0, color="k", lw=0.5)
+            ax.set_title(f"{c} residual against input " + ("rates" if want else "levels"))
+            if col == 0:
+                ax.set_ylabel("correlation")
+    for ax in axes[-1]:
+        ax.set_xlabel(f"lag, {unit} (positive: input leads)")
+    fig.suptitle(f"{title}\nresidual against inputs (grey: 95 % band of no relation)")
     return fig
 
 
-def _periodogram_figure(columns, res):
-    """Cumulated periodogram per column with the 5 % Kolmogorov-Smirnov band."""
+def _periodogram_figure(columns, res, title: str):
+    """Cumulated periodogram per column with the 5 % Kolmogorov-Smirnov band, on a
+    logarithmic frequency axis (a slow residual reaches 1 within the lowest frequencies,
+    which a linear axis squeezes against its left edge)."""
     p = len(columns)
-    fig = new_figure(figsize=(min(3.2 * p, 16.0), 3.0))
+    fig = new_figure(figsize=(WIDTH_IN, 4.5))
     axes = fig.subplots(1, p, squeeze=False)
     for j, c in enumerate(columns):
         ax = axes[0, j]
         if any(np.isfinite(x).sum() >= 4 for x in res[j]):
             f, cp, bound = cumulated_periodogram(res[j])
-            ax.plot(f, cp, color="tab:blue", lw=1.0)
-            ax.plot([0, 1], [0, 1], color="k", lw=0.5)
-            ax.fill_between(f, f - bound, f + bound, color="0.85")
-        ax.set_title(c, fontsize=9)
-        ax.set_xlabel("frequency / Nyquist", fontsize=8)
-        ax.set_xlim(0, 1)
+            f, cp = np.asarray(f), np.asarray(cp)
+            keep = f > 0
+            ax.fill_between(f[keep], np.clip(f[keep] - bound, 0, 1),
+                            np.clip(f[keep] + bound, 0, 1), color="0.85",
+                            label="white noise ± 5 % band")
+            ax.plot(f[keep], f[keep], color="k", lw=0.8)
+            ax.plot(f[keep], cp[keep], color="tab:blue", lw=1.4, label="residual")
+            ax.set_xscale("log")
+            if keep.any():
+                ax.set_xlim(f[keep][0], 1)
+            ax.legend(loc="center right")
+        ax.set_title(c)
+        ax.set_xlabel("frequency / Nyquist (log scale)")
         ax.set_ylim(0, 1.05)
     axes[0, 0].set_ylabel("cumulated periodogram")
+    fig.suptitle(f"{title}\ncumulated periodogram of the residual")
     return fig
 
 
-def _phases_figure(columns, runs, res, input_names, boundary_inputs):
+def _phases_figure(columns, runs, res, input_names, boundary_inputs, units, title):
     """Grouped bars: mean residual per chamber phase and column."""
     p = len(columns)
     chamber, powers = _split_inputs(input_names, boundary_inputs)
     ph = [_phases(r, input_names, chamber, powers) for r in runs]
-    fig = new_figure(figsize=(6, 3))
+    fig = new_figure(figsize=(WIDTH_IN, 4.5))
     ax = fig.subplots()
     width = 0.8 / max(p, 1)
     x = np.arange(len(PHASES))
@@ -142,15 +200,17 @@ def _phases_figure(columns, runs, res, input_names, boundary_inputs):
         ax.bar(x + (j - (p - 1) / 2) * width, means, width, label=c)
     ax.axhline(0, color="k", lw=0.5)
     ax.set_xticks(x)
-    ax.set_xticklabels([k.replace("_", " ") for k in PHASES], fontsize=8)
-    ax.set_ylabel("mean residual")
-    ax.legend(fontsize=7)
-    ax.set_title("residual by chamber phase", fontsize=9)
+    ax.set_xticklabels([k.replace("_", " ") for k in PHASES])
+    unit = sorted({units.get(c, "°C") for c in columns})
+    ax.set_ylabel(f"mean residual, {unit[0] if len(unit) == 1 else 'column unit'}")
+    ax.legend()
+    ax.set_title(f"{title}: mean residual per chamber phase")
     return fig
 
 
 def diagnostic_plots(out_dir, prefix: str, columns, runs, input_names, boundary_inputs=(),
-                     max_lag: int | None = None) -> dict[str, str]:
+                     max_lag: int | None = None, time_scale: float | None = None,
+                     title: str = "", units: dict | None = None) -> dict[str, str]:
     """Write the diagnostic PNGs into `out_dir`; return their file names (relative to
     `out_dir`, `<prefix>_<key>.png`) by key:
 
@@ -160,33 +220,40 @@ def diagnostic_plots(out_dir, prefix: str, columns, runs, input_names, boundary_
     - `periodogram`: cumulated periodogram with the 5 % Kolmogorov-Smirnov band;
     - `phases`: residual mean per chamber phase, per column.
 
-    Arguments as `diagnose_traces` takes them (`max_lag` in samples).
+    Arguments as `diagnose_traces` takes them (`max_lag` in samples). `time_scale`:
+    the model's slowest time constant, s (`settling_time`): the auto- and
+    cross-correlation lags then span two of it. `title`: the words each figure's title
+    starts with (default from `prefix`); `units`: column -> unit (default °C).
     """
+    units = units or {}
+    title = title or (prefix.replace("step", "Step ") if prefix else "Model")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     runs = _check_runs(columns, runs, input_names)
     pre = f"{prefix}_" if prefix else ""
-    names = {k: f"{pre}{k}.png" for k in ("fit", "acf", "xcorr", "periodogram", "phases")}
+    names = {k: f"{pre}{k}.png" for k in PLOT_KEYS}
     res = [[r["measured"][:, j] - r["predicted"][:, j] for r in runs]
            for j in range(len(columns))]
     dt = _dt(runs)
     shortest = min(len(r["ts"]) for r in runs)
-    lag = _max_lag(runs, max_lag)
-    _save(_fit_figure(columns, runs, res), out_dir / names["fit"])
-    _save(_acf_figure(columns, res, dt, shortest), out_dir / names["acf"])
-    _save(_xcorr_figure(columns, runs, res, input_names, dt, lag), out_dir / names["xcorr"])
-    _save(_periodogram_figure(columns, res), out_dir / names["periodogram"])
-    _save(_phases_figure(columns, runs, res, input_names, boundary_inputs),
+    lag = _lags_for(time_scale, dt, shortest, max_lag)
+    _save(_fit_figure(columns, runs, res, units, title), out_dir / names["fit"])
+    _save(_acf_figure(columns, res, dt, shortest, lag, title), out_dir / names["acf"])
+    _save(_xcorr_figure(columns, runs, res, input_names, dt, lag, title),
+          out_dir / names["xcorr"])
+    _save(_periodogram_figure(columns, res, title), out_dir / names["periodogram"])
+    _save(_phases_figure(columns, runs, res, input_names, boundary_inputs, units, title),
           out_dir / names["phases"])
     return names
 
 
 def error_chart(path: Path, steps: list[dict], columns, noise: dict) -> None:
     """Free-run RMSE per step (log scale), one line per column, each column's noise std
-    dashed; `steps` are `report.json` step entries, `noise` column -> std."""
+    dashed; `steps` are `report.json` step entries, `noise` column -> std (pass only a
+    noise given in the model: an estimated one equals the RMSE by construction)."""
     from matplotlib import rcParams
 
-    fig = new_figure(figsize=(6.5, 3.6))
+    fig = new_figure(figsize=(WIDTH_IN, 5.5))
     ax = fig.subplots()
     x = np.arange(len(steps))
     colors = rcParams["axes.prop_cycle"].by_key()["color"]
@@ -202,14 +269,14 @@ def error_chart(path: Path, steps: list[dict], columns, noise: dict) -> None:
             ax.axhline(sd, color=color, ls="--", lw=0.8)
     ax.set_yscale("log")
     ax.set_xticks(x)
-    ax.set_xticklabels(["start" if not s.get("added") else
-                        f"+{s['added'].get('kind', '?')}" for s in steps],
-                       rotation=30, ha="right", fontsize=8)
-    ax.set_xlabel("step")
-    ax.set_ylabel("free-run RMSE")
-    ax.set_title("error per step" + (" (dashed: noise std)" if noise else ""), fontsize=9)
-    ax.grid(alpha=0.3, which="both")
+    ax.set_xticklabels([f"{i}: start" if not s.get("added") else
+                        f"{i}: + {s['added'].get('kind', '?')}" for i, s in enumerate(steps)],
+                       rotation=20, ha="right")
+    ax.set_xlabel("step (effect added)")
+    ax.set_ylabel("free-run RMSE, °C")
+    ax.set_title("Error per step of the investigation"
+                 + (" (dashed: noise std given in the model)" if noise else ""))
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
+        ax.legend()
+    ax.grid(alpha=0.3, which="both")
+    save_figure(fig, path)

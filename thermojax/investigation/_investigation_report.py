@@ -13,7 +13,7 @@ import json
 import math
 from pathlib import Path
 
-from ._diagnostic_plots import diagnostic_plots, error_chart
+from ._diagnostic_plots import diagnostic_plots, error_chart, settling_time
 from ._diagnostics import diagnose_traces
 
 _TOP = 8  # candidates shown per step
@@ -91,7 +91,12 @@ def _evidence(i: int, step: dict, previous: dict, report: dict, columns) -> str:
     c = _matching_candidate(previous, added) or {}
     parts = [f"**Added {_effect(added)}**"]
     ev = []
-    if c.get("score") is not None:
+    if c.get("score_test") is not None:
+        ev.append(f"score-test statistic {_num(c['score_test'])}")
+    if c.get("likelihood_ratio") is not None:
+        ev.append(f"likelihood-ratio statistic {_num(c['likelihood_ratio'])}")
+    if c.get("score_test") is None and c.get("likelihood_ratio") is None \
+            and c.get("score") is not None:
         ev.append(f"evidence score {_num(c['score'])}"
                   + (f" ({c['method']})" if c.get("method") else ""))
     if c.get("delta_bic") is not None:
@@ -117,7 +122,9 @@ def _evidence(i: int, step: dict, previous: dict, report: dict, columns) -> str:
         parts.append(f" Note: {_sentence(c['note'])}")
     params = added.get("parameters") or {}
     if params:
-        parts.append(" Fitted: " + ", ".join(f"{k} = {_num(v)}" for k, v in params.items()) + ".")
+        fitted = step.get("parameters") or {}
+        parts.append(" Fitted: " + ", ".join(
+            f"{k} = {_pm(v, _effect_std(fitted, added, k))}" for k, v in params.items()) + ".")
     before, after = previous.get("rmse") or {}, step.get("rmse") or {}
     changes = [f"{col} {_num(before.get(col))} → {_num(after.get(col))}" for col in columns
                if col in before or col in after]
@@ -126,13 +133,39 @@ def _evidence(i: int, step: dict, previous: dict, report: dict, columns) -> str:
     return "".join(parts)
 
 
+def _pm(value, std) -> str:
+    """`value ± std` (the std to 2 significant digits), or the value alone."""
+    if isinstance(std, (int, float)) and math.isfinite(std):
+        return f"{_num(value)} ± {_num(std, '.2g')}"
+    return _num(value)
+
+
+def _effect_std(parameters: dict, added: dict, name: str):
+    """The std of the added effect's parameter `name` in a step's fitted `parameters`
+    (dotted names `effects.<kind>.<...>.<name>`); None if absent."""
+    kind, where = added.get("kind"), [str(w) for w in (added.get("where") or [])]
+    label = added.get("name")
+    for key, p in parameters.items():
+        parts = key.split(".")
+        if len(parts) < 3 or parts[0] != "effects" or parts[-1] != name:
+            continue
+        if (label and label in key) or (parts[1] == kind and all(w in key for w in where)):
+            return (p or {}).get("std")
+    return None
+
+
 def _candidate_table(cands: list[dict]) -> list[str]:
-    lines = ["| # | candidate | score | Δ BIC | p-value | supported | tied with | method | note |",
-             "|---|---|---:|---:|---:|---|---|---|---|"]
+    lines = ["| # | candidate | score test | likelihood ratio | Δ BIC | p-value | supported | "
+             "tied with | method | note |",
+             "|---|---|---:|---:|---:|---:|---|---|---|---|"]
     for k, c in enumerate(cands[:_TOP], 1):
         ties = ", ".join(_effect(t) for t in (c.get("tied_with") or [])) or "–"
+        st, lr = c.get("score_test"), c.get("likelihood_ratio")
+        if st is None and lr is None:  # a report from before the two were told apart
+            st, lr = (None, c.get("score")) if c.get("method") == "refit" else (c.get("score"),
+                                                                                None)
         lines.append("| " + " | ".join(_cell(v) for v in (
-            k, _effect(c), _num(c.get("score")), _num(c.get("delta_bic"), "+.4g"),
+            k, _effect(c), _num(st), _num(lr), _num(c.get("delta_bic"), "+.4g"),
             _num(c.get("p_value"), "p"), _yes_no(c.get("supported")), ties,
             c.get("method") or "–", c.get("note") or "")) + " |")
     if len(cands) > _TOP:
@@ -140,53 +173,85 @@ def _candidate_table(cands: list[dict]) -> list[str]:
     return lines
 
 
-def _diagnose_steps(out: Path, steps, step_traces, columns, input_names, boundary_inputs):
+def _diagnose_steps(out: Path, steps, step_traces, columns, input_names, boundary_inputs,
+                    prefix: str | None = None, units: dict | None = None):
     """Per step: `diagnose_traces` and `diagnostic_plots` of its traces (None for both
-    when the step has none)."""
+    when the step has none). Plots are named `step<i>_*.png`, or `<prefix>_*.png` for a
+    single step with `prefix`."""
     diagnoses, plots = [], []
     for i in range(len(steps)):
         traces = step_traces[i] if i < len(step_traces) else None
         if traces:
             diagnoses.append(diagnose_traces(columns, traces, input_names, boundary_inputs))
-            plots.append(diagnostic_plots(out, f"step{i}", columns, traces, input_names,
-                                          boundary_inputs))
+            s = steps[i]
+            what = "the given model" if not s.get("added") else \
+                f"after adding {_effect(s['added'])}"
+            title = (f"Diagnosis of {what}" if prefix else f"Step {i}, {what}")
+            plots.append(diagnostic_plots(
+                out, prefix or f"step{i}", columns, traces, input_names, boundary_inputs,
+                time_scale=settling_time(s.get("parameters") or {}), title=title,
+                units=units))
         else:
             diagnoses.append(None)
             plots.append(None)
     return diagnoses, plots
 
 
-def _summary(report: dict, steps: list[dict], columns, noise: dict) -> list[str]:
+def noise_sources(steps: list[dict], columns) -> dict[str, str]:
+    """column -> "given" (fixed in the model file) or "estimated" (fitted with the model:
+    then RMSE ≈ noise by construction), from the first step's `parameters`."""
+    params = (steps[0].get("parameters") if steps else None) or {}
+    out = {}
+    for c in columns:
+        p = params.get(f"sensors.{c}.noise")
+        out[c] = "estimated" if p is None or p.get("free", True) else "given"
+    return out
+
+
+def _summary(report: dict, steps: list[dict], columns, noise: dict,
+             diagnosis: bool = False) -> list[str]:
     """The `## Summary` section: what was added, why the loop stopped, RMSE against noise."""
     first, last = (steps[0] if steps else {}), (steps[-1] if steps else {})
     added = [(i, s["added"]) for i, s in enumerate(steps) if s.get("added")]
     md = ["## Summary", ""]
-    if added:
+    if diagnosis:
+        md.append("The given model was fitted and its residuals diagnosed; every candidate "
+                  "effect was ranked without changing the model.")
+    elif added:
         md.append(f"Starting from the given model, the investigation added {len(added)} "
                   f"effect{'s' if len(added) > 1 else ''}, in this order: "
                   + "; ".join(f"{_effect(a)} (step {i})" for i, a in added) + ".")
     else:
         md.append("The investigation added no effect to the given model.")
     stopped = report.get("stopped_because")
-    if stopped:
+    if stopped and not diagnosis:
         md.append(f"It stopped because {_STOPPED.get(stopped, stopped)} (`{stopped}`).")
     if report.get("likelihood"):
         md.append(f"Likelihood: `{report['likelihood']}`.")
     if report.get("significance_rule"):
         md.append(f"A candidate counts as supported when: {report['significance_rule']}.")
     md.append("")
-    md += ["| column | start RMSE | final RMSE | noise std | final / noise | final whiteness p |",
-           "|---|---:|---:|---:|---:|---:|"]
+    sources = noise_sources(steps, columns)
+    md += ["| column | start RMSE | final RMSE | noise std | noise is | final / noise "
+           "(given noise only) | final whiteness p |",
+           "|---|---:|---:|---:|---|---:|---:|"]
     for c in columns:
         r0, r1 = (first.get("rmse") or {}).get(c), (last.get("rmse") or {}).get(c)
         sd = noise.get(c)
         ratio = (r1 / sd) if isinstance(r1, (int, float)) and isinstance(sd, (int, float)) \
-            and sd > 0 else None
+            and sd > 0 and sources[c] == "given" else None
         md.append("| " + " | ".join(_cell(v) for v in (
-            c, _num(r0), _num(r1), _num(sd), _num(ratio, ".3g"),
-            _num((last.get("whiteness_p") or {}).get(c), "p"))) + " |")
+            c, _num(r0), _num(r1), _num(sd),
+            "given in the model" if sources[c] == "given" else "estimated",
+            _num(ratio, ".3g"), _num((last.get("whiteness_p") or {}).get(c), "p"))) + " |")
     md.append("")
-    if noise:
+    if any(v == "estimated" for v in sources.values()):
+        md.append("An estimated noise std is the fit's own residual scale, so RMSE ≈ noise "
+                  "holds by construction: it is no yardstick of success; the whiteness p "
+                  "is.")
+    given = {c: v for c, v in noise.items() if sources.get(c) == "given"}
+    if given:
+        noise = given
         close = [c for c in columns if isinstance((last.get("rmse") or {}).get(c), (int, float))
                  and c in noise and noise[c] > 0 and last["rmse"][c] <= 1.2 * noise[c]]
         if close:
@@ -202,6 +267,8 @@ def _summary(report: dict, steps: list[dict], columns, noise: dict) -> list[str]
     if report.get("final_model"):
         md.append(f"Final model: [`{report['final_model']}`]({report['final_model']}).")
     md.append("")
+    if diagnosis:
+        return md
     return md + ["![free-run RMSE per step](error_by_step.png)", ""]
 
 
@@ -245,7 +312,8 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
     s = steps[i]
     title = "the given model" if i == 0 and not s.get("added") \
         else f"added {_effect(s.get('added'))}"
-    md = [f"## Step {i}: {title}", ""]
+    md = [f"## Step {i}: {title}" if report.get("stopped_because") != "diagnosis only"
+          else "## The given model", ""]
     if i > 0:
         md += [_evidence(i, s, steps[i - 1], report, columns), ""]
     pl, dg = plots[i], diagnoses[i]
@@ -264,17 +332,18 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
         if dg["findings"]:
             md += ["What the residual shows:", ""] + [f"- {f}" for f in dg["findings"]] + [""]
     if pl:
-        md += [f"Diagnostics: [autocorrelation]({pl['acf']}), "
-               f"[cross-correlation with inputs]({pl['xcorr']}), "
-               f"[cumulated periodogram]({pl['periodogram']}), "
-               f"[residual by phase]({pl['phases']}).", ""]
-        md += [f"![residual by chamber phase]({pl['phases']})", ""]
+        md += [f"![residual autocorrelation]({pl['acf']})", "",
+               f"![residual against inputs and their rates]({pl['xcorr']})", "",
+               f"![cumulated periodogram]({pl['periodogram']})", "",
+               f"![residual by chamber phase]({pl['phases']})", ""]
     else:
         md += ["(No run traces for this step: no plots.)", ""]
     cands = s.get("candidates") or []
     md += ["### Candidates", ""]
     if cands:
-        md.append("Ranked by evidence score (larger is stronger); Δ BIC = BIC after − BIC "
+        md.append("Ranked by evidence (larger is stronger): the likelihood-ratio statistic "
+                  "2 (−log L before − after) for refitted candidates, else the score-test "
+                  "statistic (no refit), each in its own column; Δ BIC = BIC after − BIC "
                   "before; the first, if supported, is added at the next step.")
         md.append("")
         md += _candidate_table(cands) + [""]
@@ -286,7 +355,8 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
 
 
 def write_investigation_report(out_dir, report: dict, step_traces: list, columns: list[str],
-                               input_names: list[str], boundary_inputs=()) -> Path:
+                               input_names: list[str], boundary_inputs=(),
+                               diagnosis: bool = False, units: dict | None = None) -> Path:
     """Write `report.md` (and its PNGs, plus `diagnostics.json`) into `out_dir`.
 
     **Arguments:**
@@ -299,6 +369,9 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
     - `step_traces`: `step_traces[i]` the run traces (see `_diagnostics`) of the
       model fitted at step `i`; a missing entry just leaves that step without plots.
     - `columns`, `input_names`, `boundary_inputs`: as `diagnose_traces` takes them.
+    - `diagnosis`: the one-step report of `diagnose` (titled a diagnosis, plots
+      `diagnose_*.png`, no error-per-step chart).
+    - `units`: column -> unit for columns not in °C.
 
     **Returns:** the path of `report.md`.
     """
@@ -307,14 +380,19 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
     steps = list(report.get("steps") or [])
     noise = {k: v for k, v in (report.get("noise") or {}).items() if v is not None}
     diagnoses, plots = _diagnose_steps(out, steps, step_traces, columns, input_names,
-                                       boundary_inputs)
+                                       boundary_inputs, "diagnose" if diagnosis else None,
+                                       units)
     (out / "diagnostics.json").write_text(json.dumps(
         {"steps": diagnoses}, indent=1, allow_nan=False, ensure_ascii=False))
-    error_chart(out / "error_by_step.png", steps or [{}], columns, noise)
+    sources = noise_sources(steps, columns)
+    if not diagnosis:
+        error_chart(out / "error_by_step.png", steps or [{}], columns,
+                    {c: v for c, v in noise.items() if sources.get(c) == "given"})
 
-    md = ["# Investigation report", ""]
-    md += _summary(report, steps, columns, noise)
-    md += _steps_table(steps, columns)
+    md = ["# Diagnosis report" if diagnosis else "# Investigation report", ""]
+    md += _summary(report, steps, columns, noise, diagnosis)
+    if not diagnosis:
+        md += _steps_table(steps, columns)
     for i in range(len(steps)):
         md += _step_section(i, steps, report, columns, plots, diagnoses)
     path = out / "report.md"
