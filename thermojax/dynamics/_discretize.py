@@ -312,3 +312,12 @@ def discretize_process_noise(A: Float[Array, "n n"], Qc: Float[Array, "n n"], dt
         return jnp.where(keep, Phi2, Phi), jnp.where(keep, 0.5 * (Qd2 + Qd2.T), Qd)
 
     return jax.lax.fori_loop(0, _MAX_HALVINGS, double, (Phi, Qd))
+
+
+def sample_period(ts) -> Float[Array, ""]:
+    """A run's sample period (s): the median of its time steps, so that the jitter
+    docs/formats.md §1 allows (1 %) on any one step, the first included, does not set
+    it; 1 for a single sample."""
+    if ts.shape[0] < 2:
+        return jnp.ones((), ts.dtype)
+    return jnp.median(jnp.diff(ts))

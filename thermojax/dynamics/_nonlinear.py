@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._discretize import discretize
+from ._discretize import discretize, sample_period
 from ..model._system import LinearSystem
 
 
@@ -88,8 +88,8 @@ def etd2_step(model, system: LinearSystem, dt, substeps: int = SUBSTEPS):
 
 
 def simulate_run_nonlinear(model, system: LinearSystem, ts, u, x0):
-    """States (T, n) of one run by ETD2 from `x0`; the sample period is `ts[1] - ts[0]`."""
-    step = etd2_step(model, system, ts[1] - ts[0])
+    """States (T, n) of one run by ETD2 from `x0`; the sample period is the median step of `ts`."""
+    step = etd2_step(model, system, sample_period(ts))
     u_next = jnp.concatenate([u[1:], u[-1:]], axis=0)
     return jax.lax.scan(lambda x, inp: (step(x, *inp), x), x0, (u, u_next))[1]
 

@@ -86,13 +86,10 @@ def dataset_maps(model, data, run_initial, L: int = _BLOCK):
     """Per-run `((DL, N, O), z0)` of a `ThermalModel` on a `Dataset`, stacked over runs:
     the `block_maps` of the run's outputs and its initial `z0 = x0 - B1 u[0]` (n,).
 
-    The sample period of each run is `ts[1] - ts[0]`, as `ExactHold` takes it.
+    The sample period of each run is its median step (`data.dt`), as `ExactHold` takes it.
     """
     system = model.linear_system()
-    if data.ts.shape[1] > 1:
-        dts = data.ts[:, 1] - data.ts[:, 0]
-    else:
-        dts = jnp.ones(data.ts.shape[:1], data.ts.dtype)
+    dts = jnp.asarray(data.dt, data.ts.dtype)
     # One run at a time (`lax.map`, not `vmap`): each exponential then squares only as
     # often as its own `dt` needs, in its value and in every tangent.
     discs = jax.lax.map(lambda dt: discretize(system, dt), dts)

@@ -11,7 +11,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._blocked import block_maps, block_rows
-from ._discretize import AbstractDiscretization, MatrixExponential, discretize, modal_decomposition
+from ._discretize import (AbstractDiscretization, MatrixExponential, discretize, modal_decomposition,
+                          sample_period)
 from ..model._system import LinearSystem
 
 
@@ -84,7 +85,7 @@ class ExactHold(AbstractSimulator):
     with `lax.associative_scan` (`parallel=True`: O(log T) depth, for long
     horizons on accelerators; on a reciprocal network it runs diagonally in
     modal coordinates). Both equal the step-by-step recurrence to float64
-    roundoff. `ts` must be uniformly spaced.
+    roundoff. `ts` must be uniformly spaced; the period is their median step.
     """
 
     discretization: AbstractDiscretization = MatrixExponential()
@@ -94,7 +95,7 @@ class ExactHold(AbstractSimulator):
         if not isinstance(system, LinearSystem):
             raise TypeError("`ExactHold` simulates linear systems only; use "
                             "`DiffraxSimulator()` for a nonlinear model.")
-        dt = ts[1] - ts[0] if ts.shape[0] > 1 else jnp.ones((), ts.dtype)
+        dt = sample_period(ts)  # the median step: jitter on one step does not set it
         disc = discretize(system, dt, self.discretization)
         if self.parallel:
             drive = inputs[:-1] @ disc.B0.T + inputs[1:] @ disc.B1.T  # (times-1, states)
@@ -228,7 +229,7 @@ def simulate_batch(model, experiments, simulator: AbstractSimulator | None = Non
     for i, (u, ts) in enumerate(experiments):
         u, ts = jnp.asarray(u), jnp.asarray(ts)
         pad = longest - u.shape[0]
-        dt = ts[1] - ts[0]
+        dt = sample_period(ts)
         us.append(jnp.concatenate([u, jnp.broadcast_to(u[-1], (pad, u.shape[1]))]))
         tss.append(jnp.concatenate([ts, ts[-1] + dt * jnp.arange(1, pad + 1)]))
         x0 = None if x0s is None else x0s[i]

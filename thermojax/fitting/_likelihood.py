@@ -21,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..measurements._data import Dataset
-from ..dynamics._discretize import discretize, discretize_process_noise
+from ..dynamics._discretize import discretize, discretize_process_noise, sample_period
 from ..model._model import ThermalModel
 from ..dynamics._nonlinear import etd2_step, initial_state_nonlinear
 from ..dynamics._sensitivity import dataset_block_outputs
@@ -72,7 +72,7 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanO
     initial covariance `diag(initial_std²)`.
     """
     system = model.linear_system()
-    dt = ts[1] - ts[0]
+    dt = sample_period(ts)  # the median step (docs/formats.md §1 allows jitter)
     transition = _transition(model, system, dt)
     _, Qd = discretize_process_noise(system.A, jnp.diag(model.process_noise ** 2), dt)
     R = jnp.diag(model.noise ** 2)
@@ -145,7 +145,7 @@ def rts_smoother(model: ThermalModel, ts, kf: KalmanOutput):
     """Rauch-Tung-Striebel smoothed means and stds of every node: ((times, states), (times, states))."""
     system = model.linear_system()
     # With nonlinear effects the gain uses the linear part's Φ: they are small corrections.
-    Phi = discretize(system, ts[1] - ts[0]).Phi
+    Phi = discretize(system, sample_period(ts)).Phi
 
     def back(carry, inp):
         m_s_next, P_s_next = carry

@@ -99,7 +99,8 @@ def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) ->
 def _parameters(sol: Solution, ident: Identifiability, spec: ModelSpec) -> dict[str, dict]:
     """Every parameter by dotted name (lowered spec): free ones from `theta` with their
     std (None where unidentifiable), the noise stds, then the fixed ones."""
-    stds = np.sqrt(np.clip(np.diag(ident.covariance), 0, None))
+    stds = (np.sqrt(np.clip(np.diag(ident.covariance), 0, None)) if ident.stds is None
+            else ident.stds)
     out: dict[str, dict] = {}
     for j, name in enumerate(sol.names):
         log = _is_log(name)
