@@ -161,3 +161,20 @@ def residuals_by_phase(residuals: list[np.ndarray], phases: list[PhaseLabels]) -
     h, c = out["heating_ramp"]["mean"], out["cooling_ramp"]["mean"]
     out["heating_minus_cooling"] = None if h is None or c is None else h - c
     return out
+
+
+def long_run_variance_ratio(runs: list[np.ndarray], bandwidth: int | None = None) -> float:
+    """Long-run variance over variance of a residual sequence (Newey-West, Bartlett kernel),
+    runs pooled: `1 + 2 Σ_{k≤L} (1 − k/(L+1)) ρ_k`, at least 1.
+
+    A χ² statistic built from autocorrelated residuals is too large by about this factor
+    (the effective sample is smaller than the sample count); dividing by it deflates it.
+    `bandwidth` L defaults to `⌊4 (N/100)^{2/9}⌋` (Newey & West 1994), at least 1."""
+    n = sum(int(np.isfinite(np.asarray(r, float)).sum()) for r in runs)
+    if n < 3:
+        return 1.0
+    lag = max(1, int(4 * (n / 100.0) ** (2.0 / 9.0))) if bandwidth is None else int(bandwidth)
+    rho, _ = pooled_autocorrelation(runs, lag)
+    k = np.arange(1, lag + 1)
+    ratio = 1.0 + 2.0 * float(np.sum((1.0 - k / (lag + 1.0)) * rho))
+    return float(max(ratio, 1.0)) if np.isfinite(ratio) else 1.0

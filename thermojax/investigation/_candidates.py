@@ -51,13 +51,29 @@ class Candidate:
     note: str = ""
     holdout_gain: float | None = None  # held-out −log L improvement (leave one run out)
     result: object = field(default=None, repr=False)  # FitResult of the refit
+    lr_deflation: float = 1.0  # long-run variance ratio dividing the statistic (non-white)
+    holdout_spread: float | None = None  # fold-to-fold spread of the held-out gain
+    score_test: float | None = None  # the score-test statistic (kept once refitted)
+
+    def __post_init__(self):
+        if self.score_test is None and self.method == "score":
+            self.score_test = self.score
+
+    @property
+    def likelihood_ratio(self) -> float | None:
+        """2 (−log L before − −log L after): the refitted candidate's statistic."""
+        return self.score if self.method == "refit" else None
 
     @property
     def key(self) -> tuple[str, tuple[str, ...]]:
         return self.kind, tuple(self.where)
 
     def as_json(self) -> dict:
+        # `score`: the ranking's evidence statistic (spec); `score_test` and
+        # `likelihood_ratio` say the two statistics apart (None where not computed).
         return {"kind": self.kind, "where": list(self.where), "score": _finite(self.score),
+                "score_test": _finite(self.score_test),
+                "likelihood_ratio": _finite(self.likelihood_ratio),
                 "delta_bic": _finite(self.delta_bic), "p_value": _finite(self.p_value),
                 "tied_with": [[k, list(w)] for k, w in self.tied_with],
                 "supported": bool(self.supported), "method": self.method,
@@ -213,12 +229,14 @@ def _heat_responses(model, data, W):
 
 
 def score_candidates(result, data: Dataset, places, columns: dict, weights, residuals,
-                     jacobian) -> list[Candidate]:
+                     jacobian, deflation: float = 1.0) -> list[Candidate]:
     """Score-test every `(kind, where)` in `places` at the fitted `result`.
 
     `residuals` (N,) and `jacobian` (N, P): the noise-weighted output-error residuals
     (data rows, (runs, T, p) flattened, zero where unmeasured) and their Jacobian in the
     fitted parameters; `weights` (runs, T, p): 1/σ where measured, else 0.
+    `deflation`: the residuals' long-run variance ratio; p-values are those of the
+    statistic divided by it (the reported score is not).
     """
     ctx = ScoreContext(result.lowered_spec, result.model, data, result.state.run_initial,
                        columns)
@@ -263,8 +281,10 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
         if not scores:
             continue
         stat = max(scores)
-        p = stats.chi2.sf(stat, 1) * (0.5 if one_sided else 1.0) * len(dirs)
-        cands.append(Candidate(kind, tuple(where), float(stat), float(min(1.0, p))))
+        p = stats.chi2.sf(stat / max(deflation, 1.0), 1) * (0.5 if one_sided else 1.0) \
+            * len(dirs)
+        cands.append(Candidate(kind, tuple(where), float(stat), float(min(1.0, p)),
+                               lr_deflation=float(max(deflation, 1.0))))
     cands.sort(key=lambda c: -c.score)
     return cands
 

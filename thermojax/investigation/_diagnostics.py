@@ -357,3 +357,36 @@ def diagnose_traces(columns: list[str], runs: list[RunTrace], input_names: list[
     tests = _tests(lb_lags, lag, dt, len(input_names), chamber, powers)
     return json_safe({"columns": out_cols, "findings": findings, "tests": tests,
                       "runs": [r["name"] for r in runs]})
+
+
+# ---------------------------------------------------------------------------
+# Significance when a parameter exists only under the alternative
+
+
+LAG_FAMILY_CURVATURE = 0.25
+"""−ρ''(0) of a score process over log τ for first-order-lag directions driven by white
+excitation: the correlation of the directions at τ₁, τ₂ is sech(ln(τ₂/τ₁)/2). Smoother
+excitation correlates them more, so the bound below stays conservative."""
+
+
+def davies_variation(log_range: float, curvature: float = LAG_FAMILY_CURVATURE) -> float:
+    """Expected total variation `V = √(2/π) √λ₂ · range` of √S(θ) over a nuisance θ (here a
+    time constant's logarithm spanning `log_range`), for Davies' bound."""
+    return math.sqrt(2.0 / math.pi) * math.sqrt(curvature) * max(float(log_range), 0.0)
+
+
+def davies_p_value(statistic: float, df: int, variation: float) -> float:
+    """Davies (1987) upper bound on `P(sup_θ S(θ) > u)` for a χ²_df process `S` whose
+    parameter θ does not exist under the null (an extra node's time constant, a
+    viscoelastic τ):
+
+        P(χ²_df > u) + V u^{(df−1)/2} e^{−u/2} 2^{−df/2} / Γ(df/2)
+
+    with `V` the total variation of √S over θ (`davies_variation`)."""
+    u = max(float(statistic), 0.0)
+    df = max(int(df), 1)
+    if u <= 0.0:
+        return 1.0
+    log_term = (math.log(max(variation, 1e-300)) + 0.5 * (df - 1) * math.log(u) - 0.5 * u
+                - 0.5 * df * math.log(2.0) - math.lgamma(0.5 * df))
+    return float(min(1.0, stats.chi2.sf(u, df) + math.exp(log_term)))
