@@ -63,21 +63,8 @@ def cmd_export(args) -> int:
     return 0
 
 
-def _rate(text: str) -> float:
-    import argparse
-    import math
-
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of Hz, got {text!r}") from None
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive number of Hz, got {text}")
-    return value
-
-
 def add_export(sub):
-    from ._main import _add_force, _add_quiet
+    from ._main import _add_force, _add_quiet, _positive_float
 
     p = sub.add_parser("export", help="export the reference observer (JSON, .npz, C99)",
                        description="Design the observer of a model at a rate and write it as a "
@@ -86,7 +73,7 @@ def add_export(sub):
                        "and C99 source and header (float64 build; with --fixed also the "
                        "fixed-point build). With --check DIR, check an existing artifact.")
     p.add_argument("--model", help="model TOML file or built-in model name")
-    p.add_argument("--rate", type=_rate, help="observer rate, Hz (e.g. 20)")
+    p.add_argument("--rate", type=_positive_float, help="observer rate, Hz (e.g. 20)")
     p.add_argument("--out", help="output folder")
     p.add_argument("--fixed", choices=FORMATS, default=None,
                    help="also write the fixed-point build in this format")

@@ -93,6 +93,7 @@ def cmd_simulate(args) -> int:
 
 def cmd_demo(args) -> int:
     from .._plots import plot_simulation, time_constant_groups
+    from ..model._network import local_time_constants
 
     out = Path(args.out)
     check_output_folder(out, args.force)
@@ -119,7 +120,7 @@ def cmd_demo(args) -> int:
         {n: states[:, i] for i, n in enumerate(names)},
         {c: measured[:, j] for j, c in enumerate(spec.sensor_columns)},
         reference="asic", title="The six-node IMU through the calibration schedule",
-        groups=time_constant_groups(_local_time_constants(spec)),
+        groups=time_constant_groups(local_time_constants(spec)),
         dynamic={"proof mass − ASIC, after a static cubic in the ASIC temperature": dynamic},
         dynamic_title=f"Proof mass − ASIC is {lag.min():+.2f} .. {lag.max():+.2f} K, mostly a "
         f"static offset; a static calibration leaves this dynamic part")
@@ -143,17 +144,6 @@ def cmd_demo(args) -> int:
     print(f"the report is {out / 'investigation' / 'report.md'} "
           f"(with {out / 'investigation' / 'report.json'} and plots)")
     return 0
-
-
-def _local_time_constants(spec) -> dict[str, float]:
-    """Each node's own time constant, s: its capacitance over the conductances touching it."""
-    g = {n.name: 0.0 for n in spec.nodes}
-    for link in spec.links:
-        for n in link.between:
-            g[n] += link.conductance.value
-    for b in spec.boundaries:
-        g[b.node] += b.conductance.value
-    return {n.name: n.capacitance.value / g[n.name] for n in spec.nodes if g[n.name] > 0}
 
 
 def _load_runs(spec, paths: list[str]):

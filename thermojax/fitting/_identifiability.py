@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..model._network import local_time_constants
 from ..model._spec import ModelSpec
 
 
@@ -258,7 +259,7 @@ def _fast_unsensed(spec: ModelSpec, members, sample_period: float | None) -> dic
         return {}
     sensed = {s.node for s in spec.sensors}
     unsensed = [n for n in _nodes_of(spec, members) if n not in sensed]
-    return {n: tau for n, tau in _local_time_constants(spec).items()
+    return {n: tau for n, tau in local_time_constants(spec).items()
             if n in unsensed and tau < 2 * sample_period}
 
 
@@ -366,14 +367,3 @@ def _explain(members: dict[str, float], spec: ModelSpec, std: float,
                  "several rates, power steps, PRBS)"
                  + (", or put a sensor on one of these nodes." if unsensed else "."))
     return text
-
-
-def _local_time_constants(spec: ModelSpec) -> dict[str, float]:
-    """Each node's own time constant `C_i / Σ G` (s) from the spec's values."""
-    total = {n.name: 0.0 for n in spec.nodes}
-    for k in spec.links:
-        for n in k.between:
-            total[n] += k.conductance.value
-    for b in spec.boundaries:
-        total[b.node] += b.conductance.value
-    return {n.name: n.capacitance.value / total[n.name] for n in spec.nodes if total[n.name] > 0}

@@ -212,6 +212,18 @@ def conductance_matrix(topology: Topology, conductance, boundary_conductance):
     return E.T @ (g[:, None] * E) + Eb.T @ (gb[:, None] * Eb)
 
 
+def local_time_constants(spec: ModelSpec) -> dict[str, float]:
+    """Each node's own time constant `C_i / Σ G` (s) at the spec's values: its
+    capacitance over the conductances touching it (nodes touching none are left out)."""
+    total = {n.name: 0.0 for n in spec.nodes}
+    for k in spec.links:
+        for n in k.between:
+            total[n] += k.conductance.value
+    for b in spec.boundaries:
+        total[b.node] += b.conductance.value
+    return {n.name: n.capacitance.value / total[n.name] for n in spec.nodes if total[n.name] > 0}
+
+
 def time_constants(capacitance, K):
     """Time constants (s, ascending) `1/eig(C^-½ K C^-½)` of capacitances (J/K) and a
     conductance matrix `K` (W/K); inf for a node set with no path to a boundary.
