@@ -486,15 +486,15 @@ def test_profiles_are_prefix_stable_and_sane():
 @pytest.mark.parametrize("name", g.case_names())
 def test_case_loads_and_generates(name):
     case = g.load_case(name)
-    assert len(g.case_names()) == 14
+    assert len(g.case_names()) == 15  # a case per effect kind, null, out of vocabulary, one run
     assert case["header"] and "etect" in case["header"]  # every case says why it shows
-    assert len(case["runs"]) == 3
+    assert len(case["runs"]) == (1 if name == "one_run" else 3)
     assert all(s.get("noise") == 0.01 for s in case["truth"]["sensors"])
     if case["hidden"] not in ("none", "out_of_vocabulary"):
         assert case["hidden"] in {e["kind"] for e in case["truth"]["effects"]}
         assert case["expected"]["kind"] == case["hidden"]
     runs = g.generate_case(name, seed=5, horizon_s=120.0)
-    assert len(runs) == 3
+    assert len(runs) == len(case["runs"])
     for ts, cols in runs:
         assert list(cols) == case["data_columns"]
         assert ts[0] == 0 and np.all(np.diff(ts) == 1.0) and len(ts) == 121
@@ -504,9 +504,10 @@ def test_case_loads_and_generates(name):
             assert col not in cols
     # The same seed gives the same data; a shorter horizon a prefix of it (the inputs and
     # the noise exactly, the integration to its tolerance).
-    again = g.generate_case(name, seed=5, horizon_s=60.0, runs=[1])
+    last = len(runs) - 1
+    again = g.generate_case(name, seed=5, horizon_s=60.0, runs=[last])
     for col, v in again[0][1].items():
-        np.testing.assert_allclose(v, runs[1][1][col][:61], rtol=0,
+        np.testing.assert_allclose(v, runs[last][1][col][:61], rtol=0,
                                    atol=0 if col in case["input_columns"] else 1e-8)
 
 
