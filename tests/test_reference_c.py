@@ -60,3 +60,21 @@ def test_generated_source_is_static(tmp_path):
     src = ref.generate_c(ref.FixedObserver(system, "q16.16", IMU6_SCALING["q16.16"]), "obs")
     assert "malloc" not in src.source and "static const int32_t OBS_PHI[6][6]" in src.source
     assert "int64_t" in src.source
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_step_is_straight_line(dtype):
+    """The step has no loops: products unrolled with literal coefficients, zeros skipped,
+    one comment per matrix row."""
+    system, *_ = playback(10)
+    src = ref.generate_c(ref.FloatObserver(system, dtype=dtype), "obs",
+                         names=(["housing", "bulkhead", "pcb", "asic", "mems", "proof_mass"],
+                                ["T_chamber", "P_asic"], ["T_housing", "T_pcb", "T_asic"]))
+    step = src.source[src.source.index("uint8_t obs_step("):]
+    assert "for (" not in step and "OBS_PHI" not in step
+    assert "/* x-[bulkhead] = Phi[bulkhead, :] x" in step
+    assert "r1 = y[1] - (xm2);" in step             # C selects pcb: 1 * x is x
+    n_products = step.count(" * ")
+    nz = sum(np.count_nonzero(M) for M in (system.Phi, system.B0, system.B1,
+                                           system.gain_table[1:]))
+    assert n_products == nz                          # every nonzero gain/plant entry, once

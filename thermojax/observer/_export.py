@@ -7,7 +7,9 @@ sensor subset (the fault fallback of `thermojax.reference`), and writes into a f
   state/input/output names and units, the hold of each input, plausibility limits,
   fault settings, the fixed-point format and scales, bias coefficients, and for a model
   with nonlinear effects the operating point of its linearization);
-- `observer.npz`: the arrays (`Phi`, `B0`, `B1`, `C`, `D`, `gain_table`, the offsets);
+- `observer.npz`: the arrays (`Phi`, `B0`, `B1`, `C`, `D`, `gain_table`, the offsets, and
+  for bias channels with rate terms `bias_rate_nodes`, `bias_rate_A`, `bias_rate_B`: the
+  rows of the continuous model `A_c`, `B_c` giving those nodes' exact `dT/dt`);
 - `tj_observer.c`/`.h` (the float64 build) and, with `fixed`, `tj_observer_<fmt>.c`/`.h`
   (the fixed-point build), each with a playback harness `*_main.c`.
 
@@ -258,6 +260,12 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
               "gain_table": obs_system.gain_table, "x_ref": x_ref, "u_ref": u_ref,
               "y_ref": y_ref, "u_steady": u0, "x_steady": x_steady,
               "output_offset": np.asarray(model.output_offset(), float)[rows]}
+    biases = _biases(spec)
+    rate_nodes = sorted({names.index(r) for b in biases for r in b["rates"]})
+    if rate_nodes:   # rows of the continuous model for the exact dT/dt of rate terms
+        arrays["bias_rate_nodes"] = np.array(rate_nodes, dtype=np.int64)
+        arrays["bias_rate_A"] = A_c[rate_nodes]
+        arrays["bias_rate_B"] = np.asarray(system.B, float)[rate_nodes]
     fixed_meta = None
     fixed_obs = None
     if fmt is not None:
@@ -300,16 +308,17 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                    "wire_break_after": int(faults.wire_break_after),
                    "recover_after": int(faults.recover_after)},
         "fixed": fixed_meta,
-        "biases": _biases(spec),
+        "biases": biases,
         "linearization": linearization,
         "warnings": caught,
     }
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     meta["files"] = {}
-    sources = [ref.generate_c(ref.FloatObserver(obs_system, faults), FLOAT_PREFIX)]
+    c_names = (list(names), list(inputs), list(sensor_names))
+    sources = [ref.generate_c(ref.FloatObserver(obs_system, faults), FLOAT_PREFIX, c_names)]
     if fixed_obs is not None:
-        sources.append(ref.generate_c(fixed_obs, fixed_prefix(fmt.name)))
+        sources.append(ref.generate_c(fixed_obs, fixed_prefix(fmt.name), c_names))
     for src in sources:
         for key, path in src.write(out).items():
             meta["files"][path.name] = key
@@ -369,7 +378,12 @@ def _biases(spec) -> list:
                     "viscoelastic": visco,
                     "formula": "b = Σ c_p (T − 25)^p + Σ d_g (T_a − T_b) + Σ e_r dT_n/dt "
                                "+ Σ k_v (T_v − ε_v), dε_v/dt = (T_v − ε_v)/τ_v "
-                               "(docs/formats.md §4)"})
+                               "(docs/formats.md §4)",
+                    "evaluation": "thermojax.reference.BiasEvaluator, float64, from the "
+                                  "corrected estimate x[k] and u[k]: dT_n/dt = "
+                                  "bias_rate_A[i] x + bias_rate_B[i] u (i: the row of n in "
+                                  "bias_rate_nodes); ε_v exact for T_v linear between "
+                                  "samples, ε_v[0] = T_v[0]"})
     return out
 
 

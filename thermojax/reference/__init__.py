@@ -2,12 +2,14 @@
 
 NumPy and the standard library only (no JAX): the filter-form observer with
 first-order-hold inputs in float64/float32 and in fixed point (Q16.16, Q8.24, Q15), the
-firmware's channel supervision (plausibility, open circuit, ADC rails, wire break,
+bias channels evaluated from the estimate (polynomial,
+gradients, exact rates, viscoelastic strain states), the firmware's channel supervision (plausibility, open circuit, ADC rails, wire break,
 reduced-order fallback gains), multi-rate bias interpolation through a double buffer,
 the derived fixed-point error bound, and a C99 generator that repeats all of it.
 """
 
 from ._artifact import ArtifactError, ObserverArtifact, load_observer
+from ._bias import BiasChannel, BiasEvaluator, bias_channels_from_metadata
 from ._bound import ErrorBound, error_series, quantization_error_bound
 from ._c_source import CSource, generate_c
 from ._faults import ChannelMonitor, FaultConfig
@@ -20,10 +22,10 @@ from ._run import ObserverRun
 from ._system import ObserverSystem
 
 __all__ = [
-    "ArtifactError", "BiasInterpolator", "CSource", "ChannelMonitor", "DoubleBuffer",
+    "ArtifactError", "BiasChannel", "BiasEvaluator", "BiasInterpolator", "CSource", "ChannelMonitor", "DoubleBuffer",
     "ErrorBound", "FORMATS", "FaultConfig", "FixedFormat", "FixedObserver", "FixedScaling",
     "FloatObserver", "MultiRateRun", "ObserverArtifact", "ObserverRun", "ObserverSystem",
     "Q15", "Q16_16", "Q8_24", "decode", "encode", "error_series", "fixed_format",
-    "generate_c", "load_observer", "quantization_error_bound", "round_shift",
+    "bias_channels_from_metadata", "generate_c", "load_observer", "quantization_error_bound", "round_shift",
     "run_multirate", "saturate",
 ]

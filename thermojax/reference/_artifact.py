@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import InputError
+from ._bias import BiasEvaluator, bias_channels_from_metadata
 from ._faults import FaultConfig
 from ._fixed import FixedObserver, FixedScaling
 from ._float import FloatObserver
@@ -63,9 +64,44 @@ class ObserverArtifact:
     def dt(self) -> float:
         return float(self.metadata["dt_s"])
 
+    def bias_evaluator(self) -> BiasEvaluator | None:
+        """The artifact's bias channels (those with fitted coefficients) as a
+        `BiasEvaluator`, or None when there are none. Rate terms use the arrays
+        `bias_rate_nodes`, `bias_rate_A`, `bias_rate_B` (rows of the continuous model)."""
+        try:
+            channels = bias_channels_from_metadata(self.metadata["biases"], self.state_names)
+        except (KeyError, TypeError, ValueError) as err:
+            raise ArtifactError(f"the bias channels cannot be evaluated ({err!r}).",
+                                file=str(self.folder / META), field="biases") from None
+        if not channels:
+            return None
+        a = self.arrays
+        if any(ch.rates for ch in channels):
+            for key in ("bias_rate_nodes", "bias_rate_A", "bias_rate_B"):
+                if key not in a:
+                    raise ArtifactError(f"the array '{key}' is missing (needed by the bias "
+                                        "channels' rate terms).", file=str(self.folder / ARRAYS),
+                                        field=key)
+            A, B, rows = a["bias_rate_A"], a["bias_rate_B"], a["bias_rate_nodes"]
+        else:
+            A = B = rows = None
+        try:
+            return BiasEvaluator(channels, self.dt, A, B, rows)
+        except ValueError as err:
+            raise ArtifactError(str(err), file=str(self.folder / ARRAYS),
+                                field="bias_rate_A") from None
+
+    @property
+    def names(self) -> tuple:
+        """`(states, inputs, outputs)` names (used in the generated C's comments)."""
+        return self.state_names, self.input_names, self.output_names
+
     def float_observer(self, dtype=np.float64) -> FloatObserver:
-        """The float reference observer (float64 or float32) of the artifact."""
-        return FloatObserver(self.system, self.faults, dtype=dtype)
+        """The float reference observer (float64 or float32) of the artifact, evaluating its
+        bias channels (`ObserverRun.bias`) when it has fitted ones."""
+        obs = FloatObserver(self.system, self.faults, dtype=dtype, biases=self.bias_evaluator())
+        obs.names = self.names
+        return obs
 
     def fixed_observer(self) -> FixedObserver:
         """The fixed-point reference observer of the artifact (exported with `--fixed`);
@@ -95,6 +131,7 @@ class ObserverArtifact:
                                     "the artifact was modified or written by an "
                                     "incompatible version.", file=str(self.folder / ARRAYS),
                                     field=key)
+        obs.names = self.names
         return obs
 
 

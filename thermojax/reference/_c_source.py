@@ -2,13 +2,18 @@
 
 The generated code repeats the NumPy reference operation for operation:
 
-- fixed point: the same integer coefficients, exact int64 sums, alignment by
-  multiplication with `2**shift` (left shifts of negative values are undefined in C), the
-  same rounding `(a + 2**(s-1)) >> s` (an arithmetic right shift is checked at compile
-  time) and the same saturation: bit-exact with `FixedObserver`.
-- float/double: every sum starts from 0 and adds `M[i][j] * v[j]` in order `j = 0, 1, ...`
-  with the matrices stored column by column (so the compiler may vectorize over rows
-  without reordering any sum). Bit-exact with `FloatObserver` when compiled without
+The step is straight-line code (no loops over matrices): each product is unrolled row by
+row with the coefficients as literals and exact zeros skipped.
+
+- fixed point: the same integer coefficients, exact int64 sums (so skipping zeros and
+  the order of terms change nothing), the alignment `2**shift` folded into the literal
+  (no left shift of a negative value, undefined in C), the same rounding
+  `(a + 2**(s-1)) >> s` (an arithmetic right shift is checked at compile time) and the
+  same saturation: bit-exact with `FixedObserver`.
+- float/double: each row is one left-to-right sum `c0 * v0 + c1 * v1 + ...` over its
+  nonzero coefficients (the first product starts the sum), the order of
+  `FloatObserver` (`SparseSum`); `a - c * v` stands for `a + (-c) * v` and `v` for
+  `1 * v`, both identical in IEEE arithmetic. Bit-exact with `FloatObserver` when compiled without
   contraction into fused multiply-adds (`-ffp-contract=off`; `-ffast-math` is not allowed)
   on a target that evaluates `float` in single precision (FLT_EVAL_METHOD 0: x86-64 SSE,
   Cortex-M4F/M7).
@@ -118,11 +123,51 @@ def _array(name: str, ctype: str, values, word: str) -> str:
     return f"static const {ctype} {name}{dims} = {_braced(a, word, '')};\n"
 
 
+def _readable_lit(v, word: str) -> str:
+    """A decimal literal that parses back to exactly `v` in `word` (float or double):
+    the shortest round-trip decimal, checked; hexadecimal if the check fails."""
+    v = float(v)
+    if not np.isfinite(v):
+        return _lit(v, word)
+    if word == "float":
+        x = np.float32(v)
+        text = np.format_float_positional(x, unique=True, trim="0") if \
+            1e-4 <= abs(float(x)) < 1e7 or x == 0 else \
+            np.format_float_scientific(x, unique=True, trim="0")
+        ok = np.float32(text) == x
+        text += "f"
+    else:
+        text = repr(v)
+        ok = float(text) == v
+    if "." not in text and "e" not in text and "inf" not in text:
+        text = text.replace("f", "") + (".0f" if word == "float" else ".0")
+    return text if ok else _lit(v, word)
+
+
+def _zero(word: str) -> str:
+    return "0.0f" if word == "float" else "0.0"
+
+
+def _names(source, n: int, m: int, p: int):
+    """`(states, inputs, outputs)` names for comments: from a `(states, inputs, outputs)`
+    tuple, from an observer's `names` attribute, or generic (`x0`, `u0`, `y0`)."""
+    given = source if isinstance(source, (tuple, list)) else getattr(source, "names", None)
+    generic = ([f"x{i}" for i in range(n)], [f"u{j}" for j in range(m)],
+               [f"y{j}" for j in range(p)])
+    if given is None:
+        return generic
+    out = []
+    for names, default in zip(given, generic):
+        names = [str(v).replace("*/", "* /") for v in names] if names is not None else default
+        out.append(names if len(names) == len(default) else default)
+    return tuple(out)
+
+
 def _colmajor(M):
     return np.swapaxes(np.asarray(M), -1, -2)
 
 
-def generate_c(observer, prefix: str = "tj_observer") -> CSource:
+def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
     """C99 source for a `FloatObserver` (float or double) or a `FixedObserver`.
 
     **Arguments:**
@@ -130,6 +175,16 @@ def generate_c(observer, prefix: str = "tj_observer") -> CSource:
     - `observer`: the reference observer to export (its matrices, gains, format and
       fault settings).
     - `prefix`: the name of the files and of every public symbol.
+    - `names`: `(states, inputs, outputs)` names for the comments (default: the
+      observer's `names` attribute if it has one, else `x0`, `u0`, `y0`, ...).
+
+    The step is straight-line code: every matrix-vector product is unrolled with the
+    coefficients as literals (shortest exact decimals in float builds; integer codes with
+    the alignment shift folded in for fixed point), exact zeros skipped, one comment per
+    matrix row; the channel supervision is unrolled per channel with its limits folded
+    in, and the correction is a `switch` over the sets of channels in use. The
+    coefficient tables remain as `static const` arrays, read through
+    `prefix_table(P_TABLE_PHI)` etc. (for inspection and checksums only).
 
     **Returns:** a `CSource`. API of the generated code (`P_` = upper-case prefix):
     `void prefix_reset(const prefix_word_t x0[P_N])`;
@@ -168,12 +223,17 @@ def generate_c(observer, prefix: str = "tj_observer") -> CSource:
          f"y[{P}_P], uint8_t open_mask);",
          f"extern {prefix}_word_t {prefix}_x[{P}_N];",
          f"extern {prefix}_word_t {prefix}_r[{P}_P];",
-         f"extern uint8_t {prefix}_healthy, {prefix}_wire_break;", f"#endif", ""]
+         f"extern uint8_t {prefix}_healthy, {prefix}_wire_break;",
+         f"/* coefficient tables (column-major), for inspection: {prefix}_table({P}_TABLE_PHI) */",
+         f"#define {P}_TABLE_PHI 0", f"#define {P}_TABLE_B0 1", f"#define {P}_TABLE_B1 2",
+         f"#define {P}_TABLE_CY 3", f"#define {P}_TABLE_DY 4", f"#define {P}_TABLE_GAIN 5",
+         f"const void *{prefix}_table(unsigned id);", f"#endif", ""]
     c = [f"/* Generated by thermojax.reference.generate_c: do not edit.", "",
          f"   Observer in filter form with first-order-hold inputs:",
          f"     x-[k] = Phi x[k-1] + B0 u[k-1] + B1 u[k]   (skipped at the first step)",
          f"     x[k]  = x-[k] + L_S (y[k] - C x-[k] - D u[k]),  S = channels in use.",
-         f"   Matrices are stored column by column: M[j][i] is row i, column j."]
+         f"   Straight-line code: each row's sum runs left to right over its nonzero",
+         f"   coefficients only (literals), exactly as thermojax.reference does it."]
     if fixed:
         F = observer.fmt
         c += [f"   Format {F.name}: values are codes of (value - offset) / {F.state_scale:g} "
@@ -186,45 +246,48 @@ def generate_c(observer, prefix: str = "tj_observer") -> CSource:
         c += [f"   {word} arithmetic; compile with -ffp-contract=off (no FMA) for bit-exact",
               f"   agreement with the NumPy reference. */"]
     c += [f'#include "{prefix}.h"', "#include <math.h>", ""]
+    st, inp, out = _names(observer if names is None else names, n, m, p)
     lim = (observer.limit_codes if fixed else
            np.tile(np.asarray(fc.limits, float), (p, 1)))
     rails = observer.rail_codes if fixed else fc.rails_array(p)
     thr = observer.threshold_codes if fixed else fc.threshold_array(p)
-    vtype = word
     if fixed:
-        cf = observer.coef
+        cf, sh = observer.coef, observer.shift
         c.append(f"typedef char {prefix}_asr_check[((-3) >> 1) == -2 ? 1 : -1]; "
                  f"/* arithmetic >> */")
         c += [f"#define {P}_WMIN ({F.word_min})", f"#define {P}_WMAX ({F.word_max})",
               f"#define {P}_F_PRED {observer.f_pred}", f"#define {P}_F_OUT {observer.f_out}",
-              f"#define {P}_F_GAIN {observer.f_gain}"]
-        for name in ("Phi", "B0", "B1", "C", "D"):
-            c.append(f"#define {P}_SCALE_{name.upper()} INT64_C({1 << observer.shift[name]})")
-        c.append("")
-        mats = {"PHI": cf["Phi"], "B0": cf["B0"], "B1": cf["B1"], "CY": cf["C"], "DY": cf["D"],
-                "GAIN": cf["L"]}
-        for name, M in mats.items():
-            c.append(_array(f"{P}_{name}", word, _colmajor(M), "int"))
-        c.append(_array(f"{P}_LIM", word, lim, "int"))
-        c.append(_array(f"{P}_RAIL", word, rails, "int"))
-        c.append(_array(f"{P}_THR", "int64_t", thr, "int64_t"))
+              f"#define {P}_F_GAIN {observer.f_gain}", ""]
+        tables = {"PHI": cf["Phi"], "B0": cf["B0"], "B1": cf["B1"], "CY": cf["C"],
+                  "DY": cf["D"], "GAIN": cf["L"]}
+        # the step's literals: integer codes with the alignment 2**shift folded in (exact)
+        pred_M = np.hstack([cf["Phi"] << sh["Phi"], cf["B0"] << sh["B0"],
+                            cf["B1"] << sh["B1"]])
+        out_M = np.hstack([cf["C"] << sh["C"], cf["D"] << sh["D"]])
+        gain_M = cf["L"]
+    else:
+        dt = np.float64 if word == "double" else np.float32
+        tables = {"PHI": np.asarray(s.Phi, dt), "B0": np.asarray(s.B0, dt),
+                  "B1": np.asarray(s.B1, dt), "CY": np.asarray(s.C, dt),
+                  "DY": np.asarray(s.D, dt), "GAIN": np.asarray(s.gain_table, dt)}
+        pred_M = np.hstack([tables["PHI"], tables["B0"], tables["B1"]])
+        out_M = np.hstack([tables["CY"], tables["DY"]])
+        gain_M = tables["GAIN"]
+    c += ["/* The coefficient tables, column by column (M[j][i] is row i, column j), for",
+          f"   inspection and checksums through {prefix}_table(); the step below does not",
+          "   read them: it has the same numbers as literals. */"]
+    for name, M in tables.items():
+        c.append(_array(f"{P}_{name}", word, _colmajor(M), "int" if fixed else word))
+    c += [f"const void *{prefix}_table(unsigned id) {{",
+          "    switch (id) {"]
+    c += [f"    case {P}_TABLE_{name}: return {P}_{name};" for name in tables]
+    c += ["    default: return 0;", "    }", "}", ""]
+    if fixed:
         c += [f"static int64_t {prefix}_rnd(int64_t a, int s) {{",
-              f"    return s > 0 ? (a + ((int64_t)1 << (s - 1))) >> s : a;", "}",
+              f"    return (a + ((int64_t)1 << (s - 1))) >> s;   /* s > 0 */", "}",
               f"static {word} {prefix}_sat(int64_t a) {{",
               f"    return ({word})(a < {P}_WMIN ? {P}_WMIN : a > {P}_WMAX ? {P}_WMAX : a);",
               "}", ""]
-    else:
-        dt = np.float64 if word == "double" else np.float32
-        mats = {"PHI": s.Phi, "B0": s.B0, "B1": s.B1, "CY": s.C, "DY": s.D,
-                "GAIN": s.gain_table}
-        for name, M in mats.items():
-            c.append(_array(f"{P}_{name}", word, _colmajor(np.asarray(M, dt)), word))
-        c.append(_array(f"{P}_LIM", word, np.asarray(lim, dt), word))
-        c.append(_array(f"{P}_RAIL", word, np.asarray(rails, dt), word))
-        c.append(_array(f"{P}_THR", word, np.asarray(thr, dt), word))
-    acc = "int64_t" if fixed else word
-    zero = "0" if fixed else ("0.0" if word == "double" else "0.0f")
-    mul = (lambda a, b: f"(int64_t){a} * {b}") if fixed else (lambda a, b: f"{a} * {b}")
     c += [f"{word} {prefix}_x[{P}_N];", f"{word} {prefix}_r[{P}_P];",
           f"uint8_t {prefix}_healthy, {prefix}_wire_break;",
           f"static {word} {prefix}_u_prev[{P}_M];",
@@ -236,100 +299,128 @@ def generate_c(observer, prefix: str = "tj_observer") -> CSource:
           f"    for (i = 0; i < {P}_P; i++) {{ {prefix}_good_run[i] = 0; "
           f"{prefix}_bad_run[i] = 0; }}",
           f"    {prefix}_healthy = (uint8_t)((1u << {P}_P) - 1u);",
-          f"    {prefix}_wire_break = 0;", f"    {prefix}_started = 0;", "}", "",
-          f"uint8_t {prefix}_step(const {word} u[{P}_M], const {word} y[{P}_P], "
+          f"    {prefix}_wire_break = 0;", f"    {prefix}_started = 0;", "}", ""]
+    lit = (lambda v: _lit(v, "int64_t")) if fixed else (lambda v: _readable_lit(v, word))
+    xv = [f"{prefix}_x[{j}]" for j in range(n)]
+    upv = [f"{prefix}_u_prev[{j}]" for j in range(m)]
+    uv = [f"u[{j}]" for j in range(m)]
+    xmv = [f"xm{i}" for i in range(n)]
+    rv = [f"r{j}" for j in range(p)]
+
+    def total(row, vals, unit=None):
+        """The left-to-right sum of a row's nonzero terms, or None when it has none.
+        `unit`: the coefficient whose product is the value itself (1.0 in float)."""
+        terms = [(v, vals[j]) for j, v in enumerate(row) if v != 0]
+        if not terms:
+            return None
+        text = ""
+        for k, (v, name) in enumerate(terms):
+            mag, neg = abs(v), v < 0
+            prod = name if (not fixed and mag == 1) else f"{lit(mag)} * {name}"
+            if k == 0:
+                text = ("-" if neg else "") + prod
+            else:
+                text += (" - " if neg else " + ") + prod
+        return text
+
+    def rounded(text, F_name, F_value):
+        return f"{prefix}_rnd({text}, {P}_{F_name})" if F_value > 0 else f"({text})"
+
+    c += [f"uint8_t {prefix}_step(const {word} u[{P}_M], const {word} y[{P}_P], "
           f"uint8_t open_mask) {{",
-          f"    {word} xm[{P}_N];",
-          f"    int i, j;", f"    uint8_t mask = 0;"]
-    # predict
-    if fixed:
-        c += [f"    if ({prefix}_started) {{",
-              f"        int64_t a0[{P}_N] = {{0}}, a1[{P}_N] = {{0}}, a2[{P}_N] = {{0}};",
-              f"        for (j = 0; j < {P}_N; j++) for (i = 0; i < {P}_N; i++) "
-              f"a0[i] += {mul(f'{P}_PHI[j][i]', f'{prefix}_x[j]')};",
-              f"        for (j = 0; j < {P}_M; j++) for (i = 0; i < {P}_N; i++) "
-              f"a1[i] += {mul(f'{P}_B0[j][i]', f'{prefix}_u_prev[j]')};",
-              f"        for (j = 0; j < {P}_M; j++) for (i = 0; i < {P}_N; i++) "
-              f"a2[i] += {mul(f'{P}_B1[j][i]', 'u[j]')};",
-              f"        for (i = 0; i < {P}_N; i++) xm[i] = {prefix}_sat({prefix}_rnd("
-              f"a0[i] * {P}_SCALE_PHI + a1[i] * {P}_SCALE_B0 + a2[i] * {P}_SCALE_B1, "
-              f"{P}_F_PRED));",
-              f"    }} else {{", f"        for (i = 0; i < {P}_N; i++) xm[i] = {prefix}_x[i];",
-              f"    }}",
-              f"    {{", f"        int64_t a0[{P}_P] = {{0}}, a1[{P}_P] = {{0}};",
-              f"        for (j = 0; j < {P}_N; j++) for (i = 0; i < {P}_P; i++) "
-              f"a0[i] += {mul(f'{P}_CY[j][i]', 'xm[j]')};",
-              f"        for (j = 0; j < {P}_M; j++) for (i = 0; i < {P}_P; i++) "
-              f"a1[i] += {mul(f'{P}_DY[j][i]', 'u[j]')};",
-              f"        for (i = 0; i < {P}_P; i++) {prefix}_r[i] = {prefix}_sat((int64_t)y[i] - "
-              f"{prefix}_rnd(a0[i] * {P}_SCALE_C + a1[i] * {P}_SCALE_D, {P}_F_OUT));",
-              f"    }}"]
-    else:
-        c += [f"    if ({prefix}_started) {{",
-              f"        {word} a[{P}_N];",
-              f"        for (i = 0; i < {P}_N; i++) a[i] = {zero};",
-              f"        for (j = 0; j < {P}_N; j++) for (i = 0; i < {P}_N; i++) "
-              f"a[i] = a[i] + {P}_PHI[j][i] * {prefix}_x[j];",
-              f"        for (j = 0; j < {P}_M; j++) for (i = 0; i < {P}_N; i++) "
-              f"a[i] = a[i] + {P}_B0[j][i] * {prefix}_u_prev[j];",
-              f"        for (j = 0; j < {P}_M; j++) for (i = 0; i < {P}_N; i++) "
-              f"a[i] = a[i] + {P}_B1[j][i] * u[j];",
-              f"        for (i = 0; i < {P}_N; i++) xm[i] = a[i];",
-              f"    }} else {{", f"        for (i = 0; i < {P}_N; i++) xm[i] = {prefix}_x[i];",
-              f"    }}",
-              f"    {{", f"        {word} a[{P}_P];",
-              f"        for (i = 0; i < {P}_P; i++) a[i] = {zero};",
-              f"        for (j = 0; j < {P}_N; j++) for (i = 0; i < {P}_P; i++) "
-              f"a[i] = a[i] + {P}_CY[j][i] * xm[j];",
-              f"        for (j = 0; j < {P}_M; j++) for (i = 0; i < {P}_P; i++) "
-              f"a[i] = a[i] + {P}_DY[j][i] * u[j];",
-              f"        for (i = 0; i < {P}_P; i++) {prefix}_r[i] = y[i] - a[i];",
-              f"    }}"]
-    # supervision
-    c += [f"    for (j = 0; j < {P}_P; j++) {{",
-          f"        const uint8_t bit = (uint8_t)(1u << j);",
-          f"        const {vtype} v = y[j], r = {prefix}_r[j];",
-          f"        if ((open_mask & bit) || !({P}_LIM[j][0] <= v && v <= {P}_LIM[j][1])) {{",
-          f"            {prefix}_healthy &= (uint8_t)~bit;",
-          f"            {prefix}_good_run[j] = 0; {prefix}_bad_run[j] = 0;",
-          f"            continue;", f"        }}",
-          f"        if (v <= {P}_RAIL[j][0] || v >= {P}_RAIL[j][1]) continue;  /* anti-windup */",
-          f"        if (r > {P}_THR[j] || r < -{P}_THR[j]) {{",
-          f"            if ({prefix}_bad_run[j] < 65535u) {prefix}_bad_run[j]++;",
-          f"            {prefix}_good_run[j] = 0;",
-          f"            if ({prefix}_bad_run[j] >= {int(fc.wire_break_after)}u) {{",
-          f"                {prefix}_wire_break |= bit; {prefix}_healthy &= (uint8_t)~bit;",
-          f"            }}",
-          f"        }} else {{",
-          f"            if ({prefix}_good_run[j] < 65535u) {prefix}_good_run[j]++;",
-          f"            {prefix}_bad_run[j] = 0;",
-          f"            if (!({prefix}_healthy & bit) && {prefix}_good_run[j] >= "
-          f"{int(fc.recover_after)}u) {{",
-          f"                {prefix}_healthy |= bit; {prefix}_wire_break &= (uint8_t)~bit;",
-          f"            }}",
-          f"        }}",
-          f"        if ({prefix}_healthy & bit) mask |= bit;",
-          f"    }}"]
-    # correct
-    if fixed:
-        c += [f"    if (mask) {{",
-              f"        int64_t a[{P}_N] = {{0}};",
-              f"        for (j = 0; j < {P}_P; j++) if (mask >> j & 1u) for (i = 0; i < {P}_N; i++) "
-              f"a[i] += {mul(f'{P}_GAIN[mask][j][i]', f'{prefix}_r[j]')};",
-              f"        for (i = 0; i < {P}_N; i++) xm[i] = {prefix}_sat((int64_t)xm[i] + "
-              f"{prefix}_rnd(a[i], {P}_F_GAIN));",
-              f"    }}"]
-    else:
-        c += [f"    if (mask) {{",
-              f"        {word} a[{P}_N];",
-              f"        for (i = 0; i < {P}_N; i++) a[i] = {zero};",
-              f"        for (j = 0; j < {P}_P; j++) if (mask >> j & 1u) for (i = 0; i < {P}_N; i++) "
-              f"a[i] = a[i] + {P}_GAIN[mask][j][i] * {prefix}_r[j];",
-              f"        for (i = 0; i < {P}_N; i++) xm[i] = xm[i] + a[i];",
-              f"    }}"]
-    c += [f"    for (i = 0; i < {P}_N; i++) {prefix}_x[i] = xm[i];",
-          f"    for (i = 0; i < {P}_M; i++) {prefix}_u_prev[i] = u[i];",
-          f"    {prefix}_started = 1;", f"    return mask;", "}", ""]
+          f"    {word} " + ", ".join(xmv) + ";   /* x-[k], then x[k] */",
+          f"    {word} " + ", ".join(rv) + ";   /* residuals */",
+          f"    uint8_t mask = 0;",
+          f"    if ({prefix}_started) {{"]
+    for i in range(n):
+        c.append(f"        /* x-[{st[i]}] = Phi[{st[i]}, :] x + B0[{st[i]}, :] u[k-1] "
+                 f"+ B1[{st[i]}, :] u[k] */")
+        e = total(pred_M[i], xv + upv + uv)
+        if fixed:
+            e = "0" if e is None else f"{prefix}_sat({rounded(e, 'F_PRED', observer.f_pred)})"
+        else:
+            e = _zero(word) if e is None else e
+        c.append(f"        {xmv[i]} = {e};")
+    c += ["    } else {   /* first step: no prediction */"]
+    c += [f"        {xmv[i]} = {xv[i]};" for i in range(n)]
+    c += ["    }"]
+    for j in range(p):
+        c.append(f"    /* r[{out[j]}] = y - C[{out[j]}, :] x- - D[{out[j]}, :] u[k] */")
+        row = out_M[j]
+        e = total(row, xmv + uv)
+        if fixed:
+            nzj = np.flatnonzero(row)
+            if e is None:
+                c.append(f"    {rv[j]} = y[{j}];")
+            elif len(nzj) == 1 and row[nzj[0]] == 1 << observer.f_out:
+                # rnd(2^F v, F) = v exactly
+                c.append(f"    {rv[j]} = {prefix}_sat((int64_t)y[{j}] - {(xmv + uv)[nzj[0]]});")
+            else:
+                c.append(f"    {rv[j]} = {prefix}_sat((int64_t)y[{j}] - "
+                         f"{rounded(e, 'F_OUT', observer.f_out)});")
+        else:
+            c.append(f"    {rv[j]} = y[{j}];" if e is None else f"    {rv[j]} = y[{j}] - ({e});")
+    c += [f"    {prefix}_r[{j}] = {rv[j]};" for j in range(p)]
+    # supervision, one block per channel, constants folded in
+    for j in range(p):
+        bit = 1 << j
+        wl = (lambda v: _lit(v, "int")) if fixed else (lambda v: _readable_lit(v, word))
+        lo, hi = wl(lim[j][0]), wl(lim[j][1])
+        c += [f"    /* channel {j} ({out[j]}): plausibility, anti-windup, wire break */",
+              f"    if ((open_mask & {bit}u) || !({lo} <= y[{j}] && y[{j}] <= {hi})) {{",
+              f"        {prefix}_healthy &= (uint8_t)~{bit}u;",
+              f"        {prefix}_good_run[{j}] = 0; {prefix}_bad_run[{j}] = 0;"]
+        railed = []
+        if rails[j][0] >= lim[j][0]:
+            railed.append(f"y[{j}] <= {wl(rails[j][0])}")
+        if rails[j][1] <= lim[j][1]:
+            railed.append(f"y[{j}] >= {wl(rails[j][1])}")
+        if railed:
+            c += [f"    }} else if ({' || '.join(railed)}) {{",
+                  f"        /* at an ADC rail: no correction, counters unchanged */"]
+        c.append("    } else {" if railed else
+                 "    } else {   /* (rails outside the plausible range: never railed) */")
+        good = [f"if ({prefix}_good_run[{j}] < 65535u) {prefix}_good_run[{j}]++;",
+                f"{prefix}_bad_run[{j}] = 0;",
+                f"if (!({prefix}_healthy & {bit}u) && {prefix}_good_run[{j}] >= "
+                f"{int(fc.recover_after)}u) {{",
+                f"    {prefix}_healthy |= {bit}u; {prefix}_wire_break &= (uint8_t)~{bit}u;",
+                "}"]
+        never_large = (thr[j] >= -F.word_min) if fixed else not np.isfinite(thr[j])
+        if never_large:
+            c += [f"        /* (no residual threshold: never large) */"]
+            c += [f"        {g}" for g in good]
+        else:
+            t = lit(thr[j]) if fixed else _readable_lit(thr[j], word)
+            c += [f"        if ({rv[j]} > {t} || {rv[j]} < -{t}) {{",
+                  f"            if ({prefix}_bad_run[{j}] < 65535u) {prefix}_bad_run[{j}]++;",
+                  f"            {prefix}_good_run[{j}] = 0;",
+                  f"            if ({prefix}_bad_run[{j}] >= {int(fc.wire_break_after)}u) {{",
+                  f"                {prefix}_wire_break |= {bit}u; "
+                  f"{prefix}_healthy &= (uint8_t)~{bit}u;",
+                  "            }", "        } else {"]
+            c += [f"            {g}" for g in good]
+            c += ["        }"]
+        c += [f"        if ({prefix}_healthy & {bit}u) mask |= {bit}u;", "    }"]
+    # correction, one case per set of channels in use
+    c += ["    switch (mask) {   /* x[k] = x-[k] + L_S r, S = the channels in use */"]
+    for mask in range(1, 1 << p):
+        used = [out[j] for j in range(p) if mask >> j & 1]
+        c.append(f"    case {mask}:   /* {', '.join(used)} */")
+        for i in range(n):
+            e = total(gain_M[mask][i], rv)
+            if e is None:
+                continue
+            if fixed:
+                c.append(f"        {xmv[i]} = {prefix}_sat((int64_t){xmv[i]} + "
+                         f"{rounded(e, 'F_GAIN', observer.f_gain)});   /* L[{st[i]}, :] */")
+            else:
+                c.append(f"        {xmv[i]} = {xmv[i]} + ({e});   /* L[{st[i]}, :] */")
+        c.append("        break;")
+    c += ["    default:   /* no channel in use: prediction only */", "        break;", "    }"]
+    c += [f"    {xv[i]} = {xmv[i]};" for i in range(n)]
+    c += [f"    {upv[j]} = u[{j}];" for j in range(m)]
+    c += [f"    {prefix}_started = 1;", f"    return mask;", "}", ""]
     harness = "\n".join([
         f"/* Playback harness for {prefix}: see thermojax.reference.generate_c. */",
         "#include <stdio.h>", "#include <stdlib.h>", f'#include "{prefix}.h"',

@@ -16,6 +16,8 @@ class ObserverRun:
     - `residuals (T, p)`: prediction residuals `y - C x⁻ - D u` (same units).
     - `in_use (T,)`: bit mask of the channels used in the correction.
     - `healthy (T,)`, `wire_break (T,)`: bit masks of the channel flags after the step.
+    - `bias (T, q)`: the bias channels evaluated from the estimates (float observers
+      with a `BiasEvaluator`), else None.
     """
 
     states: np.ndarray
@@ -23,6 +25,7 @@ class ObserverRun:
     in_use: np.ndarray
     healthy: np.ndarray
     wire_break: np.ndarray
+    bias: np.ndarray | None = None
 
 
 def check_playback(name: str, u, y, open_circuit, m: int, p: int, dtype):
@@ -50,8 +53,12 @@ def play(observer, name: str, x0, u, y, open_circuit, dtype) -> ObserverRun:
     X = np.empty((T, s.n_states), dtype)
     R = np.empty((T, s.n_outputs), dtype)
     flags = np.empty((3, T), np.uint8)
+    evaluator = getattr(observer, "biases", None)
+    bias = None if evaluator is None else np.empty((T, evaluator.n_channels))
     observer.reset(x0)
     for k in range(T):
         X[k], R[k], flags[0, k] = observer.step(u[k], y[k], oc[k])
         flags[1, k], flags[2, k] = observer.monitor.flags()
-    return ObserverRun(X, R, flags[0], flags[1], flags[2])
+        if bias is not None:
+            bias[k] = observer.bias
+    return ObserverRun(X, R, flags[0], flags[1], flags[2], bias)
