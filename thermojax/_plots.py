@@ -19,6 +19,30 @@ DPI = 100
 FONT = {"suptitle": 15, "title": 13, "label": 12, "tick": 11, "legend": 10.5}
 
 
+#: A bias column's unit by its name's ending (docs/formats.md §1: gyro bias in deg/h,
+#: accelerometer bias in micro-g; channel names are free).
+_BIAS_SUFFIX_UNITS = (("_dph", "deg/h"), ("_ug", "µg"))
+
+
+def column_unit(column: str, bias: bool = False) -> str:
+    """The unit of a measured column, for axis labels and tables: °C for a temperature
+    sensor; for a bias channel (`bias=True`) deg/h if its name ends in `_dph`, µg if it
+    ends in `_ug`, else "bias unit"."""
+    if not bias:
+        return "°C"
+    for suffix, unit in _BIAS_SUFFIX_UNITS:
+        if str(column).endswith(suffix):
+            return unit
+    return "bias unit"
+
+
+def column_units(sensor_columns, bias_columns=()) -> dict[str, str]:
+    """column -> `column_unit` for every sensor column and bias column."""
+    out = {c: column_unit(c) for c in sensor_columns}
+    out.update({c: column_unit(c, bias=True) for c in bias_columns})
+    return out
+
+
 def new_figure(**kwargs):
     """A `matplotlib.figure.Figure` drawn by the Agg canvas (no pyplot, no backend
     change); `kwargs` go to `Figure` (`figsize` in inches, width at least `WIDTH_IN`)."""

@@ -299,7 +299,7 @@ def cmd_diagnose(args) -> int:
               f"{'–' if st is None else f'{st:.1f}':>11} {'–' if lr is None else f'{lr:.1f}':>9} "
               f"{c['p_value']:>9.2g}  {'yes' if c['supported'] else 'no'}")
         if c.get("tied_with"):
-            print(f"{'':6}near-tie with {_ties_text(c)}")
+            print(f"{'':6}near-tie: the data could not tell it apart from {_ties_text(c)}")
     print("score test: evidence without refitting; LR: likelihood-ratio statistic "
           "2 (-log L before - after) of a refit")
     if not any(c["supported"] for c in report["candidates"]):
@@ -356,8 +356,8 @@ def _print_story(report: dict) -> None:
                 if prev.get("separation"):
                     print(f"          what would separate them: {prev['separation']}")
     print(f"  stopped because: {report['stopped_because']}")
-    if "unexplained" in report:
-        print(f"  unexplained: {report['unexplained'] or 'nothing is flagged as left unexplained'}")
+    if report.get("unexplained"):  # only when something is left unexplained
+        print(f"  unexplained: {report['unexplained']}")
 
 
 def _add_diagnose(sub):

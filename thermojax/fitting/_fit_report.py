@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 from ._summary import FitResult
+from .._plots import column_unit
 from .._json import json_safe
 from ..model._model_file import save_model
 
@@ -133,10 +134,15 @@ _AT_BOUND = 1e-6  # a positive parameter below this fraction of its file value
 def parameter_unit(name: str, column_units: dict | None = None) -> str:
     """The unit of a parameter by its dotted name (docs/formats.md §2): J/K, W/K, °C, ...
 
-    `column_units`: column -> unit for columns not in °C (bias channels)."""
+    `column_units`: column -> unit, overriding `column_unit` (a bias channel's unit
+    from its name: `_dph` deg/h, `_ug` µg)."""
     parts = name.split(".")
     last = parts[-1]
     units = column_units or {}
+
+    def unit_of(column, bias):
+        return units.get(column) or column_unit(column, bias)
+
     if parts[0] == "effects" and len(parts) >= 3:
         kind = parts[1]
         if kind == "conductance_input" and last == "coefficient":
@@ -145,8 +151,14 @@ def parameter_unit(name: str, column_units: dict | None = None) -> str:
             return "W/W"
         if kind == "viscoelastic" and last == "k":
             column = parts[2].split("-")[-1] if len(parts) > 3 else None
-            return f"{units.get(column, 'bias unit')}/K"
+            return f"{unit_of(column, True)}/K"
         return _EFFECT_UNITS.get(last, "")
+    if parts[0] == "biases" and len(parts) >= 3 and last != "noise":
+        u, term = unit_of(parts[1], True), parts[2]  # _bias.BiasFit.names
+        if term.startswith("poly") and term[4:].isdigit():
+            p = int(term[4:])
+            return u if p == 0 else f"{u}/°C" if p == 1 else f"{u}/°C^{p}"
+        return {"gradient": f"{u}/K", "rate": f"{u}/(K/s)"}.get(term, u)
     if last == "capacitance":
         return "J/K"
     if last == "conductance":
@@ -154,7 +166,8 @@ def parameter_unit(name: str, column_units: dict | None = None) -> str:
     if last == "gain":
         return "W/W" if parts[0] == "heat_inputs" else "1"
     if last == "noise":
-        return units.get(parts[1], "°C") if parts[0] in ("sensors", "biases") else "°C"
+        return unit_of(parts[1], parts[0] == "biases") if parts[0] in ("sensors", "biases") \
+            else "°C"
     if last == "process_noise":
         return "°C/√s"
     if last == "initial":

@@ -6,9 +6,10 @@ import json
 from pathlib import Path
 
 from ._diagnostic_plots import PLOT_KEYS
-from ._diagnostics import diagnose_traces
+from ._diagnostics import diagnose_traces, slowest_time_constant
 from ._investigate import diagnose_step, evaluate, _noise, _version
 from .._json import json_safe
+from .._plots import column_units
 from ..model._spec import ModelSpec
 
 
@@ -31,12 +32,15 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
     inputs = list(spec.input_columns)
     boundary = list(spec.boundary_columns)
     rec = step.record
+    units = column_units(spec.sensor_columns, [b.column for b in spec.biases])
+    time_scale = slowest_time_constant(rec.get("parameters") or {})
     report = {
         "schema": 1, "thermojax_version": _version(), "likelihood": likelihood,
         **{k: rec[k] for k in ("rmse", "fit_percent", "nll", "aic", "bic", "n_params",
                                "whiteness_p", "whiteness_lags", "parameters")},
         "candidates": [c.as_json() for c in cands],
-        "diagnostics": diagnose_traces(columns, step.traces, inputs, boundary),
+        "diagnostics": diagnose_traces(columns, step.traces, inputs, boundary, units=units,
+                                       time_scale=time_scale),
         "noise": _noise(step),
         "significance_rule": (
             f"Benjamini-Hochberg at false-discovery rate {fdr} over all candidates "
@@ -53,7 +57,7 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
                  "noise": report["noise"], "significance_rule": report["significance_rule"]}
         # report.md and every plot, each written once (`diagnose_<key>.png`)
         write_investigation_report(out, json_safe(story), [step.traces], columns, inputs,
-                                   boundary, diagnosis=True)
+                                   boundary, diagnosis=True, units=units)
         report["plots"] = {k: f"diagnose_{k}.png" for k in PLOT_KEYS}
         (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
     return report

@@ -16,7 +16,8 @@ import numpy as np
 from .._plots import WIDTH_IN, new_figure, save_figure
 from .._residual_analysis import (PHASES, cross_correlation, cumulated_periodogram,
                                  pooled_autocorrelation, residuals_by_phase)
-from ._diagnostics import _check_runs, _dt, _label, _phases, _signals, _split_inputs
+from ._diagnostics import (_check_runs, _dt, _label, _phases, _signals, _split_inputs,
+                           lag_span, slowest_time_constant)
 
 #: The keys of `diagnostic_plots`, one PNG each.
 PLOT_KEYS = ("fit", "acf", "xcorr", "periodogram", "phases")
@@ -31,35 +32,10 @@ def _save(fig, path: Path) -> None:
 
 
 def settling_time(parameters: dict) -> float | None:
-    """The model's slowest time constant, s, estimated from a fit's `parameters`
-    (dotted name -> {"value", ...}): total capacitance over total boundary conductance
-    (exact for a single node; for a network, the time the whole unit takes to follow
-    its surroundings). None when the parameters do not say."""
-    cap = sum(float(p["value"]) for k, p in parameters.items()
-              if k.startswith("nodes.") and k.endswith(".capacitance") and p.get("value"))
-    g = sum(float(p["value"]) for k, p in parameters.items()
-            if k.startswith("boundaries.") and k.endswith(".conductance") and p.get("value"))
-    return cap / g if cap > 0 and g > 0 else None
-
-
-def _lags_for(time_scale, dt: float, shortest: int, max_lag) -> int:
-    """Lags, samples: `max_lag` if given, else two slowest time constants (`time_scale`,
-    s), at most a third of the shortest run; without either the default of `_max_lag`."""
-    if max_lag is not None or not time_scale:
-        return _max_lag_runs(shortest, max_lag)
-    return max(1, min(int(math.ceil(2.0 * time_scale / dt)), shortest // 3, shortest - 1))
-
-
-def _max_lag_runs(shortest: int, max_lag) -> int:
-    lag = int(max_lag) if max_lag is not None else max(1, min(30, shortest // 5))
-    return max(0, min(lag, shortest - 1))
-
-
-def _lag_axis(lags_s: np.ndarray) -> tuple[np.ndarray, str]:
-    """Lags in s, or in min when they span more than 10 min."""
-    if lags_s.size and np.max(np.abs(lags_s)) > 600:
-        return lags_s / 60.0, "min"
-    return lags_s, "s"
+    """The model's slowest time constant, s, from a fit's `parameters` (dotted name ->
+    {"value", ...}): `_diagnostics.slowest_time_constant`. None when the parameters do
+    not say."""
+    return slowest_time_constant(parameters)
 
 
 def _run_title(name) -> str:
@@ -102,8 +78,7 @@ def _acf_figure(columns, res, dt: float, shortest: int, lag: int, title: str):
     acf_lags = max(1, min(lag, shortest - 1))
     fig = new_figure(figsize=(WIDTH_IN, 3.0 * p + 1.0))
     axes = fig.subplots(p, 1, squeeze=False)
-    k = np.arange(1, acf_lags + 1)
-    x, unit = _lag_axis(k * dt)
+    x = np.arange(1, acf_lags + 1) * dt
     for j, c in enumerate(columns):
         ax = axes[j, 0]
         rho, n = pooled_autocorrelation(res[j], acf_lags)
@@ -117,7 +92,7 @@ def _acf_figure(columns, res, dt: float, shortest: int, lag: int, title: str):
         ax.set_ylim(-1.05, 1.05)
         ax.set_ylabel("autocorrelation")
         ax.set_title(f"{c}")
-    axes[-1, 0].set_xlabel(f"lag, {unit}")
+    axes[-1, 0].set_xlabel("lag, s")
     fig.suptitle(f"{title}\nresidual autocorrelation, runs pooled "
                  "(grey: ±1.96/√N, where white noise stays)")
     return fig
@@ -130,7 +105,6 @@ def _xcorr_figure(columns, runs, res, input_names, dt: float, lag: int, title: s
     signals = [_signals(r, input_names) for r in runs]
     fig = new_figure(figsize=(WIDTH_IN, 3.2 * p + 1.0))
     axes = fig.subplots(p, 2, squeeze=False, sharey=True)
-    unit = "s"
     for j, c in enumerate(columns):
         for col, want in enumerate((False, True)):
             ax = axes[j, col]
@@ -140,8 +114,7 @@ def _xcorr_figure(columns, runs, res, input_names, dt: float, lag: int, title: s
                 if bool(deriv) != want:
                     continue
                 lags, ccf, band = cross_correlation(res[j], [sg[s][2] for sg in signals], lag)
-                x, unit = _lag_axis(lags * dt)
-                ax.plot(x, ccf, lw=1.2, label=_label(name, deriv))
+                ax.plot(lags * dt, ccf, lw=0.8 if deriv else 1.2, label=_label(name, deriv))
             if band is not None:
                 ax.axhspan(-band, band, color="0.85")
                 ax.legend(loc="best")
@@ -150,7 +123,7 @@ def _xcorr_figure(columns, runs, res, input_names, dt: float, lag: int, title: s
             if col == 0:
                 ax.set_ylabel("correlation")
     for ax in axes[-1]:
-        ax.set_xlabel(f"lag, {unit} (positive: input leads)")
+        ax.set_xlabel("lag, s (positive: input leads)")
     fig.suptitle(f"{title}\nresidual against inputs (grey: 95 % band of no relation)")
     return fig
 
@@ -176,7 +149,7 @@ def _periodogram_figure(columns, res, title: str):
             ax.set_xscale("log")
             if keep.any():
                 ax.set_xlim(f[keep][0], 1)
-            ax.legend(loc="center right")
+            ax.legend(loc="best")
         ax.set_title(c)
         ax.set_xlabel("frequency / Nyquist (log scale)")
         ax.set_ylim(0, 1.05)
@@ -185,27 +158,47 @@ def _periodogram_figure(columns, res, title: str):
     return fig
 
 
+def _by_unit(columns, units) -> list[tuple[str, list[str]]]:
+    """Columns grouped by unit (°C first, then in order of appearance): one panel each,
+    so that a bias in deg/h never shares an axis with a temperature."""
+    groups: dict[str, list[str]] = {}
+    for c in columns:
+        groups.setdefault(units.get(c, "°C"), []).append(c)
+    return sorted(groups.items(), key=lambda kv: kv[0] != "°C")
+
+
 def _phases_figure(columns, runs, res, input_names, boundary_inputs, units, title):
-    """Grouped bars: mean residual per chamber phase and column."""
-    p = len(columns)
+    """Grouped bars: mean residual per chamber phase and column, one panel per unit."""
     chamber, powers = _split_inputs(input_names, boundary_inputs)
     ph = [_phases(r, input_names, chamber, powers) for r in runs]
+    groups = _by_unit(columns, units)
     fig = new_figure(figsize=(WIDTH_IN, 4.5))
-    ax = fig.subplots()
-    width = 0.8 / max(p, 1)
+    axes = np.atleast_1d(fig.subplots(1, len(groups), squeeze=False)[0])
     x = np.arange(len(PHASES))
-    for j, c in enumerate(columns):
-        by = residuals_by_phase(res[j], ph)
-        means = [by[k]["mean"] if by[k]["mean"] is not None else 0.0 for k in PHASES]
-        ax.bar(x + (j - (p - 1) / 2) * width, means, width, label=c)
-    ax.axhline(0, color="k", lw=0.5)
-    ax.set_xticks(x)
-    ax.set_xticklabels([k.replace("_", " ") for k in PHASES])
-    unit = sorted({units.get(c, "°C") for c in columns})
-    ax.set_ylabel(f"mean residual, {unit[0] if len(unit) == 1 else 'column unit'}")
-    ax.legend()
-    ax.set_title(f"{title}: mean residual per chamber phase")
+    colors = _colors()
+    for ax, (unit, cols) in zip(axes, groups):
+        width = 0.8 / max(len(cols), 1)
+        for j, c in enumerate(cols):
+            by = residuals_by_phase(res[columns.index(c)], ph)
+            means = [by[k]["mean"] if by[k]["mean"] is not None else 0.0 for k in PHASES]
+            ax.bar(x + (j - (len(cols) - 1) / 2) * width, means, width, label=c,
+                   color=colors[columns.index(c) % len(colors)])
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xticks(x)
+        ax.set_xticklabels([k.replace("_", " ") for k in PHASES],
+                           rotation=15 if len(groups) > 1 else 0)
+        ax.set_ylabel(f"mean residual, {unit}")
+        ax.legend()
+        if len(groups) > 1:
+            ax.set_title(f"columns in {unit}")
+    fig.suptitle(f"{title}\nmean residual per chamber phase")
     return fig
+
+
+def _colors() -> list:
+    from matplotlib import rcParams
+
+    return rcParams["axes.prop_cycle"].by_key()["color"]
 
 
 def diagnostic_plots(out_dir, prefix: str, columns, runs, input_names, boundary_inputs=(),
@@ -236,7 +229,7 @@ def diagnostic_plots(out_dir, prefix: str, columns, runs, input_names, boundary_
            for j in range(len(columns))]
     dt = _dt(runs)
     shortest = min(len(r["ts"]) for r in runs)
-    lag = _lags_for(time_scale, dt, shortest, max_lag)
+    lag = lag_span(dt, shortest, time_scale, max_lag)
     _save(_fit_figure(columns, runs, res, units, title), out_dir / names["fit"])
     _save(_acf_figure(columns, res, dt, shortest, lag, title), out_dir / names["acf"])
     _save(_xcorr_figure(columns, runs, res, input_names, dt, lag, title),
@@ -247,36 +240,43 @@ def diagnostic_plots(out_dir, prefix: str, columns, runs, input_names, boundary_
     return names
 
 
-def error_chart(path: Path, steps: list[dict], columns, noise: dict) -> None:
+def error_chart(path: Path, steps: list[dict], columns, noise: dict,
+                units: dict | None = None) -> None:
     """Free-run RMSE per step (log scale), one line per column, each column's noise std
-    dashed; `steps` are `report.json` step entries, `noise` column -> std (pass only a
-    noise given in the model: an estimated one equals the RMSE by construction)."""
-    from matplotlib import rcParams
+    dashed, one panel per unit (`units`: column -> unit, default °C); `steps` are
+    `report.json` step entries, `noise` column -> std (pass only a noise given in the
+    model: an estimated one equals the RMSE by construction)."""
+    from matplotlib.ticker import FuncFormatter
 
+    groups = _by_unit(columns, units or {})
     fig = new_figure(figsize=(WIDTH_IN, 5.5))
-    ax = fig.subplots()
+    axes = np.atleast_1d(fig.subplots(1, len(groups), squeeze=False)[0])
     x = np.arange(len(steps))
-    colors = rcParams["axes.prop_cycle"].by_key()["color"]
-    for j, c in enumerate(columns):
-        color = colors[j % len(colors)]
-        y = np.array([float(s.get("rmse", {}).get(c)) if isinstance(s.get("rmse", {}).get(c),
-                      (int, float)) else np.nan for s in steps])
-        y[~(y > 0)] = np.nan
-        if np.isfinite(y).any():
-            ax.plot(x, y, "o-", color=color, label=c)
-        sd = noise.get(c)
-        if isinstance(sd, (int, float)) and sd > 0:
-            ax.axhline(sd, color=color, ls="--", lw=0.8)
-    ax.set_yscale("log")
-    ax.set_xticks(x)
-    ax.set_xticklabels([f"{i}: start" if not s.get("added") else
-                        f"{i}: + {s['added'].get('kind', '?')}" for i, s in enumerate(steps)],
-                       rotation=20, ha="right")
-    ax.set_xlabel("step (effect added)")
-    ax.set_ylabel("free-run RMSE, °C")
-    ax.set_title("Error per step of the investigation"
+    colors = _colors()
+    for ax, (unit, cols) in zip(axes, groups):
+        for c in cols:
+            color = colors[columns.index(c) % len(colors)]
+            y = np.array([float(s.get("rmse", {}).get(c)) if isinstance(s.get("rmse", {}).get(c),
+                          (int, float)) else np.nan for s in steps])
+            y[~(y > 0)] = np.nan
+            if np.isfinite(y).any():
+                ax.plot(x, y, "o-", color=color, label=c)
+            sd = noise.get(c)
+            if isinstance(sd, (int, float)) and sd > 0:
+                ax.axhline(sd, color=color, ls="--", lw=0.8)
+        ax.set_yscale("log")
+        plain = FuncFormatter(lambda v, _pos: f"{v:.3g}")  # 0.0098, not 9.8×10⁻³
+        ax.yaxis.set_major_formatter(plain)
+        ax.yaxis.set_minor_formatter(plain)
+        ax.set_xticks(x)
+        ax.set_xticklabels([f"{i}: start" if not s.get("added") else
+                            f"{i}: + {s['added'].get('kind', '?')}"
+                            for i, s in enumerate(steps)], rotation=20, ha="right")
+        ax.set_xlabel("step (effect added)")
+        ax.set_ylabel(f"free-run RMSE, {unit}")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend()
+        ax.grid(alpha=0.3, which="both")
+    fig.suptitle("Error per step of the investigation"
                  + (" (dashed: noise std given in the model)" if noise else ""))
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend()
-    ax.grid(alpha=0.3, which="both")
     save_figure(fig, path)

@@ -137,16 +137,100 @@ def _phase_diff(res, phases, a: str, b: str, frac: float):
     return float(va.mean() - vb.mean()), se
 
 
+def _seconds(x: float) -> str:
+    """A lag in s for a sentence: whole seconds from 10 s up (no exponent)."""
+    return f"{x:.0f}" if abs(x) >= 10 else f"{x:.3g}"
+
+
 def _p(p: float) -> str:
     return "< 1e-300" if p < 1e-300 else f"= {p:.2g}"
 
 
-def _max_lag(runs, max_lag: int | None) -> int:
-    """Cross-correlation lags, samples: `max_lag` (default `min(30, shortest run / 5)`),
-    at most the shortest run's length − 1."""
-    shortest = min(len(r["ts"]) for r in runs)
-    lag = int(max_lag) if max_lag is not None else max(1, min(30, shortest // 5))
-    return max(0, min(lag, shortest - 1))
+MAX_LAG_SAMPLES = 2000  # the most lags either side (each lag costs a pass over the data)
+_LAGS_PER_TIME_SCALE = 2.0  # the lag span covers this many slowest time constants
+
+
+def lag_span(dt: float, shortest: int, time_scale: float | None = None,
+             max_lag: int | None = None) -> int:
+    """The auto- and cross-correlation lags either side of zero, samples.
+
+    `max_lag` when given (at most `shortest − 1`). Else, knowing the model's slowest
+    time constant `time_scale` (s, `slowest_time_constant`), `ceil(2 τ / dt)`, so that
+    a residual the slow dynamics leave behind is seen to rise and decay, capped at a
+    quarter of the shortest run (`shortest` samples) and at `MAX_LAG_SAMPLES`. Without
+    either, `min(30, shortest / 5)`."""
+    if max_lag is not None:
+        return max(0, min(int(max_lag), shortest - 1))
+    if time_scale is not None and math.isfinite(time_scale) and time_scale > 0 \
+            and math.isfinite(dt) and dt > 0:
+        lag = math.ceil(_LAGS_PER_TIME_SCALE * time_scale / dt)
+        return max(1, min(lag, shortest // 4, MAX_LAG_SAMPLES, shortest - 1))
+    return max(0, min(max(1, min(30, shortest // 5)), shortest - 1))
+
+
+def _split_key(key: str, firsts, seconds=None) -> tuple[str, str] | None:
+    """`a-b` split at the hyphen where `a` is in `firsts` (and `b` in `seconds`, if given);
+    node names may hold hyphens themselves."""
+    for i, ch in enumerate(key):
+        if ch == "-" and key[:i] in firsts and (seconds is None or key[i + 1:] in seconds):
+            return key[:i], key[i + 1:]
+    return None
+
+
+def slowest_time_constant(parameters: dict) -> float | None:
+    """The model's slowest time constant, s, from a fit's `parameters` (dotted name ->
+    {"value", ...}; docs/formats.md §5): the largest `1/eig(C^-½ K C^-½)`
+    (`model._network.time_constants`) of the capacitances `nodes.<n>.capacitance` and
+    the conductances `links.<a>-<b>.conductance` and `boundaries.<n>-<input>.conductance`
+    (nodes with no path to a boundary left out), or an effect's own `time_constant`
+    or `tau` (a sensor lag, a viscoelastic bias) if slower. None when the parameters
+    name no capacitance or no boundary."""
+    from ..model._network import time_constants
+
+    def value(p):
+        v = (p or {}).get("value") if isinstance(p, dict) else None
+        return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
+
+    caps = {k[len("nodes."):-len(".capacitance")]: value(p) for k, p in parameters.items()
+            if k.startswith("nodes.") and k.endswith(".capacitance")}
+    caps = {n: c for n, c in caps.items() if c is not None and c > 0}
+    if not caps:
+        return None
+    links, bounds = [], {}
+    for k, p in parameters.items():
+        g = value(p)
+        if not k.endswith(".conductance") or g is None or g <= 0:
+            continue
+        key = k.split(".", 1)[1][:-len(".conductance")]
+        if k.startswith("links.") and (ab := _split_key(key, caps, caps)):
+            links.append((*ab, g))
+        elif k.startswith("boundaries.") and (nb := _split_key(key, caps)):
+            bounds[nb[0]] = bounds.get(nb[0], 0.0) + g
+    # only the nodes with a path to a boundary (the others never settle: τ = inf)
+    reached, todo = set(bounds), list(bounds)
+    while todo:
+        n = todo.pop()
+        for a, b, _ in links:
+            for x, y in ((a, b), (b, a)):
+                if x == n and y not in reached:
+                    reached.add(y)
+                    todo.append(y)
+    if not reached:
+        return None
+    names = [n for n in caps if n in reached]
+    index = {n: i for i, n in enumerate(names)}
+    K = np.diag([bounds.get(n, 0.0) for n in names])
+    for a, b, g in links:
+        if a in index and b in index:
+            i, j = index[a], index[b]
+            K[i, i] += g
+            K[j, j] += g
+            K[i, j] -= g
+            K[j, i] -= g
+    taus = np.asarray(time_constants(np.array([caps[n] for n in names]), K), float)
+    effect_taus = [value(p) for k, p in parameters.items() if k.startswith("effects.")
+                   and k.rsplit(".", 1)[-1] in ("time_constant", "tau")]
+    return float(max([taus.max(), *(t for t in effect_taus if t is not None and t > 0)]))
 
 
 # ---------------------------------------------------------------------------
@@ -242,7 +326,10 @@ def _cross_correlations(c: str, res, signals, lag: int, dt: float, white: bool
     strong = sorted((e for e in xc if e["significant"]), key=lambda e: -e["abs_peak"])
     findings = [(e["abs_peak"] / e["band"], (
         f"{c}: residual correlates with {e['label']} (peak {e['peak']:.2f} at lag "
-        f"{e['lag_s']:.3g} s, band {e['band']:.2g})"
+        f"{_seconds(e['lag_s'])} s, lags searched ±{_seconds(lag * dt)} s, band "
+        f"{e['band']:.2g}"
+        + ("; at the edge of the lags searched, so the true peak may lie further)"
+           if abs(e["lag_samples"]) == lag else ")")
         + ("" if white else "; the band assumes a white residual, so read it as a lead")))
         for e in strong[:_MAX_CORR_FINDINGS]]
     return xc, findings
@@ -270,7 +357,8 @@ def _periodogram(c: str, res, dt: float) -> tuple[dict | None, list]:
         f"{what})"))]
 
 
-def _tests(lb_lags, lag: int, dt: float, n_inputs: int, chamber, powers) -> dict:
+def _tests(lb_lags, lag: int, dt: float, n_inputs: int, chamber, powers,
+           time_scale: float | None = None) -> dict:
     """How every number was computed, for the report."""
     return {
         "residuals": "measured minus predicted (as given in the run traces)",
@@ -279,7 +367,11 @@ def _tests(lb_lags, lag: int, dt: float, n_inputs: int, chamber, powers) -> dict
         "ljung_box": {"lags": lb_lags, "lags_rule": "min(20, N/5) with N the pooled sample count",
                       "white_if_p_at_least": WHITE_P},
         "cross_correlation": {
-            "lags_samples": lag, "sample_interval_s": dt,
+            "lags_samples": lag, "lags_s": lag * dt, "sample_interval_s": dt,
+            "slowest_time_constant_s": time_scale,
+            "lags_rule": f"ceil({_LAGS_PER_TIME_SCALE:g} × slowest time constant / dt), at "
+                         f"most a quarter of the shortest run and {MAX_LAG_SAMPLES} samples"
+                         if time_scale else "as given, or min(30, shortest run / 5)",
             "lag_sign": "positive lag: the input leads the residual",
             "band": "1.96/sqrt(N), pointwise 95 % for a white residual independent of the input",
             "band_all_lags": f"Šidák-corrected 95 % band for the largest of {2 * lag + 1} lags "
@@ -298,7 +390,7 @@ def _tests(lb_lags, lag: int, dt: float, n_inputs: int, chamber, powers) -> dict
 
 def diagnose_traces(columns: list[str], runs: list[RunTrace], input_names: list[str],
                     boundary_inputs=(), max_lag: int | None = None,
-                    units: dict | None = None) -> dict:
+                    units: dict | None = None, time_scale: float | None = None) -> dict:
     """Describe how a model fails on its run traces, as a JSON-ready dict (no NaN).
 
     Per column: `rmse` and `fit_percent` (`100 (1 - ‖y - ŷ‖/‖y - mean y‖)`) pooled over
@@ -320,8 +412,12 @@ def diagnose_traces(columns: list[str], runs: list[RunTrace], input_names: list[
     - `boundary_inputs`: the names among `input_names` that are boundary (chamber)
       temperatures; the first one labels the ramps and dwells, the others inputs
       (not boundaries) are powers whose jumps label power steps.
-    - `max_lag`: cross-correlation lags, samples (default `min(30, shortest run / 5)`).
-    - `units`: column -> unit for the sentences (default °C).
+    - `max_lag`: cross-correlation lags, samples (default from `time_scale`, see
+      `lag_span`).
+    - `units`: column -> unit for the sentences (default °C; `_plots.column_units`).
+    - `time_scale`: the model's slowest time constant, s (`slowest_time_constant`):
+      the lags then span two of it, so a slow residual is seen to rise and decay;
+      without it, `min(30, shortest run / 5)` samples.
 
     **Returns:** `{"columns": {column: {...}}, "findings": [str], "tests": {...}}`.
     """
@@ -330,7 +426,7 @@ def diagnose_traces(columns: list[str], runs: list[RunTrace], input_names: list[
     chamber, powers = _split_inputs(input_names, boundary_inputs)
     phases = [_phases(r, input_names, chamber, powers) for r in runs]
     dt = _dt(runs)
-    lag = _max_lag(runs, max_lag)
+    lag = lag_span(dt, min(len(r["ts"]) for r in runs), time_scale, max_lag)
     signals = [_signals(r, input_names) for r in runs]
 
     out_cols, findings = {}, []
@@ -354,7 +450,7 @@ def diagnose_traces(columns: list[str], runs: list[RunTrace], input_names: list[
         ranked = [white, *by_phase, *by_input, *by_frequency]
         findings += [s for _, s in sorted(ranked, key=lambda t: -t[0])]
 
-    tests = _tests(lb_lags, lag, dt, len(input_names), chamber, powers)
+    tests = _tests(lb_lags, lag, dt, len(input_names), chamber, powers, time_scale)
     return json_safe({"columns": out_cols, "findings": findings, "tests": tests,
                       "runs": [r["name"] for r in runs]})
 

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from ._diagnostic_plots import diagnostic_plots, error_chart, settling_time
 from ._diagnostics import diagnose_traces
+from .._plots import column_units
 
 _TOP = 8  # candidates shown per step
 
@@ -83,7 +84,7 @@ def _matching_candidate(previous: dict, added: dict) -> dict | None:
     return cands[0] if cands else None
 
 
-def _evidence(i: int, step: dict, previous: dict, report: dict, columns) -> str:
+def _evidence(i: int, step: dict, previous: dict, report: dict, columns, units) -> str:
     """One paragraph: why the effect added at step `i` was added and what it bought."""
     added = step.get("added")
     if not added:
@@ -126,8 +127,8 @@ def _evidence(i: int, step: dict, previous: dict, report: dict, columns) -> str:
         parts.append(" Fitted: " + ", ".join(
             f"{k} = {_pm(v, _effect_std(fitted, added, k))}" for k, v in params.items()) + ".")
     before, after = previous.get("rmse") or {}, step.get("rmse") or {}
-    changes = [f"{col} {_num(before.get(col))} → {_num(after.get(col))}" for col in columns
-               if col in before or col in after]
+    changes = [f"{col} {_num(before.get(col))} → {_num(after.get(col))} {units[col]}"
+               for col in columns if col in before or col in after]
     if changes:
         parts.append(" RMSE: " + "; ".join(changes) + ".")
     return "".join(parts)
@@ -182,19 +183,29 @@ def _diagnose_steps(out: Path, steps, step_traces, columns, input_names, boundar
     for i in range(len(steps)):
         traces = step_traces[i] if i < len(step_traces) else None
         if traces:
-            diagnoses.append(diagnose_traces(columns, traces, input_names, boundary_inputs))
             s = steps[i]
+            time_scale = settling_time(s.get("parameters") or {})
+            diagnoses.append(diagnose_traces(columns, traces, input_names, boundary_inputs,
+                                             units=units, time_scale=time_scale))
             what = "the given model" if not s.get("added") else \
                 f"after adding {_effect(s['added'])}"
             title = (f"Diagnosis of {what}" if prefix else f"Step {i}, {what}")
             plots.append(diagnostic_plots(
                 out, prefix or f"step{i}", columns, traces, input_names, boundary_inputs,
-                time_scale=settling_time(s.get("parameters") or {}), title=title,
+                time_scale=time_scale, title=title,
                 units=units))
         else:
             diagnoses.append(None)
             plots.append(None)
     return diagnoses, plots
+
+
+def _default_units(steps: list[dict], columns) -> dict[str, str]:
+    """column -> unit by `_plots.column_units`: a column is a bias channel when some
+    step's `parameters` hold a `biases.<column>.*` entry."""
+    names = {k for s in steps for k in (s.get("parameters") or {})}
+    bias = [c for c in columns if any(k.startswith(f"biases.{c}.") for k in names)]
+    return column_units([c for c in columns if c not in bias], bias)
 
 
 def noise_sources(steps: list[dict], columns) -> dict[str, str]:
@@ -208,7 +219,7 @@ def noise_sources(steps: list[dict], columns) -> dict[str, str]:
     return out
 
 
-def _summary(report: dict, steps: list[dict], columns, noise: dict,
+def _summary(report: dict, steps: list[dict], columns, noise: dict, units: dict,
              diagnosis: bool = False) -> list[str]:
     """The `## Summary` section: what was added, why the loop stopped, RMSE against noise."""
     first, last = (steps[0] if steps else {}), (steps[-1] if steps else {})
@@ -233,8 +244,8 @@ def _summary(report: dict, steps: list[dict], columns, noise: dict,
     md.append("")
     sources = noise_sources(steps, columns)
     md += ["| column | start RMSE | final RMSE | noise std | noise is | final / noise "
-           "(given noise only) | final whiteness p |",
-           "|---|---:|---:|---:|---|---:|---:|"]
+           "(given noise only) | final whiteness p | unit |",
+           "|---|---:|---:|---:|---|---:|---:|---|"]
     for c in columns:
         r0, r1 = (first.get("rmse") or {}).get(c), (last.get("rmse") or {}).get(c)
         sd = noise.get(c)
@@ -243,7 +254,8 @@ def _summary(report: dict, steps: list[dict], columns, noise: dict,
         md.append("| " + " | ".join(_cell(v) for v in (
             c, _num(r0), _num(r1), _num(sd),
             "given in the model" if sources[c] == "given" else "estimated",
-            _num(ratio, ".3g"), _num((last.get("whiteness_p") or {}).get(c), "p"))) + " |")
+            _num(ratio, ".3g"), _num((last.get("whiteness_p") or {}).get(c), "p"),
+            units[c])) + " |")
     md.append("")
     if any(v == "estimated" for v in sources.values()):
         md.append("An estimated noise std is the fit's own residual scale, so RMSE ≈ noise "
@@ -272,10 +284,11 @@ def _summary(report: dict, steps: list[dict], columns, noise: dict,
     return md + ["![free-run RMSE per step](error_by_step.png)", ""]
 
 
-def _steps_table(steps: list[dict], columns) -> list[str]:
+def _steps_table(steps: list[dict], columns, units: dict) -> list[str]:
     """The `## Steps` overview: one row per step (added effect, size, fit, RMSE, time)."""
     md = ["## Steps", ""]
-    head = ["step", "added", "parameters", "−log L", "AIC", "BIC"] + [f"RMSE {c}" for c in columns]
+    head = ["step", "added", "parameters", "−log L", "AIC", "BIC"] + [
+        f"RMSE {c}, {units[c]}" for c in columns]
     timed = any("wall_time_s" in s for s in steps)
     if timed:
         head.append("wall time, s")
@@ -306,8 +319,8 @@ def _whiteness_table(s: dict, dg: dict | None, columns) -> list[str]:
     return md
 
 
-def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagnoses
-                  ) -> list[str]:
+def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagnoses,
+                  units: dict) -> list[str]:
     """`## Step i`: the evidence for its effect, its fit, residual and candidates."""
     s = steps[i]
     title = "the given model" if i == 0 and not s.get("added") \
@@ -315,7 +328,7 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
     md = [f"## Step {i}: {title}" if report.get("stopped_because") != "diagnosis only"
           else "## The given model", ""]
     if i > 0:
-        md += [_evidence(i, s, steps[i - 1], report, columns), ""]
+        md += [_evidence(i, s, steps[i - 1], report, columns, units), ""]
     pl, dg = plots[i], diagnoses[i]
     if pl:
         if i > 0 and plots[i - 1]:
@@ -371,13 +384,16 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
     - `columns`, `input_names`, `boundary_inputs`: as `diagnose_traces` takes them.
     - `diagnosis`: the one-step report of `diagnose` (titled a diagnosis, plots
       `diagnose_*.png`, no error-per-step chart).
-    - `units`: column -> unit for columns not in °C.
+    - `units`: column -> unit (default `_plots.column_units`: °C, or for a bias column,
+      one the steps' `parameters` name as `biases.<column>.*`, deg/h for `*_dph`, µg
+      for `*_ug`).
 
     **Returns:** the path of `report.md`.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     steps = list(report.get("steps") or [])
+    units = {**_default_units(steps, columns), **(units or {})}
     noise = {k: v for k, v in (report.get("noise") or {}).items() if v is not None}
     diagnoses, plots = _diagnose_steps(out, steps, step_traces, columns, input_names,
                                        boundary_inputs, "diagnose" if diagnosis else None,
@@ -387,14 +403,14 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
     sources = noise_sources(steps, columns)
     if not diagnosis:
         error_chart(out / "error_by_step.png", steps or [{}], columns,
-                    {c: v for c, v in noise.items() if sources.get(c) == "given"})
+                    {c: v for c, v in noise.items() if sources.get(c) == "given"}, units)
 
     md = ["# Diagnosis report" if diagnosis else "# Investigation report", ""]
-    md += _summary(report, steps, columns, noise, diagnosis)
+    md += _summary(report, steps, columns, noise, units, diagnosis)
     if not diagnosis:
-        md += _steps_table(steps, columns)
+        md += _steps_table(steps, columns, units)
     for i in range(len(steps)):
-        md += _step_section(i, steps, report, columns, plots, diagnoses)
+        md += _step_section(i, steps, report, columns, plots, diagnoses, units)
     path = out / "report.md"
     path.write_text("\n".join(md) + "\n", encoding="utf-8")
     return path
