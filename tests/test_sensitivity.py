@@ -57,7 +57,7 @@ def _problem():
     k = len(model.initial_nodes)
     run_initial = jnp.broadcast_to(model.initial[np.array(model.initial_nodes)],
                                    (data.n_runs, k))
-    template = problem_module.FitState(model, run_initial)
+    template = problem_module.FitState(model, run_initial, jnp.zeros(0))
     mask, names = problem_module._masks(spec, model, data.n_runs, "output_error")
     index = FreeIndex(mask)
     theta_true = free_parameters(template, index)

@@ -335,6 +335,15 @@ def fit_bias(bias: Bias, effects: list[Effect], runs, node_names, node_rates=Non
     return _fit(problem, _starts(problem))
 
 
+def bias_fit_at(bias: Bias, effects: list[Effect], runs, node_names, node_rates,
+                taus) -> BiasFit:
+    """`fit_bias` with the relaxation times held at `taus` (s, the column's viscoelastic
+    effects in file order), e.g. those of a joint fit: the coefficients by least squares,
+    stds over coefficients and log τ's as in `fit_bias`."""
+    problem = _Problem(bias, effects, runs, node_names, node_rates)
+    return problem.result(np.asarray(taus, dtype=float))
+
+
 def viscoelastic_candidate(bias: Bias, effects: list[Effect], runs, node_names, node: str,
                            node_rates=None) -> tuple[BiasFit, float]:
     """Fit with one more `viscoelastic` effect on `node` and score it.

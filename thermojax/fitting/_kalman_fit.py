@@ -66,7 +66,7 @@ def fit_kalman(prep: Prepared, start: Solution, solver, max_steps: int, prior_lo
     prior_mean = free_parameters(prep.template, index)  # the file's values
     solver = solver or TruncatedNewton()
     weight = 0.0 if isinstance(solver, TruncatedNewton) else 1.0 / prior_log_std
-    sigma = start.problem.sigma
+    sigma = start.problem.sigma[:len(prep.spec.sensors)]  # the filter's own noise is in theta
     problem = make_problem(template, index, prep.data, sigma, prior_mean, weight)
     say(f"Kalman likelihood: {len(names)} parameters, started from the output-error fit")
     theta, n_steps, converged = _solve_kalman(theta0, problem, solver, max_steps)

@@ -21,8 +21,9 @@ import optimistix as optx
 
 from ..dynamics._sensitivity import dataset_block_outputs, output_sensitivity_parts, pad_to_blocks
 from ._likelihood import ml_sigma, output_error_nll
+from ._bias_residuals import bias_residuals, pushed_forward
 from ._problem import (FitState, Prepared, Solution, _check_finite, _model_of, _perturbed_starts,
-                       _prior, _Problem, dataset, make_problem, template_at)
+                       _prior, _Problem, _state, dataset, make_problem, template_at)
 from ._solver import TruncatedGaussNewton, _flat_rows, _grams, gauss_newton, traced_settings
 from ..model._parameters import free_parameters, with_free_parameters
 from ..measurements._data import Experiment
@@ -37,20 +38,48 @@ def _by_output(x):
 
 
 def _data_residuals(y, problem: _Problem):
-    """Weighted data residuals (runs, blocks L, outputs) from predictions `y` padded to
-    whole blocks (°C)."""
+    """Weighted sensor residuals (runs, blocks L, sensors) from sensor readings `y` padded
+    to whole blocks (°C)."""
     data = problem.data
+    p = data.outputs.shape[2]
     r = jnp.where(pad_to_blocks(data.mask), pad_to_blocks(data.outputs) - y, 0.0)
-    return r / problem.sigma[None, None, :]
+    return r / problem.sigma[None, None, :p]
+
+
+def _split(y, problem: _Problem):
+    """Simulated outputs (runs, blocks L, ...) -> `(sensor readings, node temperatures)`;
+    the node temperatures are read out (and returned) only when the problem has bias
+    columns, else None."""
+    if problem.bias is None:
+        return y, None
+    p = problem.data.outputs.shape[2]
+    return y[:, :, :p], y[:, :, p:]
+
+
+def _bias_of(theta, problem: _Problem):
+    """`(model, bias_log_tau)` at `theta`: what the bias columns' design needs."""
+    s = _state(theta, problem)
+    return s.model, s.bias_log_tau
+
+
+def _bias_inputs(problem: _Problem):
+    """`(inputs padded to whole blocks, run periods, bias stds)` for `_bias_residuals`."""
+    data = problem.data
+    return pad_to_blocks(data.inputs), data.dt, problem.sigma[data.outputs.shape[2]:]
 
 
 def _oe_blocks(theta, problem: _Problem):
-    """The residuals `(per_output, prior)`: `per_output` a tuple with each output's
-    weighted data residuals (runs, blocks L), zero in the padding and where nothing was
-    measured, so that `gauss_newton` returns each output's `JᵀJ`; `prior` (free,)."""
+    """The residuals `(per_output, prior)`: `per_output` a tuple with each sensor's, then
+    each bias column's, weighted data residuals (runs, blocks L), zero in the padding and
+    where nothing was measured, so that `gauss_newton` returns each output's `JᵀJ`;
+    `prior` (free,)."""
     model, run_initial = _model_of(theta, problem)
-    y = dataset_block_outputs(model, problem.data, run_initial)
-    return _by_output(_data_residuals(y, problem)), _prior(theta, problem)
+    y, x = _split(dataset_block_outputs(model, problem.data, run_initial), problem)
+    r = _by_output(_data_residuals(y, problem))
+    if x is not None:
+        inputs, dt, sigma = _bias_inputs(problem)
+        r = r + bias_residuals(*_bias_of(theta, problem), x, inputs, dt, problem.bias, sigma)
+    return r, _prior(theta, problem)
 
 
 def _oe_flat(theta, problem: _Problem):
@@ -61,23 +90,46 @@ def _oe_flat(theta, problem: _Problem):
 
 
 def _oe_blocks_jacobian(theta, problem: _Problem):
-    """`(_oe_blocks(theta, problem), its Jacobian, the predictions)` by forward
+    """`(_oe_blocks(theta, problem), its Jacobian, the sensor predictions)` by forward
     sensitivities. The Jacobian has the residuals' structure, each output's leaf (runs,
-    blocks L, free), the prior's (free, free); predictions (runs, times, outputs) °C."""
+    blocks L, free), the prior's (free, free); predictions (runs, times, sensors) °C.
+    Bias columns take theirs from the node temperatures' sensitivities."""
     data = problem.data
-    y, jacobian = output_sensitivity_parts(lambda t: _model_of(t, problem), theta, data)
+    p = data.outputs.shape[2]
+    y_all, jacobian = output_sensitivity_parts(lambda t: _model_of(t, problem), theta, data)
+    J_all = jacobian()
+    y, x = _split(y_all, problem)
     J = jnp.where(pad_to_blocks(data.mask)[..., None],
-                  -jacobian() / problem.sigma[None, None, :, None], 0.0)
-    return ((_by_output(_data_residuals(y, problem)), _prior(theta, problem)),
-            (_by_output(J), jnp.diag(problem.prior_weight)), y[:, :data.outputs.shape[1]])
+                  -J_all[:, :, :p] / problem.sigma[None, None, :p, None], 0.0)
+    r, J = _by_output(_data_residuals(y, problem)), _by_output(J)
+    if x is not None:
+        inputs, dt, sigma = _bias_inputs(problem)
+        (rb, _), (Jb, _) = pushed_forward(lambda t: _bias_of(t, problem), theta, x,
+                                          J_all[:, :, p:], inputs, dt, problem.bias, sigma)
+        r, J = r + rb, J + Jb
+    return ((r, _prior(theta, problem)), (J, jnp.diag(problem.prior_weight)),
+            y[:, :data.outputs.shape[1]])
+
+
+@eqx.filter_jit
+def bias_coefficient_jacobian(theta, problem: _Problem):
+    """Per bias column, `dĉ/dθ` (m_j, free) of its least-squares coefficients (the
+    `_bias_residuals.design_matrices` columns) along the free parameters."""
+    p = problem.data.outputs.shape[2]
+    y_all, jacobian = output_sensitivity_parts(lambda t: _model_of(t, problem), theta,
+                                               problem.data)
+    inputs, dt, sigma = _bias_inputs(problem)
+    _, (_, dc) = pushed_forward(lambda t: _bias_of(t, problem), theta, y_all[:, :, p:],
+                                jacobian()[:, :, p:], inputs, dt, problem.bias, sigma)
+    return dc
 
 
 class _OEEvaluation(eqx.Module):
     """The output-error problem at one `theta`, for the fit's reports."""
 
-    residuals: jax.Array  # weighted, data rows only, (runs, times, outputs)
-    gram: jax.Array  # JᵀJ of each output's weighted data rows, (outputs, free, free)
-    predictions: jax.Array  # (runs, times, outputs) °C
+    residuals: jax.Array  # weighted, data rows only, (runs, times, sensors + bias columns)
+    gram: jax.Array  # JᵀJ of each column's weighted data rows, (columns, free, free)
+    predictions: jax.Array  # (runs, times, sensors) °C
     num_evaluations: jax.Array | None = None  # residual evaluations at trial points
 
 
@@ -85,14 +137,14 @@ class _OEEvaluation(eqx.Module):
 def _oe_evaluate(theta, problem: _Problem, full_jacobian: bool = False):
     """At `theta`: an `_OEEvaluation`; with `full_jacobian`, the weighted data residuals
     (runs, times, outputs) and their Jacobian (runs, times, outputs, free) instead."""
-    T, p = problem.data.outputs.shape[1:]
+    T = problem.data.outputs.shape[1]
     if theta.shape[0] == 0:  # nothing free (a Kalman fit of the noise alone): no Jacobian
         model, run_initial = _model_of(theta, problem)
-        y = dataset_block_outputs(model, problem.data, run_initial)
-        r = _data_residuals(y, problem)[:, :T]
+        y, _ = _split(dataset_block_outputs(model, problem.data, run_initial), problem)
+        r = jnp.stack(_oe_blocks(theta, problem)[0], axis=-1)[:, :T]
         if full_jacobian:
             return r, jnp.zeros((*r.shape, 0))
-        return _OEEvaluation(r, jnp.zeros((p, 0, 0)), y[:, :T])
+        return _OEEvaluation(r, jnp.zeros((r.shape[2], 0, 0)), y[:, :T])
     (r, _), (J, _), y = _oe_blocks_jacobian(theta, problem)
     if full_jacobian:
         return jnp.stack(r, axis=-1)[:, :T], jnp.stack(J, axis=2)[:, :T]
@@ -151,9 +203,9 @@ def _reweighted(start, prep: Prepared, theta0, solver, max_steps: int, say, oute
     """Solve from `start`, re-weighting estimated noise stds to their ML values until they
     settle (up to `outer` passes, each warm-started from the last)."""
     theta, total, evals = start, 0, 0
-    sig, mask = prep.sigma, np.asarray(prep.data.mask)
+    sig, mask = prep.sigma, prep.mask()
     for it in range(outer):
-        problem = make_problem(prep.template, prep.index, prep.data, sig, theta0)
+        problem = make_problem(prep.template, prep.index, prep.data, sig, theta0, bias=prep.bias)
         if theta.shape[0]:
             theta, steps, ok, *evaluation = _solve_oe(theta, problem, solver, max_steps)
         else:  # nothing physical to move (a Kalman fit of the noise alone)
@@ -196,16 +248,20 @@ def fit_output_error(prep: Prepared, solver, max_steps: int, n_starts: int, seed
     _check_finite(best.theta, theta0, prep.names)
     sigma = best.sigma
     state = with_free_parameters(prep.template, prep.index, best.theta)
+    p = len(prep.spec.sensors)
     state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model,
-                                 jax.device_put(np.log(sigma))), state.run_initial)
+                                 jax.device_put(np.log(sigma[:p]))), state.run_initial,
+                     state.bias_log_tau)
     # JᵀJ at theta from the last pass, re-weighted to the final stds.
     info = np.einsum("j,jab->ab", (best.used / sigma) ** 2, np.asarray(best.evaluation.gram))
     # Estimated noise stds are parameters too (ML: std(σ) = σ / sqrt(2 N)).
-    n_meas = np.asarray(prep.data.mask).sum(axis=(0, 1))
-    noise = {f"sensors.{c}.noise": (float(sigma[j]),
-                                    float(sigma[j] / np.sqrt(2 * max(n_meas[j], 1))))
-             for j, c in enumerate(prep.spec.sensor_columns) if not prep.fixed_sigma[j]}
-    return Solution(make_problem(prep.template, prep.index, prep.data, sigma, theta0),
+    n_meas = prep.mask().sum(axis=(0, 1))
+    names = ([f"sensors.{c}.noise" for c in prep.spec.sensor_columns]
+             + [f"biases.{b.column}.noise" for b in prep.spec.biases])
+    noise = {name: (float(sigma[j]), float(sigma[j] / np.sqrt(2 * max(n_meas[j], 1))))
+             for j, name in enumerate(names) if not prep.fixed_sigma[j]}
+    return Solution(make_problem(prep.template, prep.index, prep.data, sigma, theta0,
+                                 bias=prep.bias),
                     np.asarray(best.theta), state, prep.names, info, best.nll, best.n_steps,
                     best.converged, np.asarray(best.evaluation.predictions), noise,
                     best.n_evaluations)

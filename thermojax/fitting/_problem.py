@@ -25,15 +25,18 @@ from ..model._network import Topology, conductance_matrix, time_constants
 from ..model._parameters import FreeIndex, with_free_parameters
 from ..model._spec import EFFECT_KINDS, ModelSpec
 from ..model.effects import Lowered, lower_effects
+from ._bias_residuals import BiasColumns, bias_columns, strains_of
 
 LIKELIHOODS = ("output_error", "kalman")
 
 
 class FitState(eqx.Module):
-    """Everything a fit moves: the model and each run's estimated initial temperatures."""
+    """Everything a fit moves: the model, each run's estimated initial temperatures and
+    the log relaxation times of the bias channels' viscoelastic effects."""
 
     model: ThermalModel
     run_initial: jax.Array  # (runs, len(model.initial_nodes)), °C
+    bias_log_tau: jax.Array  # (viscoelastic effects,) log s, `_bias_residuals.strains_of` order
 
 
 class _Problem(eqx.Module):
@@ -42,18 +45,19 @@ class _Problem(eqx.Module):
     template: FitState
     index: FreeIndex = eqx.field(static=True)
     data: Dataset
-    sigma: jax.Array  # (outputs,) °C, weights of the output-error residuals
+    sigma: jax.Array  # (sensors + bias columns,), °C then column units: residual weights
     prior_mean: jax.Array  # (free,)
     prior_weight: jax.Array  # (free,) 1/std of the prior; a huge weight pins a parameter
+    bias: BiasColumns | None = None
 
 
 def make_problem(template: FitState, index: FreeIndex, data: Dataset, sigma, prior_mean,
-                 prior_weight=0.0) -> _Problem:
+                 prior_weight=0.0, bias: BiasColumns | None = None) -> _Problem:
     """A `_Problem` whose arrays go to the device from NumPy (no eager XLA programs)."""
     prior_mean = np.asarray(prior_mean, float)
     weight = np.broadcast_to(np.asarray(prior_weight, float), prior_mean.shape)
     return _Problem(template, index, data, *jax.device_put(
-        (np.asarray(sigma, float), prior_mean, np.array(weight))))
+        (np.asarray(sigma, float), prior_mean, np.array(weight))), bias)
 
 
 def _state(theta, problem: _Problem) -> FitState:
@@ -61,8 +65,11 @@ def _state(theta, problem: _Problem) -> FitState:
 
 
 def _model_of(theta, problem: _Problem):
-    """`(model, run_initial)` at `theta`."""
+    """`(model, run_initial)` at `theta`; with bias columns the model reads out every
+    node's temperature after the sensors (`ThermalModel.read_states`)."""
     s = _state(theta, problem)
+    if problem.bias is not None:
+        return dataclasses.replace(s.model, read_states=True), s.run_initial
     return s.model, s.run_initial
 
 
@@ -103,7 +110,9 @@ class Prepared:
     template: FitState  # starting values
     index: FreeIndex  # free elements under output error
     names: list[str]  # their dotted names
-    fixed_sigma: np.ndarray  # (outputs,) bool: noise std fixed in the file
+    fixed_sigma: np.ndarray  # (sensors + bias columns,) bool: noise std fixed in the file
+    bias: BiasColumns | None = None  # the bias columns, None without `[[biases]]`
+    bias_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))  # starting stds
 
     @property
     def spec(self) -> ModelSpec:
@@ -111,8 +120,22 @@ class Prepared:
 
     @property
     def sigma(self) -> np.ndarray:
-        """Starting noise stds (outputs,), °C."""
-        return np.exp(np.asarray(self.template.model.log_noise))
+        """Starting noise stds (sensors + bias columns,), °C then column units."""
+        return np.concatenate([np.exp(np.asarray(self.template.model.log_noise)),
+                               self.bias_sigma])
+
+    @property
+    def columns(self) -> list[str]:
+        """The measured columns the likelihood counts: sensors, then bias columns."""
+        return list(self.spec.sensor_columns) + list(self.bias.columns if self.bias else ())
+
+    def mask(self) -> np.ndarray:
+        """Where each column was measured, (runs, times, sensors + bias columns)."""
+        mask = np.asarray(self.data.mask)
+        if self.bias is None:
+            return mask
+        T = mask.shape[1]
+        return np.concatenate([mask, np.asarray(self.bias.mask)[:, :T]], axis=2)
 
     def free(self, likelihood: str) -> tuple[FreeIndex, list[str]]:
         """The free elements of `template` under `likelihood`, and their dotted names."""
@@ -143,13 +166,38 @@ def prepare(spec: ModelSpec, experiments: list[Experiment], likelihood: str,
     model = ThermalModel.from_spec(spec)
     initial = np.asarray(model.initial)[np.array(model.initial_nodes, dtype=int)]
     run_initial = np.broadcast_to(initial, (data.n_runs, len(model.initial_nodes)))
-    template = FitState(model, jax.device_put(np.array(run_initial)))
+    template = FitState(model, *jax.device_put((np.array(run_initial), _log_taus(spec))))
     index, names = _free_elements(spec, model, data.n_runs, "output_error")
     if not names and likelihood == "output_error":
         raise InputError("nothing to fit: every parameter is fixed. Make at least one "
                          "capacitance, conductance or gain a bare number.", file=spec.source)
-    fixed_sigma = np.array([s.noise is not None and s.noise.fixed for s in spec.sensors])
-    return Prepared(lowered, experiments, data, template, index, names, fixed_sigma)
+    fixed_sigma = np.array([s.noise is not None and s.noise.fixed
+                            for s in (*spec.sensors, *spec.biases)], dtype=bool)
+    bias = bias_columns(spec, experiments, holdout)
+    bias_sigma = np.array([_bias_sigma_start(b, j, experiments)
+                           for j, b in enumerate(spec.biases)])
+    return Prepared(lowered, experiments, data, template, index, names, fixed_sigma, bias,
+                    bias_sigma)
+
+
+def _log_taus(spec: ModelSpec) -> np.ndarray:
+    """Starting log relaxation times (viscoelastic effects,), log s: the file's values,
+    else the effect's default."""
+    from ..model.effects import KINDS
+
+    default = KINDS["viscoelastic"].initial_parameters(spec, None)["time_constant"]
+    return np.log(np.array([s.time_constant.value if s.time_constant is not None else default
+                            for s in strains_of(spec)], float).reshape(-1))
+
+
+def _bias_sigma_start(bias, j: int, experiments) -> float:
+    """A bias column's starting noise std: its file value, else the column's spread (the
+    first re-weighting pass replaces it with the ML value)."""
+    if bias.noise is not None:
+        return float(bias.noise.value)
+    values = np.concatenate([e.biases[:, j] for e in experiments])
+    spread = float(np.nanstd(values))
+    return spread if spread > 0 else 1.0
 
 
 def dataset(experiments: list[Experiment]) -> Dataset:
@@ -161,7 +209,7 @@ def template_at(spec: ModelSpec, run_initial, n_runs: int) -> tuple[FitState, Fr
     """The output-error template of `spec`'s values with `run_initial` (runs, k) °C."""
     model = ThermalModel.from_spec(spec)
     index, _ = _free_elements(spec, model, n_runs, "output_error")
-    return FitState(model, jax.device_put(np.asarray(run_initial))), index
+    return FitState(model, *jax.device_put((np.asarray(run_initial), _log_taus(spec)))), index
 
 
 def _free_elements(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
@@ -198,6 +246,11 @@ def _masks(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
          for t in model.effect_terms for p in t.parameters],
         [f"effects.{t.kind}.{'-'.join(t.where)}.{p}" for t in model.effect_terms
          for p in t.parameters]))
+    strains = strains_of(spec)
+    tau_mask = np.array([not kalman and not (s.time_constant is not None
+                                             and s.time_constant.fixed) for s in strains],
+                        dtype=bool)
+    tau_names = [s.name for s in strains]
     init_free = [not spec.nodes[i].initial.fixed for i in model.initial_nodes]
     run_mask = np.array([init_free] * n_runs, dtype=bool).reshape(n_runs, len(init_free))
     run_names = [[f"runs.{r}.nodes.{nodes[i]}.initial" for i in model.initial_nodes]
@@ -210,9 +263,10 @@ def _masks(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
                         model.network, tuple(arrays[:4])),
             arrays[4], arrays[5], arrays[6], arrays[7], model.initial_nodes, arrays[8],
             model.effect_terms),
-        run_mask)
-    names = [nm for _, nms in net_masks for nm in nms] + [nm for row in run_names for nm in row]
-    flat_mask = np.concatenate([*arrays, run_mask.reshape(-1)])
+        run_mask, tau_mask)
+    names = ([nm for _, nms in net_masks for nm in nms] + [nm for row in run_names for nm in row]
+             + tau_names)
+    flat_mask = np.concatenate([*arrays, run_mask.reshape(-1), tau_mask])
     free_names = [nm for nm, f in zip(names, flat_mask) if f]
     return template_mask, free_names
 

@@ -45,7 +45,7 @@ def profile_interval(result: FitResult, name: str, level: float = 0.95, max_refi
         start = theta_hat.copy()
         start[j] = value
         pinned = make_problem(problem.template, problem.index, problem.data, problem.sigma,
-                              start, pin)
+                              start, pin, bias=problem.bias)
         theta = _solve_oe(start, pinned, TruncatedGaussNewton(), 100)[0]
         return _chi_square(theta, problem) - base - threshold
 

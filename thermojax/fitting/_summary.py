@@ -15,10 +15,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._metrics import fit_metrics
+from .._metrics import fit_metrics, fit_percent, rmse
 from ..model._model import ThermalModel, model_to_spec
-from ..model._spec import ModelSpec
+from ..model._spec import ModelSpec, Parameter
 from ..model.effects import Lowered, raise_effects
+from ._bias import BiasFit, bias_fit_at, bias_parameters, bias_to_spec, fit_bias
+from ._bias_residuals import node_temperatures, strains_of
+from ._output_error import bias_coefficient_jacobian
 from ._identifiability import Identifiability, identifiability
 from ._kalman_fit import kalman_smoothed
 from ._problem import FitState, Prepared, Solution, _is_log, _Problem
@@ -60,6 +63,8 @@ class FitResult:
     # Effect parameters fitted through a lowered entry: effect name -> (scale, power),
     # value = scale * lowered value ** power (e.g. a sensor lag's tau = C / G).
     lowered_as: dict[str, tuple[float, float]] = field(repr=False, default_factory=dict)
+    # Bias channels (docs/formats.md §4): column -> `BiasFit` on the fitted model's states.
+    biases: dict[str, BiasFit] = field(repr=False, default_factory=dict)
 
 
 def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) -> FitResult:
@@ -73,6 +78,19 @@ def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) ->
     n_samples = int(np.asarray(data.mask).sum())
     predictions = [sol.predictions[r, :n] for r, n in enumerate(data.lengths)]
     metrics = fit_metrics(spec.sensor_columns, prep.experiments, predictions)
+    biases = _bias_fits(prep, sol, likelihood, ident)
+    nll = sol.nll
+    for column, b in biases.items():
+        for name, entry in bias_parameters(b).items():
+            parameters.setdefault(name, entry)  # τ and σ of a joint fit keep their stds
+        # output error: τ's and σ are counted in theta and noise, the coefficients here;
+        # Kalman: the bias channel is fitted after the filter, all of it counts here.
+        n_params += b.n_params if likelihood == "kalman" else len(b.names) - len(
+            [n for n in b.names if n in b.fixed])
+        nll += b.nll if likelihood == "kalman" else 0.0
+        n_samples += int(sum(np.isfinite(r).sum() for r in b.residuals))
+        _add_bias_metrics(metrics, b)
+        fitted_spec = _with_bias(fitted_spec, b)
     smoothed = []
     if likelihood == "kalman":
         m_s, s_s = kalman_smoothed(sol.state.model, data, sol.state.run_initial)
@@ -81,19 +99,95 @@ def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) ->
     renames = prep.lowered.renames()
     message = ("converged" if sol.converged
                else f"stopped after {sol.n_steps} steps without converging")
+    raised = raise_effects(prep.lowered, fitted_spec)
+    for b in biases.values():
+        raised = _with_bias(raised, b)
     return FitResult(
-        spec=raise_effects(prep.lowered, fitted_spec), lowered_spec=fitted_spec,
+        spec=raised, lowered_spec=fitted_spec,
         model=sol.state.model, state=sol.state, likelihood=likelihood,
         parameters=_raise_names(parameters, prep.lowered), correlation=_correlation(ident),
-        free_names=[renames[n][0] if n in renames else n for n in sol.names], nll=sol.nll,
-        aic=2 * n_params + 2 * sol.nll, bic=n_params * math.log(n_samples) + 2 * sol.nll,
+        free_names=[renames[n][0] if n in renames else n for n in sol.names], nll=nll,
+        aic=2 * n_params + 2 * nll, bic=n_params * math.log(n_samples) + 2 * nll,
         n_params=n_params, n_samples=n_samples, rmse=metrics["rmse"],
         fit_percent=metrics["fit_percent"], per_run=metrics["per_run"],
         identifiability=_rename_identifiability(ident, {k: v[0] for k, v in renames.items()}),
         n_steps=sol.n_steps, converged=sol.converged, message=message,
         n_evaluations=sol.n_evaluations, wall_time_s=time.perf_counter() - t_start, predictions=predictions,
         smoothed=smoothed, theta=sol.theta, problem=sol.problem,
-        lowered_as={target: (scale, power) for target, scale, power in renames.values()})
+        lowered_as={target: (scale, power) for target, scale, power in renames.values()},
+        biases=biases)
+
+
+def _bias_fits(prep: Prepared, sol: Solution, likelihood: str,
+               ident: Identifiability) -> dict[str, BiasFit]:
+    """Each bias column on the fitted model's free-run node temperatures and exact rates.
+
+    Output error: at the jointly fitted τ's, each coefficient's std the marginal one,
+    `σ² (XᵀX)⁻¹ + (∂ĉ/∂θ) Cov(θ) (∂ĉ/∂θ)ᵀ` (the block inverse of the joint linearized
+    problem; None where it involves an undetermined direction). Kalman: the column is
+    fitted after the filter, τ's by its own search, stds conditional on the thermal fit.
+    """
+    spec, data = prep.spec, prep.data
+    if not spec.biases:
+        return {}
+    x, xdot = (np.asarray(a) for a in node_temperatures(sol.state.model, data,
+                                                        sol.state.run_initial))
+    mask = np.asarray(prep.bias.mask)
+    strains = strains_of(spec)
+    taus = dict(zip([s.name for s in strains], np.exp(np.asarray(sol.state.bias_log_tau))))
+    dc = None if likelihood == "kalman" or not len(sol.theta) else [
+        np.asarray(d) for d in bias_coefficient_jacobian(sol.theta, sol.problem)]
+    out = {}
+    for j, b in enumerate(spec.biases):
+        runs = [(e.ts, x[r, :e.n_times], np.where(mask[r, :e.n_times, j], e.biases[:, j], np.nan))
+                for r, e in enumerate(prep.experiments)]
+        rates = [xdot[r, :e.n_times] for r, e in enumerate(prep.experiments)]
+        if likelihood == "kalman":
+            out[b.column] = fit_bias(b, list(spec.effects), runs, spec.node_names, rates)
+            continue
+        # τ's held at the joint fit's values (their uncertainty is in Cov(θ))
+        held = [dataclasses.replace(e, parameters={**e.parameters, "time_constant": Parameter(
+            float(taus[f"effects.viscoelastic.{e.where[0]}-{b.column}.time_constant"]), True)})
+            if e.kind == "viscoelastic" and e.where[1] == b.column else e for e in spec.effects]
+        fit = bias_fit_at(b, held, runs, spec.node_names, rates,
+                          [taus[s.name] for s in strains if s.column == b.column])
+        out[b.column] = fit if dc is None else _marginal_std(fit, dc[j], ident, sol.names)
+    return out
+
+
+def _marginal_std(fit: BiasFit, dc: np.ndarray, ident: Identifiability, names) -> BiasFit:
+    """`fit` with the thermal parameters' uncertainty added to its coefficient stds;
+    `dc` (free coefficients, free θ) is `∂ĉ/∂θ`, θ's elements named by `names`."""
+    free = np.isfinite(fit.std)
+    cov = np.asarray(ident.covariance)
+    bad = np.array([n in ident.unidentifiable_parameters for n in names], bool)
+    extra = np.einsum("ia,ab,ib->i", dc[:, ~bad], cov[np.ix_(~bad, ~bad)], dc[:, ~bad])
+    undetermined = np.any(np.abs(dc[:, bad]) > 1e-12 * (1 + np.abs(dc).max()), axis=1)
+    std = fit.std.copy()
+    idx = np.flatnonzero(free)
+    std[idx] = np.where(undetermined[:idx.size], np.nan,
+                        np.sqrt(fit.std[idx] ** 2 + np.clip(extra[:idx.size], 0, None)))
+    return dataclasses.replace(fit, std=std)
+
+
+def _add_bias_metrics(metrics: dict, fit: BiasFit) -> None:
+    """A bias column's RMSE and fit % (pooled and per run) into `fit_metrics`' dict."""
+    measured = [p + r for p, r in zip(fit.predictions, fit.residuals)]  # NaN where missing
+    c = fit.column
+    metrics["rmse"][c] = rmse(np.concatenate(measured), np.concatenate(fit.predictions))
+    metrics["fit_percent"][c] = fit_percent(np.concatenate(measured),
+                                            np.concatenate(fit.predictions))
+    for run, y, p in zip(metrics["per_run"], measured, fit.predictions):
+        run["rmse"][c], run["fit_percent"][c] = rmse(y, p), fit_percent(y, p)
+
+
+def _with_bias(spec: ModelSpec, fit: BiasFit) -> ModelSpec:
+    """`spec` with one bias column's fitted coefficients, noise and viscoelastic τ and k."""
+    biases, effects = list(spec.biases), list(spec.effects)
+    for i, b in enumerate(biases):
+        if b.column == fit.column:
+            biases[i], effects = bias_to_spec(b, effects, fit)
+    return spec.replace(biases=tuple(biases), effects=tuple(effects))
 
 
 def _parameters(sol: Solution, ident: Identifiability, spec: ModelSpec) -> dict[str, dict]:

@@ -46,7 +46,7 @@ from scipy import stats
 
 import dataclasses
 
-from ..fitting._bias import bias_parameters, bias_to_spec, fit_bias, viscoelastic_candidate
+from ..fitting._bias import fit_bias, viscoelastic_candidate
 from ._candidates import (Candidate, benjamini_hochberg, column_hold, column_role,
                           enumerate_places, new_effect, refit_p_value, score_candidates)
 from ..measurements._data import Experiment
@@ -96,37 +96,26 @@ def _experiments(spec: ModelSpec, runs: list[Telemetry]) -> list[Experiment]:
 
 
 def _bias_runs(result, runs, bias):
-    from ._candidates import _states_jit
+    """`(runs, node rates)` for `fitting._bias` on the fitted model's free-run node
+    temperatures: per run `(ts, node temperatures, bias column)` and the exact `dT/dt`."""
+    from ..fitting._bias_residuals import node_temperatures
 
-    data = result.problem.data
-    x = np.asarray(_states_jit(result.model, data, result.state.run_initial))
-    return [(np.asarray(t.ts), x[r, :len(t.ts)], t.column(bias.column)) for r, t in
-            enumerate(runs)]
+    x, xdot = (np.asarray(a) for a in node_temperatures(
+        result.model, result.problem.data, result.state.run_initial))
+    return ([(np.asarray(t.ts), x[r, :len(t.ts)], t.column(bias.column))
+             for r, t in enumerate(runs)], [xdot[r, :len(t.ts)] for r, t in enumerate(runs)])
 
 
 def evaluate(spec: ModelSpec, runs: list[Telemetry], likelihood: str, progress=None,
              holdout: int | None = None) -> Step:
-    """Fit `spec` to the runs, its bias channels too, and measure the fit (docs/formats.md §5 keys)."""
+    """Fit `spec` to the runs, its bias channels with it (docs/formats.md §4), and measure
+    the fit (docs/formats.md §5 keys)."""
     result = fit(spec, _experiments(spec, runs), likelihood=likelihood, progress=progress,
                  holdout=holdout)
-    lowered = result.lowered_spec
-    biases = {}
-    for b in spec.biases:
-        biases[b.column] = fit_bias(b, list(spec.effects), _bias_runs(result, runs, b),
-                                    list(lowered.node_names))
+    biases = result.biases
     spec_out = result.spec
-    effects = list(spec_out.effects)
-    new_biases = []
-    for b in spec_out.biases:
-        nb, effects = bias_to_spec(b, effects, biases[b.column])
-        new_biases.append(nb)
-    spec_out = spec_out.replace(biases=tuple(new_biases), effects=tuple(effects))
-    nll = result.nll + sum(f.nll for f in biases.values())
-    n_params = result.n_params + sum(f.n_params for f in biases.values())
-    n = result.n_samples + sum(int(sum(np.isfinite(r).sum() for r in f.residuals))
-                               for f in biases.values())
+    nll, n_params, n = result.nll, result.n_params, result.n_samples
     rmse = dict(result.rmse)
-    rmse.update({c: float(f.rmse) for c, f in biases.items()})
     # whiteness: free-run residuals (output error) or standardized innovations (Kalman)
     cols = list(spec.sensor_columns)
     if likelihood == "kalman":
@@ -139,8 +128,6 @@ def evaluate(spec: ModelSpec, runs: list[Telemetry], likelihood: str, progress=N
     white = {c: p for c, (_, p, _) in tests.items()}
     lags = {c: lag for c, (_, _, lag) in tests.items()}
     params = dict(result.parameters)
-    for f in biases.values():
-        params.update(bias_parameters(f))
     record = {
         "added": None, "n_params": int(n_params), "rmse": rmse,
         "nll": float(nll), "aic": float(2 * n_params + 2 * nll),
@@ -233,9 +220,9 @@ def _viscoelastic_candidates(step: Step, runs: list[Telemetry], places,
             continue
         try:
             bias = next(b for b in spec.biases if b.column == where[1])
-            bias_fit, lr = viscoelastic_candidate(bias, list(spec.effects),
-                                                  _bias_runs(result, runs, bias), node_names,
-                                                  where[0])
+            bias_runs, rates = _bias_runs(result, runs, bias)
+            bias_fit, lr = viscoelastic_candidate(bias, list(spec.effects), bias_runs,
+                                                  node_names, where[0], node_rates=rates)
             name = f"viscoelastic.{where[0]}"
             k = float(dict(zip(bias_fit.names, bias_fit.coefficients))[f"{name}.k"])
             if not (np.isfinite(lr) and np.isfinite(k)):
@@ -469,7 +456,7 @@ def _viscoelastic_fold_gains(current: Step, c: Candidate, runs, folds, say) -> l
     bias samples masked (a whole held-out run keeps its first sample), on the current
     thermal states."""
     bias = next(b for b in current.spec.biases if b.column == c.where[1])
-    base_runs = _bias_runs(current.result, runs, bias)
+    base_runs, rates = _bias_runs(current.result, runs, bias)
     node_names = list(current.result.lowered_spec.node_names)
     sigma = float(current.biases[bias.column].sigma)
     gains = []
@@ -483,9 +470,9 @@ def _viscoelastic_fold_gains(current: Step, c: Candidate, runs, folds, say) -> l
         if fold[1] is None:
             ym[0] = y[0]
         masked[r] = (ts, x, ym)
-        before = fit_bias(bias, list(current.spec.effects), masked, node_names)
+        before = fit_bias(bias, list(current.spec.effects), masked, node_names, rates)
         after, _ = viscoelastic_candidate(bias, list(current.spec.effects), masked, node_names,
-                                          c.where[0])
+                                          c.where[0], node_rates=rates)
         ssr = [float(np.nansum(((y[rows] - f.predictions[r][rows]) / sigma) ** 2))
                for f in (before, after)]
         if not np.all(np.isfinite(ssr)):
@@ -718,6 +705,7 @@ def _load_checkpoint(out: Path, fingerprint: str, spec):
 
 def _write_outputs(out: Path, report: dict, final: Step, traces, runs) -> None:
     from ._investigation_report import write_investigation_report
+    from .._plots import column_units
 
     out.mkdir(parents=True, exist_ok=True)
     save_model(final.spec, out / "model_final.toml",
@@ -732,4 +720,6 @@ def _write_outputs(out: Path, report: dict, final: Step, traces, runs) -> None:
             tr["inputs"] = np.stack([runs[r].column(c) for c in inputs], 1) if inputs \
                 else np.zeros((len(tr["ts"]), 0))
     write_investigation_report(out, json_safe(report), [t or [] for t in traces], cols,
-                               inputs, boundary)
+                               inputs, boundary, units=column_units(
+                                   final.spec.sensor_columns,
+                                   [b.column for b in final.spec.biases]))

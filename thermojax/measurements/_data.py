@@ -19,13 +19,16 @@ class Experiment:
     """One chamber run: uniformly sampled inputs and (possibly gappy) measurements.
 
     `inputs` (times, inputs) in the model's input order; `outputs` (times,
-    sensors) with NaN for dropped samples; `ts` (s); `name` for reports.
+    sensors) with NaN for dropped samples; `ts` (s); `name` for reports; `biases`
+    (times, bias columns) in the model's `[[biases]]` order, NaN where missing, or
+    None when the model has no bias channel.
     """
 
     ts: np.ndarray
     inputs: np.ndarray
     outputs: np.ndarray
     name: str = "run"
+    biases: np.ndarray | None = None
 
     @property
     def dt(self) -> float:
@@ -55,7 +58,17 @@ class Experiment:
         if not np.isfinite(y).any():
             raise InputError("no sensor data in this run: every sensor cell is empty or NaN.",
                              file=file, field=",".join(spec.sensor_columns))
-        return cls(np.asarray(telemetry.ts, float), u, y, name or file)
+        biases = None
+        if spec.biases:
+            biases = np.stack([np.asarray(telemetry.column(b.column), float)
+                               for b in spec.biases], 1)
+            for j, b in enumerate(spec.biases):
+                if not np.isfinite(biases[:, j]).any():
+                    raise InputError(f"bias column '{b.column}' has no readings in this run "
+                                     "(every cell is empty or nan); record it, or drop its "
+                                     "[[biases]] entry from the model.", file=file,
+                                     field=b.column)
+        return cls(np.asarray(telemetry.ts, float), u, y, name or file, biases)
 
 
 class Dataset(eqx.Module):

@@ -39,6 +39,9 @@ class ThermalModel(eqx.Module):
     # positive, and their static descriptions (`effects.Term`).
     effect_values: Float[Array, " effect_parameters"] = None
     effect_terms: tuple = eqx.field(static=True, default=())
+    # True: every node's temperature is read out after the sensors (outputs: sensors,
+    # then nodes), so one simulation gives the states that bias channels need.
+    read_states: bool = eqx.field(static=True, default=False)
 
     @classmethod
     def from_spec(cls, spec: ModelSpec) -> "ThermalModel":
@@ -101,17 +104,27 @@ class ThermalModel(eqx.Module):
                 offset = offset.at[t.sensor].add(got[1])
         return scale, offset
 
-    def output_offset(self) -> Float[Array, " sensors"]:
-        """Constant added to every reading (°C): sensor offsets and gain terms."""
-        return self._output_affine()[1]
+    def output_offset(self) -> Float[Array, " outputs"]:
+        """Constant added to every reading (°C): sensor offsets and gain terms (zero for
+        the node read-outs of `read_states`)."""
+        offset = self._output_affine()[1]
+        if self.read_states:
+            offset = jnp.concatenate([offset, jnp.zeros(self.network.log_capacitance.shape[0])])
+        return offset
 
     def linear_system(self):
-        """The network's linear system with the sensors' gains in its output matrix."""
+        """The network's linear system with the sensors' gains in its output matrix (and
+        every node's temperature as further outputs under `read_states`)."""
         system = self.network.linear_system()
-        if not self.effect_terms:
-            return system
-        scale = self._output_affine()[0]
-        return eqx.tree_at(lambda s: s.C, system, system.C * scale[:, None])
+        if self.effect_terms:
+            scale = self._output_affine()[0]
+            system = eqx.tree_at(lambda s: s.C, system, system.C * scale[:, None])
+        if self.read_states:
+            n, m = system.B.shape
+            system = eqx.tree_at(lambda s: (s.C, s.D), system, (
+                jnp.concatenate([system.C, jnp.eye(n, dtype=system.C.dtype)]),
+                jnp.concatenate([system.D, jnp.zeros((n, m), system.D.dtype)])))
+        return system
 
     def nonlinear_rate(self, system, x, u) -> Float[Array, " nodes"]:
         """`N(x, u)` (°C/s): the nonlinear terms' part of `dx/dt = A x + B u + N(x, u)`."""
