@@ -82,17 +82,31 @@ def _strain_term(ts, temps, tau) -> tuple[np.ndarray, np.ndarray]:
 
 
 @dataclass(frozen=True)
-class _Strain:
-    """One viscoelastic term: its node, column of `node_temps`, τ and k (None: no start)."""
+class Strain:
+    """One viscoelastic effect: its node, bias column and starting τ and k (None: none)."""
 
     node: str
-    index: int
-    tau: Parameter | None
+    column: str
+    time_constant: Parameter | None
     k: Parameter | None
 
     @property
     def name(self) -> str:
+        """Its name inside a `BiasFit`."""
         return f"viscoelastic.{self.node}"
+
+    @property
+    def parameter(self) -> str:
+        """The dotted report name of its τ (docs/formats.md §5)."""
+        return f"effects.viscoelastic.{self.node}-{self.column}.time_constant"
+
+
+def strains_of(biases, effects) -> list[Strain]:
+    """The viscoelastic effects among `effects`, column by column in `biases`' order."""
+    return [Strain(e.where[0], b.column, e.parameters.get("time_constant"),
+                   e.parameters.get("k"))
+            for b in biases for e in effects
+            if e.kind == "viscoelastic" and e.where[1] == b.column]
 
 
 class _Problem:
@@ -112,9 +126,8 @@ class _Problem:
         if node_rates is not None and len(node_rates) != len(runs):
             raise ValueError(f"`fit_bias(node_rates=...)` has {len(node_rates)} runs, "
                              f"runs has {len(runs)}.")
-        self.strains = [_Strain(e.where[0], index(e.where[0]), e.parameters.get("time_constant"),
-                                e.parameters.get("k"))
-                        for e in effects if e.kind == "viscoelastic" and e.where[1] == bias.column]
+        self.strains = strains_of([bias], effects)
+        self.strain_nodes = [index(s.node) for s in self.strains]
         if len({s.node for s in self.strains}) < len(self.strains):
             raise ValueError(f"two viscoelastic effects on one node for column '{bias.column}'; "
                              "merge them.")
@@ -155,7 +168,8 @@ class _Problem:
         self.y = np.concatenate([y[m] for *_, y, m in self.runs])
         self.n = self.y.size
         self.sigma_fixed = bias.noise.value if bias.noise is not None and bias.noise.fixed else None
-        self.free_tau = [s.tau is None or not s.tau.fixed for s in self.strains]
+        self.free_tau = [s.time_constant is None or not s.time_constant.fixed
+                         for s in self.strains]
         self.free_k = [s.k is None or not s.k.fixed for s in self.strains]
         n_params = (len(self.static_names) + sum(self.free_k) + sum(self.free_tau)
                     + (self.sigma_fixed is None))
@@ -172,8 +186,8 @@ class _Problem:
         out = []
         for ts, temps, *_ in self.runs:
             z, dz = np.zeros((2, ts.size, len(self.strains)))
-            for v, (s, tau) in enumerate(zip(self.strains, taus)):
-                z[:, v], dz[:, v] = _strain_term(ts, temps[:, s.index], tau)
+            for v, (node, tau) in enumerate(zip(self.strain_nodes, taus)):
+                z[:, v], dz[:, v] = _strain_term(ts, temps[:, node], tau)
             out.append((z, dz))
         return out
 
@@ -295,7 +309,8 @@ def _pinv_gram(J: np.ndarray) -> np.ndarray:
 
 
 def _starts(problem: _Problem) -> list[float]:
-    return [s.tau.value if s.tau is not None else math.nan for s in problem.strains]
+    return [s.time_constant.value if s.time_constant is not None else math.nan
+            for s in problem.strains]
 
 
 def _fit(problem: _Problem, taus) -> BiasFit:

@@ -26,8 +26,8 @@ import numpy as np
 
 from ..dynamics._blocked import pad_to_blocks
 from ..dynamics._sensitivity import dataset_block_outputs
-from ..model._spec import ModelSpec, Parameter
-from ._bias import T_REF
+from ..model._spec import ModelSpec
+from ._bias import T_REF, Strain, strains_of
 
 _RIDGE = 1e-10  # relative Tikhonov term of the scaled normal equations (rank-safe)
 
@@ -58,26 +58,9 @@ class BiasColumns(eqx.Module):
     columns: tuple[str, ...] = eqx.field(static=True)
 
 
-@dataclass(frozen=True)
-class Strain:
-    """One viscoelastic effect: its node, bias column and starting τ / k."""
-
-    node: str
-    column: str
-    time_constant: Parameter | None
-    k: Parameter | None
-
-    @property
-    def name(self) -> str:
-        return f"effects.viscoelastic.{self.node}-{self.column}.time_constant"
-
-
-def strains_of(spec: ModelSpec) -> list[Strain]:
-    """The viscoelastic effects of `spec`, column by column in `[[biases]]` order."""
-    return [Strain(e.where[0], b.column, e.parameters.get("time_constant"),
-                   e.parameters.get("k"))
-            for b in spec.biases for e in spec.effects
-            if e.kind == "viscoelastic" and e.where[1] == b.column]
+def spec_strains(spec: ModelSpec) -> list[Strain]:
+    """The viscoelastic effects of `spec` in `FitState.bias_log_tau` order."""
+    return strains_of(spec.biases, spec.effects)
 
 
 def bias_columns(spec: ModelSpec, experiments, holdout: int | None = None
@@ -87,7 +70,7 @@ def bias_columns(spec: ModelSpec, experiments, holdout: int | None = None
     if not spec.biases:
         return None
     idx = {n: i for i, n in enumerate(spec.node_names)}
-    strains = strains_of(spec)
+    strains = spec_strains(spec)
     designs = []
     for b in spec.biases:
         mine = [(i, s) for i, s in enumerate(strains) if s.column == b.column]

@@ -25,7 +25,7 @@ from ..model._network import Topology, conductance_matrix, time_constants
 from ..model._parameters import FreeIndex, with_free_parameters
 from ..model._spec import EFFECT_KINDS, ModelSpec
 from ..model.effects import Lowered, lower_effects
-from ._bias_residuals import BiasColumns, bias_columns, strains_of
+from ._bias_residuals import BiasColumns, bias_columns, spec_strains
 
 LIKELIHOODS = ("output_error", "kalman")
 
@@ -36,7 +36,7 @@ class FitState(eqx.Module):
 
     model: ThermalModel
     run_initial: jax.Array  # (runs, len(model.initial_nodes)), °C
-    bias_log_tau: jax.Array  # (viscoelastic effects,) log s, `_bias_residuals.strains_of` order
+    bias_log_tau: jax.Array  # (viscoelastic effects,) log s, `_bias_residuals.spec_strains` order
 
 
 class _Problem(eqx.Module):
@@ -187,7 +187,7 @@ def _log_taus(spec: ModelSpec) -> np.ndarray:
 
     default = KINDS["viscoelastic"].initial_parameters(spec, None)["time_constant"]
     return np.log(np.array([s.time_constant.value if s.time_constant is not None else default
-                            for s in strains_of(spec)], float).reshape(-1))
+                            for s in spec_strains(spec)], float).reshape(-1))
 
 
 def _bias_sigma_start(bias, j: int, experiments) -> float:
@@ -246,11 +246,11 @@ def _masks(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
          for t in model.effect_terms for p in t.parameters],
         [f"effects.{t.kind}.{'-'.join(t.where)}.{p}" for t in model.effect_terms
          for p in t.parameters]))
-    strains = strains_of(spec)
+    strains = spec_strains(spec)
     tau_mask = np.array([not kalman and not (s.time_constant is not None
                                              and s.time_constant.fixed) for s in strains],
                         dtype=bool)
-    tau_names = [s.name for s in strains]
+    tau_names = [s.parameter for s in strains]
     init_free = [not spec.nodes[i].initial.fixed for i in model.initial_nodes]
     run_mask = np.array([init_free] * n_runs, dtype=bool).reshape(n_runs, len(init_free))
     run_names = [[f"runs.{r}.nodes.{nodes[i]}.initial" for i in model.initial_nodes]

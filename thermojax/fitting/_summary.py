@@ -20,7 +20,7 @@ from ..model._model import ThermalModel, model_to_spec
 from ..model._spec import ModelSpec, Parameter
 from ..model.effects import Lowered, raise_effects
 from ._bias import BiasFit, bias_fit_at, bias_parameters, bias_to_spec, fit_bias
-from ._bias_residuals import node_temperatures, strains_of
+from ._bias_residuals import node_temperatures, spec_strains
 from ._output_error import bias_coefficient_jacobian
 from ._identifiability import Identifiability, identifiability
 from ._kalman_fit import kalman_smoothed
@@ -133,8 +133,8 @@ def _bias_fits(prep: Prepared, sol: Solution, likelihood: str,
     x, xdot = (np.asarray(a) for a in node_temperatures(sol.state.model, data,
                                                         sol.state.run_initial))
     mask = np.asarray(prep.bias.mask)
-    strains = strains_of(spec)
-    taus = dict(zip([s.name for s in strains], np.exp(np.asarray(sol.state.bias_log_tau))))
+    strains = spec_strains(spec)
+    taus = dict(zip([s.parameter for s in strains], np.exp(np.asarray(sol.state.bias_log_tau))))
     dc = None if likelihood == "kalman" or not len(sol.theta) else [
         np.asarray(d) for d in bias_coefficient_jacobian(sol.theta, sol.problem)]
     out = {}
@@ -150,7 +150,7 @@ def _bias_fits(prep: Prepared, sol: Solution, likelihood: str,
             float(taus[f"effects.viscoelastic.{e.where[0]}-{b.column}.time_constant"]), True)})
             if e.kind == "viscoelastic" and e.where[1] == b.column else e for e in spec.effects]
         fit = bias_fit_at(b, held, runs, spec.node_names, rates,
-                          [taus[s.name] for s in strains if s.column == b.column])
+                          [taus[s.parameter] for s in strains if s.column == b.column])
         out[b.column] = fit if dc is None else _marginal_std(fit, dc[j], ident, sol.names)
     return out
 
