@@ -316,3 +316,65 @@ def test_unidentifiable_coefficient_has_no_std():
     assert np.isnan(fit.std[2]) and np.all(np.isfinite(fit.std[:2]))
     assert bias_parameters(fit)[f"biases.{COLUMN}.gradient.die-die"]["std"] is None
     assert isinstance(fit, BiasFit)
+
+
+def test_prony_series_names_and_round_trip():
+    """Two viscoelastic terms on one node and column: a Prony series, the second named
+    with `#2` in reports, written back term by term and read again unchanged."""
+    from thermojax.model._parameters_by_name import spec_parameters
+
+    text = f"""
+name = "prony"
+[[nodes]]
+name = "case"
+capacitance = 10.0
+[[nodes]]
+name = "die"
+capacitance = 1.0
+[[links]]
+between = ["case", "die"]
+conductance = 0.5
+[[boundaries]]
+node = "case"
+input = "T_chamber"
+conductance = 0.2
+[[sensors]]
+node = "case"
+column = "T_case"
+[[biases]]
+column = "{COLUMN}"
+temperature = "die"
+order = 1
+[[effects]]
+kind = "viscoelastic"
+where = ["die", "{COLUMN}"]
+time_constant = 300.0
+k = 0.1
+[[effects]]
+kind = "viscoelastic"
+where = ["die", "{COLUMN}"]
+time_constant = {{ value = 3000.0, fixed = true }}
+k = 0.2
+"""
+    spec = parse_model(text, "prony.toml")
+    names = spec_parameters(spec)
+    base = f"effects.viscoelastic.die-{COLUMN}"
+    assert names[f"{base}.time_constant"].value == 300.0
+    assert names[f"{base}#2.time_constant"].value == 3000.0
+    assert names[f"{base}#2.time_constant"].fixed
+    # a fit of both terms (data from the ramps above, second τ held) writes each back
+    runs, rates = make_data()
+    effects = list(spec.effects)
+    fit = fit_bias(spec.biases[0], effects, runs, NODES, node_rates=rates)
+    assert list(fit.time_constants) == ["viscoelastic.die", "viscoelastic.die#2"]
+    assert fit.time_constants["viscoelastic.die#2"] == (3000.0, None)
+    params = bias_parameters(fit)
+    assert {f"{base}.k", f"{base}#2.k", f"{base}.time_constant",
+            f"{base}#2.time_constant"} <= set(params)
+    bias, new_effects = bias_to_spec(spec.biases[0], effects, fit)
+    ks = [e.parameters["k"].value for e in new_effects]
+    assert ks == [pytest.approx(v) for v in (params[f"{base}.k"]["value"],
+                                             params[f"{base}#2.k"]["value"])]
+    again = parse_model(dump_model(spec.replace(biases=(bias,), effects=tuple(new_effects))),
+                        "again.toml")
+    assert [e.parameters for e in again.effects] == [e.parameters for e in new_effects]

@@ -83,30 +83,47 @@ def _strain_term(ts, temps, tau) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True)
 class Strain:
-    """One viscoelastic effect: its node, bias column and starting τ and k (None: none)."""
+    """One viscoelastic effect: its node, bias column, starting τ and k (None: none) and
+    its place in a Prony series (1 for the first term on this node and column)."""
 
     node: str
     column: str
     time_constant: Parameter | None
     k: Parameter | None
+    term: int = 1
+
+    @property
+    def suffix(self) -> str:
+        return "" if self.term == 1 else f"#{self.term}"
 
     @property
     def name(self) -> str:
-        """Its name inside a `BiasFit`."""
-        return f"viscoelastic.{self.node}"
+        """Its name inside a `BiasFit`: `viscoelastic.<node>`, `viscoelastic.<node>#2`, ..."""
+        return f"viscoelastic.{self.node}{self.suffix}"
+
+    @property
+    def prefix(self) -> str:
+        """Its dotted report prefix (docs/formats.md §5, `effect_labels`)."""
+        return f"effects.viscoelastic.{self.node}-{self.column}{self.suffix}"
 
     @property
     def parameter(self) -> str:
-        """The dotted report name of its τ (docs/formats.md §5)."""
-        return f"effects.viscoelastic.{self.node}-{self.column}.time_constant"
+        """The dotted report name of its τ."""
+        return f"{self.prefix}.time_constant"
 
 
 def strains_of(biases, effects) -> list[Strain]:
-    """The viscoelastic effects among `effects`, column by column in `biases`' order."""
-    return [Strain(e.where[0], b.column, e.parameters.get("time_constant"),
-                   e.parameters.get("k"))
-            for b in biases for e in effects
-            if e.kind == "viscoelastic" and e.where[1] == b.column]
+    """The viscoelastic effects among `effects`, column by column in `biases`' order; a
+    second term on the same node and column continues a Prony series."""
+    out = []
+    for b in biases:
+        terms: dict[str, int] = {}
+        for e in effects:
+            if e.kind == "viscoelastic" and e.where[1] == b.column:
+                terms[e.where[0]] = terms.get(e.where[0], 0) + 1
+                out.append(Strain(e.where[0], b.column, e.parameters.get("time_constant"),
+                                  e.parameters.get("k"), terms[e.where[0]]))
+    return out
 
 
 class _Problem:
@@ -128,9 +145,6 @@ class _Problem:
                              f"runs has {len(runs)}.")
         self.strains = strains_of([bias], effects)
         self.strain_nodes = [index(s.node) for s in self.strains]
-        if len({s.node for s in self.strains}) < len(self.strains):
-            raise ValueError(f"two viscoelastic effects on one node for column '{bias.column}'; "
-                             "merge them.")
         t_i = index(bias.temperature)
         grads = [(index(a), index(b)) for a, b in bias.gradients]
         rates = [index(n) for n in bias.rates]
@@ -387,17 +401,19 @@ def bias_to_spec(bias: Bias, effects: list[Effect], fit: BiasFit) -> tuple[Bias,
     coefficients = tuple(float(c) for c in fit.coefficients[:n_static])
     new_bias = dataclasses.replace(bias, noise=noise, coefficients=coefficients)
     coef = dict(zip(fit.names, fit.coefficients))
+    strains = iter(strains_of([bias], effects))
     out = []
     for e in effects:
-        name = f"viscoelastic.{e.where[0]}"
-        if e.kind == "viscoelastic" and e.where[1] == bias.column and name in fit.time_constants:
-            def keep(p: str, v: float) -> Parameter:
-                old = e.parameters.get(p)
-                return Parameter(float(v), old.fixed if old is not None else False)
-            params = {**e.parameters, "time_constant": keep("time_constant",
-                                                            fit.time_constants[name][0]),
-                      "k": keep("k", coef[f"{name}.k"])}
-            e = dataclasses.replace(e, parameters=params)
+        if e.kind == "viscoelastic" and e.where[1] == bias.column:
+            name = next(strains).name
+            if name in fit.time_constants:
+                def keep(p: str, v: float) -> Parameter:
+                    old = e.parameters.get(p)
+                    return Parameter(float(v), old.fixed if old is not None else False)
+                params = {**e.parameters,
+                          "time_constant": keep("time_constant", fit.time_constants[name][0]),
+                          "k": keep("k", coef[f"{name}.k"])}
+                e = dataclasses.replace(e, parameters=params)
         out.append(e)
     return new_bias, out
 
@@ -411,18 +427,19 @@ def bias_parameters(fit: BiasFit) -> dict[str, dict]:
         std = float(std) if free and std is not None and np.isfinite(std) else None
         return {"value": float(value), "std": std, "free": bool(free)}
 
+    def prefix(strain: str) -> str:  # viscoelastic.<node>[#n] -> effects.viscoelastic.<node>-<col>[#n]
+        node, _, term = strain.removeprefix("viscoelastic.").partition("#")
+        return f"effects.viscoelastic.{node}-{col}" + (f"#{term}" if term else "")
+
     out = {}
     for name, v, sd in zip(fit.names, fit.coefficients, fit.std):
         free = name not in fit.fixed
         if name.startswith("viscoelastic."):
-            node = name.removeprefix("viscoelastic.").removesuffix(".k")
-            out[f"effects.viscoelastic.{node}-{col}.k"] = entry(v, sd, free)
+            out[f"{prefix(name.removesuffix('.k'))}.k"] = entry(v, sd, free)
         else:
             out[f"biases.{col}.{name}"] = entry(v, sd, free)
     for name, (tau, sd) in fit.time_constants.items():
-        node = name.removeprefix("viscoelastic.")
-        out[f"effects.viscoelastic.{node}-{col}.time_constant"] = entry(
-            tau, sd, name not in fit.fixed)
+        out[f"{prefix(name)}.time_constant"] = entry(tau, sd, name not in fit.fixed)
     n = sum(int(np.isfinite(r).sum()) for r in fit.residuals)
     noise_free = "noise" not in fit.fixed
     out[f"biases.{col}.noise"] = entry(fit.sigma, fit.sigma / math.sqrt(2 * n), noise_free)

@@ -146,8 +146,9 @@ def _bias_fits(prep: Prepared, sol: Solution, likelihood: str,
             out[b.column] = fit_bias(b, list(spec.effects), runs, spec.node_names, rates)
             continue
         # τ's held at the joint fit's values (their uncertainty is in Cov(θ))
+        mine = iter(s for s in strains if s.column == b.column)
         held = [dataclasses.replace(e, parameters={**e.parameters, "time_constant": Parameter(
-            float(taus[f"effects.viscoelastic.{e.where[0]}-{b.column}.time_constant"]), True)})
+            float(taus[next(mine).parameter]), True)})
             if e.kind == "viscoelastic" and e.where[1] == b.column else e for e in spec.effects]
         fit = bias_fit_at(b, held, runs, spec.node_names, rates,
                           [taus[s.parameter] for s in strains if s.column == b.column])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from ._spec import ModelSpec, Parameter
+from ._spec import ModelSpec, Parameter, effect_labels
 
 
 def spec_parameters(spec: ModelSpec) -> dict[str, Parameter]:
@@ -24,9 +24,9 @@ def spec_parameters(spec: ModelSpec) -> dict[str, Parameter]:
     for s in spec.sensors:
         if s.noise is not None:
             out[f"sensors.{s.column}.noise"] = s.noise
-    for e in spec.effects:
+    for e, label in zip(spec.effects, effect_labels(spec.effects)):
         for p, v in e.parameters.items():
-            out[f"effects.{e.kind}.{'-'.join(e.where)}.{p}"] = v
+            out[f"effects.{label}.{p}"] = v
     return out
 
 
@@ -53,7 +53,7 @@ def with_spec_parameters(spec: ModelSpec, values: dict[str, Parameter]) -> Model
     sensors = tuple(dataclasses.replace(s, noise=upd(f"sensors.{s.column}.noise", s.noise))
                     for s in spec.sensors)
     effects = tuple(dataclasses.replace(e, parameters={
-        p: upd(f"effects.{e.kind}.{'-'.join(e.where)}.{p}", v) for p, v in e.parameters.items()})
-        for e in spec.effects)
+        p: upd(f"effects.{label}.{p}", v) for p, v in e.parameters.items()})
+        for e, label in zip(spec.effects, effect_labels(spec.effects)))
     return spec.replace(nodes=nodes, links=links, boundaries=bounds, heat_inputs=heats,
                         sensors=sensors, effects=effects)

@@ -89,6 +89,18 @@ class Effect:
         return f"{self.kind}.{'-'.join(self.where)}"
 
 
+def effect_labels(effects) -> list[str]:
+    """Each effect's name in reports, `<kind>.<where joined by ->`, with `#2`, `#3`, ...
+    on the second and later effects of the same kind and place (several `viscoelastic`
+    terms on one node and column make a Prony series)."""
+    seen: dict[str, int] = {}
+    out = []
+    for e in effects:
+        seen[e.key] = seen.get(e.key, 0) + 1
+        out.append(e.key if seen[e.key] == 1 else f"{e.key}#{seen[e.key]}")
+    return out
+
+
 @dataclass(frozen=True)
 class Bias:
     """A `[[biases]]` entry (docs/formats.md §4): an inertial bias channel."""
