@@ -1,0 +1,594 @@
+"""The factory calibration pipeline as named stages (issue 13 item 3), each a function on
+plain data, and `run_pipeline(config)` running those a config names, in order:
+
+1. `condition`: two logs per run onto one time base (Hampel outliers, low-pass before
+   decimation, optional rate-table orientation separation);
+2. `static_polynomial`: dwell plateaus found automatically, a polynomial per channel
+   in the measured temperature that indexes it;
+3. `thermal_fit`: `thermojax.fit` of the model and its bias channels, jointly, on the
+   calibration runs (output error);
+4. `coupling`: the gradient, rate and strain coefficients of each channel (the
+   regression of the bias left after the polynomial on those states, solved inside the
+   joint fit) as a channels × regressors matrix with stds;
+5. `verify`: the fitted model exported as the reference observer, played back (float)
+   on every held-back run, its bias output against the measured bias, pass or fail
+   against the config's bias-stability specification.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tempfile
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .._errors import InputError
+from ._conditioning import (ORIENTATIONS, label_orientations, remove_outliers,
+                            separate_orientation_bias, synchronize)
+from ._config import CalibrationConfig, RunFiles, load_config
+from ._plateaus import Plateau, StaticPolynomial, find_plateaus, fit_static_polynomial
+
+
+# ---------------------------------------------------------------------------
+# Loaded and conditioned runs
+
+
+@dataclass(frozen=True)
+class RawRun:
+    """One run as read: the temperature log (`Telemetry`: the model's inputs and
+    sensors) and the inertial log (`Telemetry`: the bias columns), each with its own
+    times; the same object twice for a combined telemetry file."""
+
+    files: RunFiles
+    temperature: object
+    inertial: object
+
+    @property
+    def name(self) -> str:
+        return self.files.name
+
+
+@dataclass(frozen=True)
+class ConditionedRun:
+    """One run on the common time base.
+
+    - `ts`: `(times,)` s, uniform at the config's `dt_s`.
+    - `inputs`: `(times, inputs)` in the model's input order (°C, W).
+    - `sensors`: `(times, sensors)` °C in the model's sensor order.
+    - `bias`: channel -> `(times,)` the conditioned bias (channel unit), with the
+      g-dependent offsets removed when orientations were separated.
+    - `outliers`: channel -> samples of the raw inertial log replaced by the Hampel rule.
+    - `cutoff_hz`: the low-pass cutoff (None: no decimation was needed).
+    - `orientation`: channel -> {orientation: (offset, std)} or None.
+    - `raw_rates_hz`: (temperature log, inertial log) median rates.
+    """
+
+    name: str
+    use: str
+    ts: np.ndarray
+    inputs: np.ndarray
+    sensors: np.ndarray
+    bias: dict
+    outliers: dict
+    cutoff_hz: float | None
+    orientation: dict | None
+    raw_rates_hz: tuple[float, float]
+
+
+def load_runs(config: CalibrationConfig, spec) -> list[RawRun]:
+    """Read every run's logs and check them before any work: the model's input and
+    sensor columns in the temperature log, each calibrated channel (not all NaN) in the
+    inertial log, timestamps strictly increasing (read_telemetry), streams overlapping in
+    time. Raises `InputError` naming the data file and field (or line)."""
+    from ..io import read_telemetry
+
+    runs = []
+    for r in config.runs:
+        if r.telemetry is not None:
+            t = i = read_telemetry(r.telemetry, uniform=False)
+            t_file = i_file = r.telemetry
+        else:
+            t = read_telemetry(r.temperature, uniform=False)
+            i = read_telemetry(r.inertial, uniform=False)
+            t_file, i_file = r.temperature, r.inertial
+        for c in (*spec.input_columns, *spec.sensor_columns):
+            if c not in t.names:
+                raise InputError(f"the temperature log has no column {c!r} (the model "
+                                 f"{config.model.name} needs its inputs "
+                                 f"{', '.join(spec.input_columns)} and sensors "
+                                 f"{', '.join(spec.sensor_columns)}).", file=str(t_file),
+                                 field=c)
+        for c in (*config.channels, *(config.orientation_columns or ())):
+            if c not in i.names:
+                raise InputError(f"the inertial log has no column {c!r}; record it, or drop "
+                                 "it from the config's 'channels'.", file=str(i_file), field=c)
+            if not np.isfinite(i.column(c)).any():
+                raise InputError(f"the column {c!r} is all NaN (empty): there is nothing to "
+                                 "calibrate in this run; record it or drop the run.",
+                                 file=str(i_file), field=c)
+        tt, ti = np.asarray(t.ts), np.asarray(i.ts)
+        if max(tt[0], ti[0]) >= min(tt[-1], ti[-1]):
+            raise InputError(
+                f"the temperature log ({t_file.name}: {tt[0]:g}…{tt[-1]:g} s) and the inertial "
+                f"log ({i_file.name}: {ti[0]:g}…{ti[-1]:g} s) do not overlap in time; check "
+                "that both use the same clock and epoch.", file=str(i_file), field="time_s")
+        runs.append(RawRun(r, t, i))
+    return runs
+
+
+def condition(run: RawRun, spec, config: CalibrationConfig) -> ConditionedRun:
+    """Stage (a), data conditioning of one run.
+
+    1. Outliers: each raw inertial channel through the Hampel filter (`window` samples,
+       `n_sigmas` robust stds: `|x − med| > n·1.4826·MAD`), outliers replaced by the
+       rolling median.
+    2. Synchronization: the common time base is the temperature log's times from the
+       first one inside the overlap of both logs, every `dt_s`; the inertial channels
+       are low-passed (zero-phase Butterworth, cutoff `cutoff_fraction` × the new
+       Nyquist) before being interpolated onto it, the temperature log is interpolated
+       linearly.
+    3. Orientations (when the config names three accelerometer columns): each sample
+       labelled by the rate-table position, each channel's g-dependent offsets and
+       thermal drift fitted together (`separate_orientation_bias`, the drift polynomial of
+       the channel's order in the indexing sensor), the offsets removed.
+
+    **Returns:** a `ConditionedRun`.
+    """
+    t, i = run.temperature, run.inertial
+    where = str(run.files.inertial or run.files.telemetry)
+    outliers, filled = {}, {}
+    for c in (*config.channels, *(config.orientation_columns or ())):
+        raw = np.asarray(i.column(c), dtype=float)
+        o = remove_outliers(raw, window=config.outlier_window, n_sigmas=config.outlier_n_sigmas)
+        v = o.filled
+        bad = ~np.isfinite(v)
+        if bad.any():  # whole windows missing: interpolate across the gap
+            v = np.interp(np.asarray(i.ts), np.asarray(i.ts)[~bad], v[~bad])
+        outliers[c], filled[c] = o.count, v
+    tt = np.asarray(t.ts)
+    start = max(tt[0], float(i.ts[0]))
+    end = min(tt[-1], float(i.ts[-1]))
+    t0 = tt[tt >= start][0]
+    ts = t0 + config.dt_s * np.arange(int(math.floor((end - t0) / config.dt_s + 1e-9)) + 1)
+    temp_cols = (*spec.input_columns, *spec.sensor_columns)
+    try:
+        sync = synchronize(tt, {c: t.column(c) for c in temp_cols}, i.ts, filled, ts,
+                           cutoff_fraction=config.cutoff_fraction,
+                           filter_order=config.filter_order)
+    except InputError as err:
+        raise InputError(str(err), file=where) from None
+    inputs = np.stack([sync.temperature[c] for c in spec.input_columns], 1)
+    sensors = np.stack([sync.temperature[c] for c in spec.sensor_columns], 1)
+    bias = {c: sync.inertial[c] for c in config.channels}
+    orientation = None
+    if config.orientation_columns:
+        acc = np.stack([sync.inertial[c] for c in config.orientation_columns], 1)
+        labels = label_orientations(acc, config.orientation_tolerance_deg)
+        T = sync.temperature[config.temperature_sensor]
+        orientation = {}
+        for c in config.channels:
+            try:
+                sep = separate_orientation_bias(T, bias[c], labels, config.orders[c], name=c)
+            except InputError as err:
+                raise InputError(str(err), file=where) from None
+            orientation[c] = {ORIENTATIONS[k]: (float(o), float(s)) for k, o, s in
+                              zip(sep.orientations, sep.offsets, sep.offset_std)}
+            bias[c] = sep.drift
+    rate = lambda ts_: 1.0 / float(np.median(np.diff(np.asarray(ts_))))  # noqa: E731
+    return ConditionedRun(run.name, run.files.use, sync.ts, inputs, sensors, bias, outliers,
+                          sync.cutoff_hz, orientation, (rate(t.ts), rate(i.ts)))
+
+
+# ---------------------------------------------------------------------------
+# (b) static polynomial
+
+
+@dataclass(frozen=True)
+class ChannelPolynomial:
+    """A channel's static polynomial (`StaticPolynomial`, in the indexing sensor's °C
+    about 25 °C) with the plateaus it went through (`(run name, Plateau)`), each
+    plateau's standard error of the mean bias (`standard_error`) and the Birge ratio
+    `sqrt(χ²/dof)` by which the stds were scaled when above 1."""
+
+    polynomial: StaticPolynomial
+    plateaus: list
+    standard_error: np.ndarray
+    birge_ratio: float
+
+
+def static_polynomial(runs: list[ConditionedRun], config: CalibrationConfig,
+                      sensor_index: int) -> dict[str, ChannelPolynomial]:
+    """Stage (b): the static bias polynomial of every channel from dwell plateaus.
+
+    Plateaus are detected in each calibration run's indexing sensor (`find_plateaus`:
+    `|dT/dt| < max_rate_k_per_min` for at least `min_duration_s`, the first `settle_s`
+    skipped) and pooled. Each plateau gives (mean temperature, mean bias, standard error
+    `std/√n`); the polynomial of the channel's order is fitted by weighted least squares
+    through them, and its stds are multiplied by the Birge ratio `sqrt(χ²/dof)` when that
+    exceeds 1 (plateau means scattered beyond their noise, e.g. by a drift that has not
+    settled).
+
+    **Arguments:** `runs` (the calibration runs, conditioned), `config`, `sensor_index`
+    (the indexing sensor's column in `ConditionedRun.sensors`).
+
+    **Returns:** channel -> `ChannelPolynomial`.
+    """
+    out = {}
+    for c in config.channels:
+        plateaus = []
+        for r in runs:
+            ps = find_plateaus(r.ts, r.sensors[:, sensor_index], r.bias[c],
+                               max_rate_k_per_min=config.max_rate_k_per_min,
+                               min_duration_s=config.min_duration_s, settle_s=config.settle_s,
+                               rate_window_s=max(120.0, 4 * config.dt_s), name=c)
+            plateaus += [(r.name, p) for p in ps]
+        T = np.array([p.temperature for _, p in plateaus])
+        b = np.array([p.bias for _, p in plateaus])
+        se = np.array([p.bias_std / math.sqrt(max(p.n, 1)) for _, p in plateaus])
+        order = config.orders[c]
+        try:
+            poly = fit_static_polynomial(T, b, order, se if se.size else None, name=c)
+        except InputError as err:
+            raise InputError(f"{err} (channel {c!r})", file=str(config.path),
+                             field="static_polynomial.order") from None
+        dof = len(plateaus) - order - 1
+        birge = 1.0
+        if dof > 0:
+            chi2 = float(np.sum(((b - poly(T)) / se) ** 2))
+            birge = max(1.0, math.sqrt(chi2 / dof))
+        if birge > 1.0:
+            poly = dataclasses.replace(poly, std=poly.std * birge,
+                                       covariance=poly.covariance * birge ** 2)
+        out[c] = ChannelPolynomial(poly, plateaus, se, birge)
+    return out
+
+
+def count_plateaus(runs: list[RawRun], config: CalibrationConfig) -> int:
+    """Dwell plateaus in the raw temperature logs of the calibration runs (the check of
+    the polynomial orders before any work)."""
+    n = 0
+    for r in runs:
+        if r.files.use != "calibration":
+            continue
+        T = np.asarray(r.temperature.column(config.temperature_sensor), float)
+        n += len(find_plateaus(r.temperature.ts, T, max_rate_k_per_min=config.max_rate_k_per_min,
+                               min_duration_s=config.min_duration_s, settle_s=config.settle_s,
+                               rate_window_s=max(120.0, 4 * config.dt_s)))
+    return n
+
+
+# ---------------------------------------------------------------------------
+# (c) thermal fit
+
+
+def calibration_spec(spec, channels):
+    """`spec` with only the bias channels `channels` (and their viscoelastic effects)."""
+    keep = set(channels)
+    return dataclasses.replace(
+        spec, biases=tuple(b for b in spec.biases if b.column in keep),
+        effects=tuple(e for e in spec.effects if not (
+            e.kind == "viscoelastic" and e.where[1] not in keep
+            and e.where[1] in {b.column for b in spec.biases})))
+
+
+def experiments(runs: list[ConditionedRun], spec) -> list:
+    """The conditioned runs as `Experiment`s of `spec` (bias columns in its order)."""
+    from ..measurements._data import Experiment
+
+    return [Experiment(r.ts, r.inputs, r.sensors, r.name,
+                       np.stack([r.bias[b.column] for b in spec.biases], 1)
+                       if spec.biases else None) for r in runs]
+
+
+def thermal_fit(runs: list[ConditionedRun], spec, config: CalibrationConfig, progress=None):
+    """Stage (c): `thermojax.fit` (output error) of the model's free thermal parameters
+    and its bias channels jointly on the calibration runs (every run, plateaus and
+    transients alike; the transients are what inform the conductances, the rate and
+    strain terms).
+
+    **Returns:** the `FitResult` (`result.spec` the calibrated model, `result.biases`
+    each channel's `BiasFit`).
+    """
+    from ..fitting import fit
+
+    return fit(spec, experiments(runs, spec), max_steps=config.fit_max_steps,
+               progress=progress)
+
+
+# ---------------------------------------------------------------------------
+# (d) coupling matrix
+
+
+@dataclass(frozen=True)
+class Coupling:
+    """`matrix[i, j]` (channel `channels[i]`'s unit per regressor unit: per K for a
+    gradient or a strain state, per K/s for a rate) and `std` (NaN: not identifiable or
+    fixed); NaN in `matrix` where the channel has no such term. `polynomial[c]` holds the
+    joint fit's polynomial in the bias node's estimated temperature (names, values,
+    stds) and `time_constants[c]` its relaxation times (τ s, std)."""
+
+    channels: tuple[str, ...]
+    regressors: tuple[str, ...]
+    matrix: np.ndarray
+    std: np.ndarray
+    polynomial: dict
+    time_constants: dict
+
+
+def coupling(result, channels) -> Coupling:
+    """Stage (d): the coupling matrix from the joint fit's bias channels. Each channel's
+    bias is `polynomial(T_node) + Σ d_g ΔT_g + Σ e_r dT_r/dt + Σ k_v (T_v − ε_v)`, and
+    the gradient, rate and strain coefficients are the least-squares regression of what
+    the polynomial leaves on those states (solved with the polynomial, by variable
+    projection inside the fit, so the stds include the thermal parameters'
+    uncertainty)."""
+    regs, rows, poly, taus = [], {}, {}, {}
+    for c in channels:
+        b = result.biases[c]
+        rows[c] = {}
+        poly[c] = {n: (float(v), float(s)) for n, v, s in zip(b.names, b.coefficients, b.std)
+                   if n.startswith("poly")}
+        taus[c] = {n: (float(t), None if s is None else float(s))
+                   for n, (t, s) in b.time_constants.items()}
+        for n, v, s in zip(b.names, b.coefficients, b.std):
+            if n.startswith("poly"):
+                continue
+            rows[c][n] = (float(v), float(s))
+            if n not in regs:
+                regs.append(n)
+    M = np.full((len(channels), len(regs)), np.nan)
+    S = np.full_like(M, np.nan)
+    for i, c in enumerate(channels):
+        for j, n in enumerate(regs):
+            if n in rows[c]:
+                M[i, j], S[i, j] = rows[c][n]
+    return Coupling(tuple(channels), tuple(regs), M, S, poly, taus)
+
+
+# ---------------------------------------------------------------------------
+# (e) verification playback
+
+
+@dataclass(frozen=True)
+class ChannelCheck:
+    """One channel of one held-back run: the residual `measured − observer` bias
+    (`residual (times,)`, channel unit; NaN before `skip_s`), its `rms`, `peak` (max |·|)
+    and `mean`, the static polynomial's residual RMS for comparison (None without that
+    stage), the limits and `passed`."""
+
+    run: str
+    channel: str
+    ts: np.ndarray
+    residual: np.ndarray
+    rms: float
+    peak: float
+    mean: float
+    static_rms: float | None
+    limits: dict
+    passed: bool
+
+
+def verify(spec, runs: list[ConditionedRun], config: CalibrationConfig, observer_dir,
+           static: dict | None = None, sensor_index: int | None = None) -> list[ChannelCheck]:
+    """Stage (e): the fitted model exported as the reference observer (at `1/dt_s`) into
+    `observer_dir`, loaded back, and played (float64) through every held-back run: its
+    inputs and sensor readings in, its bias channels out (evaluated from the state
+    estimate). The observer starts at the steady state of the run's first input. Each
+    channel's residual `measured − observer` after `skip_s` is compared with the
+    specification: `rms ≤ spec.rms` and `peak ≤ spec.peak`.
+
+    **Returns:** one `ChannelCheck` per run and channel.
+    """
+    from ..observer._export import export_observer
+    from ..reference import load_observer
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        export_observer(spec, 1.0 / config.dt_s, observer_dir)
+    art = load_observer(observer_dir)
+    obs = art.float_observer()
+    s = art.system
+    columns = [b["column"] for b in art.metadata["biases"] if b["coefficients"] is not None]
+    checks = []
+    for r in runs:
+        u = r.inputs[:, [spec.input_columns.index(n) for n in art.input_names]]
+        y = r.sensors[:, [spec.sensor_columns.index(n) for n in art.output_names]]
+        n = s.Phi.shape[0]
+        x0 = np.linalg.solve(np.eye(n) - s.Phi, (s.B0 + s.B1) @ u[0])
+        played = obs.run(x0, u, y)
+        keep = r.ts >= r.ts[0] + config.skip_s
+        for c in config.channels:
+            res = np.where(keep, r.bias[c] - played.bias[:, columns.index(c)], np.nan)
+            ok = np.isfinite(res)
+            rms = float(np.sqrt(np.mean(res[ok] ** 2)))
+            peak = float(np.max(np.abs(res[ok])))
+            static_rms = None
+            if static is not None and c in static:
+                sres = (r.bias[c] - static[c].polynomial(r.sensors[:, sensor_index]))[keep]
+                static_rms = float(np.sqrt(np.nanmean(sres ** 2)))
+            lim = config.limits[c]
+            passed = rms <= lim.get("rms", math.inf) and peak <= lim.get("peak", math.inf)
+            checks.append(ChannelCheck(r.name, c, r.ts, res, rms, peak,
+                                       float(np.mean(res[ok])), static_rms, dict(lim), passed))
+    return checks
+
+
+# ---------------------------------------------------------------------------
+# The whole pipeline
+
+
+@dataclass
+class CalibrationResults:
+    """What `run_pipeline` produced; a stage not run leaves its entry None.
+
+    `stages` is the log: one dict per stage run with `stage`, `did` (a sentence) and its
+    numbers."""
+
+    config: CalibrationConfig
+    spec: object  # the model as loaded, restricted to the calibrated channels
+    runs: list[ConditionedRun]
+    static: dict | None = None
+    fit: object | None = None
+    coupling: Coupling | None = None
+    checks: list[ChannelCheck] | None = None
+    observer_dir: Path | None = None
+    stages: list = field(default_factory=list)
+
+    @property
+    def calibrated_spec(self):
+        """The calibrated model (the fit's), or the model as loaded without a fit."""
+        return self.fit.spec if self.fit is not None else self.spec
+
+    @property
+    def passed(self) -> bool | None:
+        return None if self.checks is None else all(c.passed for c in self.checks)
+
+
+def prepare(config) -> tuple[CalibrationConfig, object, list[RawRun]]:
+    """Load and check the config, the model and every data file (no work yet); also the
+    polynomial orders against the plateaus the calibration runs' temperature logs show.
+    Returns `(config, spec restricted to the channels, raw runs)`."""
+    from ..io import load_model
+
+    if not isinstance(config, CalibrationConfig):
+        config = load_config(config)
+    spec = calibration_spec(load_model(config.model), config.channels)
+    raw = load_runs(config, spec)
+    if "static_polynomial" in config.stages:
+        n = count_plateaus(raw, config)
+        worst = max(config.orders.values())
+        if n < worst + 1:
+            c = max(config.orders, key=config.orders.get)
+            raise InputError(
+                f"found {n} dwell plateau{'s' if n != 1 else ''} in the calibration runs' "
+                f"'{config.temperature_sensor}' (|dT/dt| < {config.max_rate_k_per_min:g} K/min "
+                f"for {config.min_duration_s:g} s or more); channel {c!r} asks for an order-"
+                f"{worst} polynomial, which needs {worst + 1}: lower the order to "
+                f"{max(n - 1, 0)}, add dwells at more temperatures, or loosen "
+                "max_rate_k_per_min / min_duration_s.", file=str(config.path),
+                field="static_polynomial.order")
+    return config, spec, raw
+
+
+def run_pipeline(config, *, observer_dir=None, progress=None) -> CalibrationResults:
+    """Run the stages the config names, in the fixed order `STAGES`.
+
+    **Arguments:**
+
+    - `config`: a config path or a `CalibrationConfig`.
+    - `observer_dir`: where `verify` writes the exported observer (default a temporary
+      folder, removed afterwards).
+    - `progress`: optional callable taking a one-line string (one or more per stage).
+
+    **Returns:** a `CalibrationResults`. Raises `InputError` for bad input, before any
+    work where it can be seen in the files.
+    """
+    say = progress or (lambda _msg: None)
+    config, spec, raw = prepare(config)
+    i_sensor = spec.sensor_columns.index(config.temperature_sensor)
+    runs = [condition(r, spec, config) for r in raw]
+    res = CalibrationResults(config, spec, runs)
+    n_out = {c: sum(r.outliers[c] for r in runs) for c in config.channels}
+    cut = {r.cutoff_hz for r in runs}
+    res.stages.append({
+        "stage": "condition",
+        "did": (f"{len(runs)} runs onto a {config.dt_s:g} s time base: Hampel outliers "
+                f"(window {config.outlier_window}, {config.outlier_n_sigmas:g} robust σ) "
+                "replaced by the rolling median, inertial streams low-passed (zero-phase "
+                f"Butterworth order {config.filter_order}, cutoff "
+                f"{config.cutoff_fraction:g} × the new Nyquist) before decimation"
+                + (", g-dependent bias separated per rate-table orientation"
+                   if config.orientation_columns else "")),
+        "outliers": n_out, "cutoff_hz": sorted(c for c in cut if c is not None),
+        "runs": {r.name: {"use": r.use, "samples": int(r.ts.size),
+                          "span_s": [float(r.ts[0]), float(r.ts[-1])],
+                          "temperature_rate_hz": r.raw_rates_hz[0],
+                          "inertial_rate_hz": r.raw_rates_hz[1], "outliers": r.outliers,
+                          "orientation_offsets": r.orientation} for r in runs}})
+    say(f"condition: {len(runs)} runs on a {config.dt_s:g} s base; outliers removed "
+        + ", ".join(f"{c} {n}" for c, n in n_out.items()))
+    cal = [r for r in runs if r.use == "calibration"]
+    held = [r for r in runs if r.use == "verification"]
+    if "static_polynomial" in config.stages:
+        res.static = static_polynomial(cal, config, i_sensor)
+        entry = {"stage": "static_polynomial",
+                 "did": (f"dwell plateaus detected in {config.temperature_sensor} "
+                         f"(|dT/dt| < {config.max_rate_k_per_min:g} K/min for ≥ "
+                         f"{config.min_duration_s:g} s, first {config.settle_s:g} s skipped); "
+                         "a polynomial in (T − 25 °C) per channel by weighted least squares "
+                         "through the plateau means, stds scaled by the Birge ratio when "
+                         "above 1"),
+                 "channels": {}}
+        for c, p in res.static.items():
+            entry["channels"][c] = {
+                "order": p.polynomial.order,
+                "coefficients": p.polynomial.coefficients.tolist(),
+                "std": p.polynomial.std.tolist(), "birge_ratio": p.birge_ratio,
+                "residual_rms": p.polynomial.residual_rms,
+                "plateaus": [{"run": name, "start_s": q.start_s, "end_s": q.end_s,
+                              "temperature_c": q.temperature, "bias": q.bias,
+                              "standard_error": float(se)}
+                             for (name, q), se in zip(p.plateaus, p.standard_error)]}
+            say(f"static_polynomial: {c}: {len(p.plateaus)} plateaus, order "
+                f"{p.polynomial.order}, residual RMS {p.polynomial.residual_rms:.4g}")
+        res.stages.append(entry)
+    if "thermal_fit" in config.stages:
+        say(f"thermal_fit: fitting {len(cal)} calibration runs (model and bias channels "
+            "jointly, output error)")
+        res.fit = thermal_fit(cal, spec, config, progress=say)
+        f = res.fit
+        res.stages.append({
+            "stage": "thermal_fit",
+            "did": (f"thermojax.fit (output error) of the model's free parameters and its "
+                    f"{len(config.channels)} bias channels jointly on {len(cal)} runs"),
+            "converged": bool(f.converged), "message": f.message, "n_steps": int(f.n_steps),
+            "nll": float(f.nll), "n_params": int(f.n_params), "rmse": dict(f.rmse),
+            "parameters": {k: {"value": v["value"], "std": v["std"], "free": v.get("free")}
+                           for k, v in f.parameters.items()}})
+    if "coupling" in config.stages:
+        res.coupling = coupling(res.fit, config.channels)
+        k = res.coupling
+        res.stages.append({
+            "stage": "coupling",
+            "did": ("the residual bias after the polynomial regressed on the gradient, "
+                    "rate and strain states of the fitted model (jointly with the "
+                    "polynomial, inside the fit)"),
+            "channels": list(k.channels), "regressors": list(k.regressors),
+            "matrix": k.matrix.tolist(), "std": k.std.tolist(),
+            "polynomial": k.polynomial, "time_constants": k.time_constants})
+        for i, c in enumerate(k.channels):
+            terms = [f"{n} {k.matrix[i, j]:.4g} ± {k.std[i, j]:.2g}"
+                     for j, n in enumerate(k.regressors) if np.isfinite(k.matrix[i, j])]
+            say(f"coupling: {c}: " + ", ".join(terms))
+    if "verify" in config.stages:
+        tmp = None
+        if observer_dir is None:
+            tmp = tempfile.TemporaryDirectory()
+            observer_dir = Path(tmp.name) / "observer"
+        say(f"verify: exporting the calibrated observer at {1 / config.dt_s:g} Hz and "
+            f"playing back {len(held)} held-back run(s)")
+        try:
+            res.checks = verify(res.calibrated_spec, held, config, observer_dir, res.static,
+                                i_sensor)
+        finally:
+            if tmp is not None:
+                tmp.cleanup()
+        res.observer_dir = None if tmp is not None else Path(observer_dir)
+        for ch in res.checks:
+            say(f"verify: {ch.run} {ch.channel}: RMS {ch.rms:.4g}, peak {ch.peak:.4g} "
+                f"(spec {ch.limits}) {'PASS' if ch.passed else 'FAIL'}")
+        res.stages.append({
+            "stage": "verify",
+            "did": ("the calibrated model exported as the reference observer (float64), "
+                    "played back on each held-back run from the steady state of its first "
+                    "input; residual = measured − observer bias"
+                    + (f" after the first {config.skip_s:g} s" if config.skip_s else "")),
+            "passed": res.passed,
+            "checks": [{"run": ch.run, "channel": ch.channel, "rms": ch.rms, "peak": ch.peak,
+                        "mean": ch.mean, "static_polynomial_rms": ch.static_rms,
+                        "spec": ch.limits, "passed": ch.passed} for ch in res.checks]})
+    return res

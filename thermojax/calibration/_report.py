@@ -1,0 +1,174 @@
+"""The results folder of `thermojax calibrate`: report.json, report.md,
+model_calibrated.toml and plots (the observer folder is written by `verify`)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ._pipeline import CalibrationResults
+
+SCHEMA = 1
+
+
+def _clean(x):
+    """JSON-safe: NaN/inf -> None, arrays -> lists, tuples -> lists."""
+    if isinstance(x, dict):
+        return {str(k): _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _clean(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+def calibration_report(res: CalibrationResults) -> dict:
+    """The report as a dict (see docs/cli.md, `calibrate`)."""
+    from .. import __version__
+
+    c = res.config
+    return _clean({
+        "schema": SCHEMA, "thermojax_version": __version__, "config": str(c.path),
+        "model": str(c.model), "channels": list(c.channels), "stages_run": list(c.stages),
+        "temperature_sensor": c.temperature_sensor, "dt_s": c.dt_s,
+        "stages": res.stages, "passed": res.passed,
+        "calibrated_model": "model_calibrated.toml",
+        "observer": "observer" if res.observer_dir is not None else None})
+
+
+def _fmt(v, s=None):
+    if v is None or not np.isfinite(v):
+        return "—"
+    return f"{v:.5g}" + ("" if s is None or not np.isfinite(s) else f" ± {s:.2g}")
+
+
+def report_markdown(res: CalibrationResults) -> str:
+    c = res.config
+    lines = [f"# Calibration of {', '.join(c.channels)}", "",
+             f"Config `{c.path}`, model `{c.model}`; stages: {', '.join(c.stages)}.", ""]
+    for st in res.stages:
+        lines += [f"## {st['stage']}", "", st["did"] + ".", ""]
+        if st["stage"] == "condition":
+            lines += ["| run | use | samples | T log Hz | inertial log Hz | outliers |",
+                      "|---|---|---|---|---|---|"]
+            for name, r in st["runs"].items():
+                lines.append(f"| {name} | {r['use']} | {r['samples']} | "
+                             f"{r['temperature_rate_hz']:.3g} | {r['inertial_rate_hz']:.3g} | "
+                             + ", ".join(f"{k} {v}" for k, v in r["outliers"].items()) + " |")
+        elif st["stage"] == "static_polynomial":
+            for ch, p in st["channels"].items():
+                terms = ", ".join(f"c{k} = {_fmt(v, s)}" for k, (v, s)
+                                  in enumerate(zip(p["coefficients"], p["std"])))
+                lines.append(f"- **{ch}** (order {p['order']}, {len(p['plateaus'])} plateaus, "
+                             f"Birge ratio {p['birge_ratio']:.3g}): {terms} "
+                             f"(per K^k about 25 °C)")
+        elif st["stage"] == "thermal_fit":
+            lines += [f"{st['message']}, {st['n_steps']} steps, −log L {st['nll']:.2f}, "
+                      f"{st['n_params']} parameters.", "", "| parameter | value | std |",
+                      "|---|---|---|"]
+            for name, p in st["parameters"].items():
+                if p.get("free", True):
+                    lines.append(f"| {name} | {_fmt(p['value'])} | {_fmt(p['std'])} |")
+        elif st["stage"] == "coupling":
+            lines += ["| channel | " + " | ".join(st["regressors"]) + " |",
+                      "|---" * (len(st["regressors"]) + 1) + "|"]
+            for i, ch in enumerate(st["channels"]):
+                lines.append(f"| {ch} | " + " | ".join(
+                    _fmt(st["matrix"][i][j], st["std"][i][j])
+                    for j in range(len(st["regressors"]))) + " |")
+        elif st["stage"] == "verify":
+            lines += [f"Overall: **{'PASS' if st['passed'] else 'FAIL'}**.", "",
+                      "| run | channel | RMS | peak | static-only RMS | spec | result |",
+                      "|---|---|---|---|---|---|---|"]
+            for k in st["checks"]:
+                lines.append(f"| {k['run']} | {k['channel']} | {_fmt(k['rms'])} | "
+                             f"{_fmt(k['peak'])} | {_fmt(k['static_polynomial_rms'])} | "
+                             f"{k['spec']} | {'PASS' if k['passed'] else 'FAIL'} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot_static(res: CalibrationResults, path: Path) -> Path:
+    """Each channel's static polynomial against its plateau points."""
+    from .._plots import new_figure, style_figure
+
+    chans = list(res.static)
+    fig = new_figure(figsize=(11, 3.6 * len(chans)))
+    for i, ch in enumerate(chans):
+        p = res.static[ch]
+        ax = fig.add_subplot(len(chans), 1, i + 1)
+        T = np.array([q.temperature for _, q in p.plateaus])
+        b = np.array([q.bias for _, q in p.plateaus])
+        ax.errorbar(T, b, yerr=p.standard_error, fmt="o", label="dwell plateaus (mean ± s.e.)")
+        grid = np.linspace(T.min() - 5, T.max() + 5, 200)
+        ax.plot(grid, p.polynomial(grid), label=f"order-{p.polynomial.order} polynomial")
+        ax.set_title(f"Static bias polynomial of {ch} from dwell plateaus")
+        ax.set_xlabel(f"{res.config.temperature_sensor} (°C)")
+        ax.set_ylabel(f"{ch} (channel unit)")
+        ax.legend()
+    fig.tight_layout()
+    style_figure(fig)
+    fig.savefig(path, dpi=100)
+    return path
+
+
+def plot_verification(res: CalibrationResults, path: Path) -> Path:
+    """The residual bias (measured − observer) of each held-back run and channel."""
+    from .._plots import new_figure, style_figure
+
+    chans = list(res.config.channels)
+    fig = new_figure(figsize=(11, 3.6 * len(chans)))
+    for i, ch in enumerate(chans):
+        ax = fig.add_subplot(len(chans), 1, i + 1)
+        for k in res.checks:
+            if k.channel != ch:
+                continue
+            ax.plot((k.ts - k.ts[0]) / 3600.0, k.residual,
+                    label=f"{k.run}: RMS {k.rms:.3g}, peak {k.peak:.3g}")
+        lim = res.config.limits[ch]
+        if "peak" in lim:
+            for s in (-1, 1):
+                ax.axhline(s * lim["peak"], color="red", linestyle="--",
+                           label="peak limit" if s > 0 else None)
+        ax.set_title(f"Residual bias of {ch} after the exported observer, held-back runs")
+        ax.set_xlabel("time since the start of the run (h)")
+        ax.set_ylabel(f"{ch}: measured − observer")
+        ax.legend()
+    fig.tight_layout()
+    style_figure(fig)
+    fig.savefig(path, dpi=100)
+    return path
+
+
+def write_results(res: CalibrationResults, folder) -> dict[str, Path]:
+    """Write report.json, report.md, model_calibrated.toml and the plots into `folder`
+    (the observer folder is already there when `run_pipeline` was given
+    `observer_dir=folder / "observer"`). Returns name -> path."""
+    from ..io import save_model
+
+    folder = Path(folder)
+    out = {}
+    report = calibration_report(res)
+    out["report.json"] = folder / "report.json"
+    out["report.json"].write_text(json.dumps(report, indent=1, allow_nan=False) + "\n",
+                                  encoding="utf-8")
+    out["report.md"] = folder / "report.md"
+    out["report.md"].write_text(report_markdown(res), encoding="utf-8")
+    out["model_calibrated.toml"] = folder / "model_calibrated.toml"
+    save_model(res.calibrated_spec, out["model_calibrated.toml"],
+               header=f"calibrated by thermojax calibrate from {res.config.path}")
+    if res.static is not None:
+        out["static_polynomial.png"] = plot_static(res, folder / "static_polynomial.png")
+    if res.checks is not None:
+        out["verification_residual.png"] = plot_verification(
+            res, folder / "verification_residual.png")
+    return out
