@@ -17,6 +17,8 @@ import numpy as np
 from .._errors import InputError
 from ._progress import Progress
 from ._export import add_export
+from ._calibrate import add_calibrate
+from ._montecarlo import add_montecarlo
 from ._outputs import (check_output_file, check_output_folder, mark_own, staged_file,
                        staged_folder)
 
@@ -501,6 +503,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_resample(sub)
     _add_demo(sub)
     add_export(sub)
+    add_calibrate(sub)
+    add_montecarlo(sub)
     return parser
 
 

@@ -1,0 +1,103 @@
+"""The Monte Carlo report: report.json, report.md and distribution plots."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ._study import METHODS, PERCENTILES, summarize
+
+
+def write_report(out: Path, config, results: dict, names, study, atomic_write) -> dict:
+    from .. import __version__
+    from .._json import json_safe
+
+    unit = study.bias.column
+    bias_units = "deg/h" if unit.endswith("_dph") else ("ug" if unit.endswith("_ug") else
+                                                        "channel units")
+    summary = summarize(results, names, results["log_deviation"], config.bias_limit,
+                        bias_units)
+    report = {"schema": 1, "thermojax_version": __version__, "config": str(config.path),
+              "model": str(config.model_path), "bias_channel": unit,
+              "temperature_node": study.network.topology.node_names[study.bias.temperature],
+              "population": config.population.describe(), "profile": config.profile,
+              "n_units": config.n_units, "chunk_size": config.chunk_size, "seed": config.seed,
+              **summary,
+              "not_done": "per-unit identification by batched fits (issue 14, 2(b)) and a "
+                          "batch-level model fitted to a sample of units (2(c)); `own` uses "
+                          "each unit's true parameters, the bound such a fit can reach"}
+    report = json_safe(report)
+    atomic_write(out / "report.json", (json.dumps(report, indent=1) + "\n").encode())
+    atomic_write(out / "report.md", _markdown(report).encode())
+    plots = _plots(out, results, report, atomic_write)
+    report["plots"] = plots
+    return report
+
+
+def _markdown(r: dict) -> str:
+    u = r["bias_units"]
+    pop = r["population"]
+    lines = [f"# Unit-variance Monte Carlo: {r['n_units']} units", "",
+             f"Model `{r['model']}`, bias channel `{r['bias_channel']}` (its node "
+             f"`{r['temperature_node']}`); population: "
+             + (f"preset `{pop['preset']}` ({pop['preset_source']}); " if pop["preset"] else "")
+             + f"{len(pop['spreads'])} parameters vary lognormally (mean nominal, spread = "
+             f"relative std), {len(pop['voids'])} void entries. Profile: "
+             f"{r['profile']['lo']:g}..{r['profile']['hi']:g} °C at {r['profile']['rate']:g} "
+             f"°C/min, {r['profile']['dwell']:g} s dwells, {r['profile']['dt']:g} s samples, "
+             f"{r['profile']['power']:g} W.", "",
+             "Methods: **nominal** = the nominal model's steady-state Kalman observer and the "
+             "bias model on its estimates (batch-level default matrices); **own** = the "
+             "unit's own true model (the ideal per-unit calibration bound).", "",
+             f"| method | within ±{r['bias_limit']:g} {u} (peak) | bias peak p50 / p95 / p99 / "
+             f"max ({u}) | temperature peak p50 / p95 / max (K) |", "|---|---:|---:|---:|"]
+    for m in METHODS:
+        b, t = r["percentiles"][m]["bias_peak"], r["percentiles"][m]["temp_peak"]
+        lines.append(f"| {m} | {100 * r['fraction_within_bias_spec'][m]:.1f} % | "
+                     f"{b['p50']:.3g} / {b['p95']:.3g} / {b['p99']:.3g} / {b['max']:.3g} | "
+                     f"{t['p50']:.3g} / {t['p95']:.3g} / {t['max']:.3g} |")
+    lines += ["", "## Which spread matters most (nominal method, peak bias error)", "",
+              "Least-squares coefficients of the peak bias error on the standardized "
+              "log-deviations (change per standard deviation of the parameter), and each "
+              "parameter's correlation with the error:", "",
+              f"| rank | parameter | {u} per sd | correlation |", "|---:|---|---:|---:|"]
+    for i, s in enumerate(r["sensitivity"][:10]):
+        lines.append(f"| {i + 1} | `{s['parameter']}` | {s['coefficient_per_sd']:+.3g} | "
+                     f"{s['correlation']:+.2f} |")
+    lines += ["", f"Not done yet: {r['not_done']}.", ""]
+    return "\n".join(lines)
+
+
+def _plots(out: Path, results: dict, r: dict, atomic_write) -> list[str]:
+
+
+    from .._plots import new_figure, save_figure
+
+    files = []
+    for key, title, unit in (("bias_peak", "Peak bias error per unit", r["bias_units"]),
+                             ("temp_peak", f"Peak error of the estimated {r['temperature_node']} "
+                              "temperature per unit", "K")):
+        fig = new_figure(figsize=(12, 6))
+        ax = fig.add_subplot(1, 1, 1)
+        for m, label in METHODS.items():
+            v = np.maximum(results[f"{m}_{key}"], 1e-12)
+            bins = np.logspace(np.log10(v.min()) - 0.05, np.log10(v.max()) + 0.05, 30)
+            ax.hist(v, bins=bins, alpha=0.6, label=label)
+        if key == "bias_peak":
+            ax.axvline(r["bias_limit"], color="k", ls="--",
+                       label=f"specification {r['bias_limit']:g} {unit}")
+        ax.set_xscale("log")
+        ax.set_xlabel(f"peak error over the profile ({unit})")
+        ax.set_ylabel("number of units")
+        ax.set_title(f"{title}: {r['n_units']} units, nominal versus own model")
+        ax.legend()
+        name = f"{key}_distribution.png"
+        tmp = out / f".{name}.tmp.png"
+        save_figure(fig, tmp)
+        atomic_write(out / name, tmp.read_bytes())
+        tmp.unlink()
+        files.append(name)
+
+    return files
