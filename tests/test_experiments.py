@@ -66,3 +66,73 @@ def test_imu_bias_headline_study(tmp_path):
     assert clean["coefficients"]["observer"] == pytest.approx(truth, rel=1e-6)  # roundoff
     assert clean["calibration"]["observer"]["rms"] < 1e-6  # °/h; roundoff only
     assert clean["rows"][1]["static"]["rms"] > clean["rows"][0]["static"]["rms"]
+
+
+def test_viscoelastic_hysteresis_study(tmp_path):
+    study = load_study("viscoelastic_hysteresis")
+    out = tmp_path / "hysteresis"
+    folder = study.main(["--out", str(out), "--quick"])
+    assert folder == out
+    for name in ("hysteresis.md", "results.json", "hysteresis_loops.png"):
+        assert (folder / name).is_file(), name
+    with pytest.raises(SystemExit) as refused:  # an existing folder is not overwritten
+        study.main(["--out", str(out), "--quick"])
+    assert refused.value.code == 2
+    res = json.loads((folder / "results.json").read_text())
+    params = {p["name"]: p for p in res["parameters"]}
+    # Known truth: τ = 1500 s and k = 0.6 µg/K, each within 3 reported std.
+    for name, truth in (("tau_s", study.TAU), ("k_ug_per_K", study.K)):
+        assert params[name]["truth"] == truth
+        assert abs(params[name]["value"] - truth) < 3 * params[name]["std"], params[name]
+    areas = res["loop_area_ug_C"]
+    # The static model's residual keeps the strain's loop (a polynomial encloses nothing:
+    # same area as the data's, within the 5 % the observer's estimate error allows) ...
+    assert areas["static_residual"] == pytest.approx(areas["true_strain_term"], rel=0.05)
+    # ... and the augmented model closes it (measured ~1 %).
+    assert areas["augmented_residual"] < 0.1 * areas["static_residual"]
+
+
+def test_seed_calibration_phases_study(tmp_path):
+    study = load_study("seed_calibration_phases")
+    out = tmp_path / "phases"
+    folder = study.main(["--out", str(out), "--quick"])
+    for name in ("phases.md", "results.json", "phase_residuals.png"):
+        assert (folder / name).is_file(), name
+    text = (folder / "phases.md").read_text()
+    for seed_number in ("0.04 °/h", "0.08 °/h", "0.12 °/h", "0.06 °/h"):  # the seed's beside
+        assert seed_number in text
+    res = json.loads((folder / "results.json").read_text())
+    rows = {r["phase"]: r for r in res["rows"]}
+    assert list(rows) == ["static_soak", "slow_ramp", "fast_shock", "viscoelastic_dwell"]
+    (g,) = rows["slow_ramp"]["identified"]
+    assert abs(g["value"] - 0.5) < 3 * g["std"]  # housing-bulkhead W/K, truth 0.5
+    (c,) = rows["fast_shock"]["identified"]
+    assert c["value"] == pytest.approx(0.05, rel=0.05)  # MEMS J/K; quick run: 5 %
+    tau, k = rows["viscoelastic_dwell"]["identified"]
+    assert abs(tau["value"] - study.TAU) < 3 * tau["std"]
+    assert abs(k["value"] - study.K_STRAIN) < 3 * k["std"]
+    for r in res["rows"]:
+        # exact structure: the observer model leaves far less than the 0.02 °/h noise, and
+        # the static quadratic (no gradient, rate or strain terms) far more.
+        assert r["observer_rms_dph"] < 0.01
+        assert r["static_rms_dph"] > 10 * r["observer_rms_dph"]
+        assert r["observer_measured_rms_dph"] == pytest.approx(study.BIAS_NOISE, rel=0.1)
+
+
+def test_allan_compensation_study(tmp_path):
+    study = load_study("allan_compensation")
+    out = tmp_path / "allan"
+    folder = study.main(["--out", str(out), "--quick"])
+    for name in ("allan.md", "results.json", "allan_deviation.png", "gyro_output.png"):
+        assert (folder / name).is_file(), name
+    res = json.loads((folder / "results.json").read_text())
+    p = res["noise_parameters"]
+    # The raw output's ARW recovers the injected white noise within its (68 %) interval,
+    # widened by 2 % for the flicker's share at τ ≈ 1 s.
+    value, lower, upper = p["raw"]["arw_deg_per_sqrt_h"]
+    assert 0.98 * lower <= study.ARW <= 1.02 * upper
+    # The observer-compensated curve is the noise's own; the raw one drifts up.
+    assert p["observer"]["bias_instability_dph"][0] == pytest.approx(
+        p["noise_only"]["bias_instability_dph"][0], rel=0.05)
+    assert p["raw"]["adev_at_longest_tau_dph"] > 3 * p["observer"]["adev_at_longest_tau_dph"]
+    assert p["static"]["thermal_residual_rms_dph"] > 10 * p["observer"]["thermal_residual_rms_dph"]
