@@ -14,10 +14,11 @@ inertial = "data/plateaus_inertial.csv"        # bias columns, its own time_s
 use = "calibration"                     # or "verification" (held back)
 # telemetry = "run.csv"                 # instead of the two: one combined log
 
-[outliers]        # Hampel rule on the raw inertial stream
+[outliers]        # Hampel: |x − median of `window` samples| > n_sigmas · σ̂ (raw inertial)
 window = 7
 n_sigmas = 3.0
-[lowpass]         # zero-phase Butterworth before decimation to dt_s
+scale_window = 1000  # samples per block of σ̂ = 1.4826 · median|Δx| / √2
+[lowpass]         # zero-phase Butterworth before decimation to dt_s, on both streams
 cutoff_fraction = 0.8
 filter_order = 4
 [orientation]     # optional: rate-table positions from three accelerometer columns
@@ -80,6 +81,7 @@ class CalibrationConfig:
     runs: tuple[RunFiles, ...]
     outlier_window: int = 7
     outlier_n_sigmas: float = 3.0
+    outlier_scale_window: int = 1000
     cutoff_fraction: float = 0.8
     filter_order: int = 4
     orientation_columns: tuple[str, ...] | None = None
@@ -242,6 +244,10 @@ def load_config(path) -> CalibrationConfig:
     if window < 3 or window % 2 == 0:
         raise _err(path, f"the Hampel window must be an odd number ≥ 3, got {window}.",
                    "outliers.window")
+    scale_window = _number(path, out, "scale_window", "outliers", 1000, integer=True)
+    if scale_window < 10:
+        raise _err(path, f"the noise-std block must be at least 10 samples, got "
+                   f"{scale_window}.", "outliers.scale_window")
     lp = _table(path, doc, "lowpass")
     cutoff = _number(path, lp, "cutoff_fraction", "lowpass", 0.8)
     if cutoff >= 1.0:
@@ -301,6 +307,7 @@ def load_config(path) -> CalibrationConfig:
         path=path, model=model, channels=channels, stages=stages, temperature_sensor=sensor,
         dt_s=dt_s, runs=runs, outlier_window=window,
         outlier_n_sigmas=_number(path, out, "n_sigmas", "outliers", 3.0),
+        outlier_scale_window=scale_window,
         cutoff_fraction=cutoff,
         filter_order=_number(path, lp, "filter_order", "lowpass", 4, integer=True),
         orientation_columns=ori_cols,

@@ -1,15 +1,16 @@
 """The factory calibration pipeline as named stages (issue 13 item 3), each a function on
 plain data, and `run_pipeline(config)` running those a config names, in order:
 
-1. `condition`: two logs per run onto one time base (Hampel outliers, low-pass before
-   decimation, optional rate-table orientation separation);
+1. `condition`: two logs per run onto one time base (Hampel outliers, the same low-pass
+   on both logs before decimation, optional rate-table orientation separation);
 2. `static_polynomial`: dwell plateaus found automatically, a polynomial per channel
    in the measured temperature that indexes it;
 3. `thermal_fit`: `thermojax.fit` of the model and its bias channels, jointly, on the
    calibration runs (output error);
 4. `coupling`: the gradient, rate and strain coefficients of each channel (the
    regression of the bias left after the polynomial on those states, solved inside the
-   joint fit) as a channels × regressors matrix with stds;
+   joint fit) as a channels × regressors matrix with stds (scaled for the low-passed
+   noise's correlation);
 5. `verify`: the fitted model exported as the reference observer, played back (float)
    on every held-back run, its bias output against the measured bias, pass or fail
    against the config's bias-stability specification.
@@ -65,6 +66,8 @@ class ConditionedRun:
     - `cutoff_hz`: the low-pass cutoff (None: no decimation was needed).
     - `orientation`: channel -> {orientation: (offset, std)} or None.
     - `raw_rates_hz`: (temperature log, inertial log) median rates.
+    - `noise_factor`: `Synchronized.noise_factor` (≥ 1): how much a white-noise std
+      understates the low-passed, decimated noise's effect on a slow regressor.
     """
 
     name: str
@@ -77,6 +80,7 @@ class ConditionedRun:
     cutoff_hz: float | None
     orientation: dict | None
     raw_rates_hz: tuple[float, float]
+    noise_factor: float = 1.0
 
 
 def load_runs(config: CalibrationConfig, spec) -> list[RawRun]:
@@ -123,14 +127,15 @@ def load_runs(config: CalibrationConfig, spec) -> list[RawRun]:
 def condition(run: RawRun, spec, config: CalibrationConfig) -> ConditionedRun:
     """Stage (a), data conditioning of one run.
 
-    1. Outliers: each raw inertial channel through the Hampel filter (`window` samples,
-       `n_sigmas` robust stds: `|x − med| > n·1.4826·MAD`), outliers replaced by the
-       rolling median.
+    1. Outliers: each raw inertial channel through the Hampel-type rule
+       (`remove_outliers`: `|x − med_window| > n_sigmas · σ̂`, σ̂ from successive
+       differences per `scale_window` samples), outliers replaced by the rolling median.
     2. Synchronization: the common time base is the temperature log's times from the
-       first one inside the overlap of both logs, every `dt_s`; the inertial channels
-       are low-passed (zero-phase Butterworth, cutoff `cutoff_fraction` × the new
-       Nyquist) before being interpolated onto it, the temperature log is interpolated
-       linearly.
+       first one inside the overlap of both logs, every `dt_s`; both logs are low-passed
+       alike (zero-phase Butterworth, cutoff `cutoff_fraction` × the new Nyquist) before
+       being taken onto it: sensors and first-order-hold inputs at the sample times,
+       zero-order-hold inputs (the model's `hold`) as each interval's mean
+       (`synchronize`).
     3. Orientations (when the config names three accelerometer columns): each sample
        labelled by the rate-table position, each channel's g-dependent offsets and
        thermal drift fitted together (`separate_orientation_bias`, the drift polynomial of
@@ -143,7 +148,8 @@ def condition(run: RawRun, spec, config: CalibrationConfig) -> ConditionedRun:
     outliers, filled = {}, {}
     for c in (*config.channels, *(config.orientation_columns or ())):
         raw = np.asarray(i.column(c), dtype=float)
-        o = remove_outliers(raw, window=config.outlier_window, n_sigmas=config.outlier_n_sigmas)
+        o = remove_outliers(raw, window=config.outlier_window, n_sigmas=config.outlier_n_sigmas,
+                            scale_window=config.outlier_scale_window)
         v = o.filled
         bad = ~np.isfinite(v)
         if bad.any():  # whole windows missing: interpolate across the gap
@@ -158,7 +164,8 @@ def condition(run: RawRun, spec, config: CalibrationConfig) -> ConditionedRun:
     try:
         sync = synchronize(tt, {c: t.column(c) for c in temp_cols}, i.ts, filled, ts,
                            cutoff_fraction=config.cutoff_fraction,
-                           filter_order=config.filter_order)
+                           filter_order=config.filter_order,
+                           holds={c: spec.hold_for(c) for c in spec.input_columns})
     except InputError as err:
         raise InputError(str(err), file=where) from None
     inputs = np.stack([sync.temperature[c] for c in spec.input_columns], 1)
@@ -180,7 +187,8 @@ def condition(run: RawRun, spec, config: CalibrationConfig) -> ConditionedRun:
             bias[c] = sep.drift
     rate = lambda ts_: 1.0 / float(np.median(np.diff(np.asarray(ts_))))  # noqa: E731
     return ConditionedRun(run.name, run.files.use, sync.ts, inputs, sensors, bias, outliers,
-                          sync.cutoff_hz, orientation, (rate(t.ts), rate(i.ts)))
+                          sync.cutoff_hz, orientation, (rate(t.ts), rate(i.ts)),
+                          sync.noise_factor)
 
 
 # ---------------------------------------------------------------------------
@@ -309,7 +317,8 @@ class Coupling:
     gradient or a strain state, per K/s for a rate) and `std` (NaN: not identifiable or
     fixed); NaN in `matrix` where the channel has no such term. `polynomial[c]` holds the
     joint fit's polynomial in the bias node's estimated temperature (names, values,
-    stds) and `time_constants[c]` its relaxation times (τ s, std)."""
+    stds) and `time_constants[c]` its relaxation times (τ s, std). Every std is the
+    fit's times `noise_factor`."""
 
     channels: tuple[str, ...]
     regressors: tuple[str, ...]
@@ -317,27 +326,35 @@ class Coupling:
     std: np.ndarray
     polynomial: dict
     time_constants: dict
+    noise_factor: float = 1.0
 
 
-def coupling(result, channels) -> Coupling:
+def coupling(result, channels, noise_factor: float = 1.0) -> Coupling:
     """Stage (d): the coupling matrix from the joint fit's bias channels. Each channel's
     bias is `polynomial(T_node) + Σ d_g ΔT_g + Σ e_r dT_r/dt + Σ k_v (T_v − ε_v)`, and
     the gradient, rate and strain coefficients are the least-squares regression of what
     the polynomial leaves on those states (solved with the polynomial, by variable
     projection inside the fit, so the stds include the thermal parameters'
-    uncertainty)."""
+    uncertainty).
+
+    The fit takes each sample's noise as independent. After the low-pass the decimated
+    noise is correlated from sample to sample, which a slowly varying regressor sees as
+    `noise_factor²` (`ConditionedRun.noise_factor`, ~1.15 at the default cutoff) times
+    more variance: every std is multiplied by `noise_factor`.
+    """
     regs, rows, poly, taus = [], {}, {}, {}
+    q = float(noise_factor)
     for c in channels:
         b = result.biases[c]
         rows[c] = {}
-        poly[c] = {n: (float(v), float(s)) for n, v, s in zip(b.names, b.coefficients, b.std)
-                   if n.startswith("poly")}
-        taus[c] = {n: (float(t), None if s is None else float(s))
+        poly[c] = {n: (float(v), q * float(s)) for n, v, s
+                   in zip(b.names, b.coefficients, b.std) if n.startswith("poly")}
+        taus[c] = {n: (float(t), None if s is None else q * float(s))
                    for n, (t, s) in b.time_constants.items()}
         for n, v, s in zip(b.names, b.coefficients, b.std):
             if n.startswith("poly"):
                 continue
-            rows[c][n] = (float(v), float(s))
+            rows[c][n] = (float(v), q * float(s))
             if n not in regs:
                 regs.append(n)
     M = np.full((len(channels), len(regs)), np.nan)
@@ -346,7 +363,7 @@ def coupling(result, channels) -> Coupling:
         for j, n in enumerate(regs):
             if n in rows[c]:
                 M[i, j], S[i, j] = rows[c][n]
-    return Coupling(tuple(channels), tuple(regs), M, S, poly, taus)
+    return Coupling(tuple(channels), tuple(regs), M, S, poly, taus, q)
 
 
 # ---------------------------------------------------------------------------
@@ -497,10 +514,12 @@ def run_pipeline(config, *, observer_dir=None, progress=None) -> CalibrationResu
     res.stages.append({
         "stage": "condition",
         "did": (f"{len(runs)} runs onto a {config.dt_s:g} s time base: Hampel outliers "
-                f"(window {config.outlier_window}, {config.outlier_n_sigmas:g} robust σ) "
-                "replaced by the rolling median, inertial streams low-passed (zero-phase "
+                f"(|x − median of {config.outlier_window}| > {config.outlier_n_sigmas:g} σ̂, "
+                f"σ̂ from successive differences per {config.outlier_scale_window} samples) "
+                "replaced by the rolling median, both streams low-passed alike (zero-phase "
                 f"Butterworth order {config.filter_order}, cutoff "
-                f"{config.cutoff_fraction:g} × the new Nyquist) before decimation"
+                f"{config.cutoff_fraction:g} × the new Nyquist) before decimation, "
+                "zero-order-hold inputs averaged over each new sample period"
                 + (", g-dependent bias separated per rate-table orientation"
                    if config.orientation_columns else "")),
         "outliers": n_out, "cutoff_hz": sorted(c for c in cut if c is not None),
@@ -508,6 +527,7 @@ def run_pipeline(config, *, observer_dir=None, progress=None) -> CalibrationResu
                           "span_s": [float(r.ts[0]), float(r.ts[-1])],
                           "temperature_rate_hz": r.raw_rates_hz[0],
                           "inertial_rate_hz": r.raw_rates_hz[1], "outliers": r.outliers,
+                          "noise_factor": r.noise_factor,
                           "orientation_offsets": r.orientation} for r in runs}})
     say(f"condition: {len(runs)} runs on a {config.dt_s:g} s base; outliers removed "
         + ", ".join(f"{c} {n}" for c, n in n_out.items()))
@@ -550,13 +570,17 @@ def run_pipeline(config, *, observer_dir=None, progress=None) -> CalibrationResu
             "parameters": {k: {"value": v["value"], "std": v["std"], "free": v.get("free")}
                            for k, v in f.parameters.items()}})
     if "coupling" in config.stages:
-        res.coupling = coupling(res.fit, config.channels)
+        res.coupling = coupling(res.fit, config.channels,
+                                max((r.noise_factor for r in cal), default=1.0))
         k = res.coupling
         res.stages.append({
             "stage": "coupling",
             "did": ("the residual bias after the polynomial regressed on the gradient, "
                     "rate and strain states of the fitted model (jointly with the "
-                    "polynomial, inside the fit)"),
+                    "polynomial, inside the fit); stds are the fit's times "
+                    f"{k.noise_factor:.3g}, for the low-passed noise's sample-to-sample "
+                    "correlation"),
+            "noise_factor": k.noise_factor,
             "channels": list(k.channels), "regressors": list(k.regressors),
             "matrix": k.matrix.tolist(), "std": k.std.tolist(),
             "polynomial": k.polynomial, "time_constants": k.time_constants})
