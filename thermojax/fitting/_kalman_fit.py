@@ -7,6 +7,7 @@ instead (std `prior_log_std` in log units), left out of every reported likelihoo
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import equinox as eqx
@@ -71,12 +72,98 @@ def fit_kalman(prep: Prepared, start: Solution, solver, max_steps: int, prior_lo
     say(f"Kalman likelihood: {len(names)} parameters, started from the output-error fit")
     theta, n_steps, converged = _solve_kalman(theta0, problem, solver, max_steps)
     _check_finite(theta, theta0, names)
+    at_zero = []
+    if isinstance(solver, TruncatedNewton) and converged:  # max_steps hit: stop there
+        plain = make_problem(template, index, prep.data, sigma, prior_mean)
+        theta, at_zero, steps = _zero_variances(theta, plain, names, solver, max_steps, say)
+        theta, polished = _polish(theta, plain, names, at_zero, say)
+        n_steps += steps
+        converged = converged and polished
     state = with_free_parameters(template, index, theta)
     problem = make_problem(template, index, prep.data, sigma, prior_mean)
     nll, info = _nll_and_hessian(theta, problem)
+    info = np.array(info)
+    if at_zero:  # held on the boundary: known, not estimated; decoupled, never "weak"
+        top = float(np.max(np.diag(info)))
+        info[at_zero, :] = info[:, at_zero] = 0.0
+        info[at_zero, at_zero] = top
     predictions = _simulate_jit(state.model, prep.data, state.run_initial)
-    return Solution(problem, np.asarray(theta), state, names, np.asarray(info), float(nll),
-                    int(n_steps), bool(converged), np.asarray(predictions))
+    return Solution(problem, np.asarray(theta), state, names, info, float(nll),
+                    int(n_steps), bool(converged), np.asarray(predictions),
+                    at_bound=tuple(names[i] for i in at_zero))
+
+
+# A variance held at zero: the log of the smallest value a model file's zero becomes
+# (`ThermalModel.from_spec`), pinned through the prior rows (no new compilation).
+_LOG_ZERO = math.log(1e-12)
+_PIN = 1e7
+_ZERO_TOL = 1e-3  # −log L a zero may cost and still be taken: it sits on the boundary
+_value_and_grad = eqx.filter_jit(jax.value_and_grad(_kalman_loss))
+
+
+def _pinned(problem, pins: list[int]):
+    """`problem` with the parameters `pins` held at zero (`_LOG_ZERO`)."""
+    mean = np.array(problem.prior_mean)
+    weight = np.zeros_like(mean)
+    mean[pins] = _LOG_ZERO
+    weight[pins] = _PIN
+    return make_problem(problem.template, problem.index, problem.data, problem.sigma, mean,
+                        weight)
+
+
+def _zero_variances(theta, problem, names, solver, max_steps, say):
+    """The boundary check of variances whose optimum may be zero (docs/extensions.md):
+    each process noise the likelihood barely determines (curvature in log q below the
+    solver's `min_curvature`), smallest first, is held at zero and the rest refitted; the
+    zero is kept when −log L does not rise by more than `_ZERO_TOL`.
+
+    **Returns:** `(theta, indices held at zero, Newton steps taken)`."""
+    nll, hess = (np.asarray(a) for a in _nll_and_hessian(theta, problem))
+    theta = np.array(theta)
+    candidates = [i for i, n in enumerate(names) if n.endswith(".process_noise")
+                  and hess[i, i] < solver.min_curvature]
+    pins, steps = [], 0
+    for i in sorted(candidates, key=lambda i: theta[i]):
+        trial = theta.copy()
+        trial[i] = _LOG_ZERO
+        pinned = _pinned(problem, pins + [i])
+        new, n, _ = _solve_kalman(jax.device_put(trial), pinned, solver, max_steps)
+        steps += int(n)
+        new_nll = float(_value_and_grad(new, problem)[0])
+        if np.isfinite(new_nll) and new_nll <= float(nll) + _ZERO_TOL:
+            say(f"{names[i]} held at zero: -log L {float(nll):.3f} -> {new_nll:.3f}")
+            pins.append(i)
+            theta, nll = np.asarray(new), new_nll
+    return jax.device_put(theta), pins, steps
+
+
+def _polish(theta, problem, names, pins, say, tol: float = 1e-3):
+    """Confirm the optimum: L-BFGS-B (SciPy) on the parameters not held at zero, from the
+    truncated solution. Taken if it lowers −log L; `True` (the fit is then reported
+    converged) when it found nothing better than `tol`, or moved and met its own
+    convergence test (projected gradient below `gtol`, or no relative progress)."""
+    import scipy.optimize
+
+    pinned = _pinned(problem, pins)
+    theta = np.array(theta, float)
+    free = np.setdiff1d(np.arange(theta.size), pins)
+    start = float(_value_and_grad(jax.device_put(theta), pinned)[0])
+
+    def f(x):
+        full = theta.copy()
+        full[free] = x
+        v, g = _value_and_grad(jax.device_put(full), pinned)
+        g = np.asarray(g)[free]
+        return (float(v), g) if np.isfinite(v) and np.all(np.isfinite(g)) else (1e300, 0 * g)
+
+    res = scipy.optimize.minimize(f, theta[free], jac=True, method="L-BFGS-B",
+                                  options=dict(maxiter=200, ftol=1e-12, gtol=1e-6))
+    if not res.fun < start:
+        return jax.device_put(theta), True
+    gain = start - float(res.fun)
+    say(f"polish (L-BFGS-B): -log L lower by {gain:.4f}")
+    theta[free] = res.x
+    return jax.device_put(theta), bool(gain < tol or res.success)
 
 
 @eqx.filter_jit

@@ -94,6 +94,7 @@ class Solution:
     # Noise stds estimated outside theta (output error, ML): name -> (value, std) °C.
     noise: dict[str, tuple[float, float]] = field(default_factory=dict)
     n_evaluations: int | None = None  # residual evaluations at trial points
+    at_bound: tuple[str, ...] = ()  # free parameters held at zero (a variance's boundary)
 
 
 # ---------------------------------------------------------------------------

@@ -204,6 +204,8 @@ def _parameters(sol: Solution, ident: Identifiability, spec: ModelSpec) -> dict[
         if name not in ident.unidentifiable_parameters and np.isfinite(stds[j]):
             sd = float(v * stds[j]) if log else float(stds[j])
         out[name] = {"value": v, "std": sd, "free": True}
+    for name in sol.at_bound:  # held at zero by the boundary check
+        out[name] = {"value": 0.0, "std": None, "free": True, "at_bound": True}
     for name, (v, sd) in sol.noise.items():
         out[name] = {"value": v, "std": sd, "free": True}
     _add_fixed_parameters(out, spec)
