@@ -9,7 +9,7 @@ import pytest
 from scipy import stats
 
 from thermojax import parse_model
-from thermojax.investigation._candidates import (benjamini_hochberg, column_hold, column_role,
+from thermojax.investigation._candidates import (benjamini_hochberg, column_role,
                                    enumerate_places, refit_p_value)
 from thermojax.cli import main
 from thermojax.model.effects import lower_effects
@@ -46,8 +46,6 @@ def test_column_guesses():
     assert column_role("T_mount", np.zeros(3)) == "temperature"
     assert column_role("P_aux", np.zeros(3)) == "power"
     assert column_role("air_speed", np.zeros(3)) == "other"
-    assert column_hold(np.repeat([0.0, 0.4, 0.0, 0.4], 90)) == "zoh"
-    assert column_hold(np.linspace(25, 85, 400)) == "foh"
 
 
 def test_places_cover_every_kind_and_unused_columns():

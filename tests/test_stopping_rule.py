@@ -143,3 +143,48 @@ def test_holdout_verdict_needs_most_folds_and_more_than_the_spread():
     ok, total, spread, why = holdout_verdict([10.0, 1.0, -8.0, 2.0])
     assert not ok and total < spread and "spread" in why
     assert not holdout_verdict([float("nan"), 1.0])[0]
+
+
+def test_duplicates_of_existing_structure_are_named():
+    from thermojax.investigation._candidates import Candidate
+    from thermojax.investigation._investigate import duplicate_reason
+
+    def cand(kind, where, **p):
+        return Candidate(kind, where, 50.0, 1e-6, method="refit", parameters=p)
+
+    # a viscoelastic τ of two samples behaves like the static terms; 100 samples does not
+    assert "relaxation time" in duplicate_reason(
+        cand("viscoelastic", ("mems", "acc_x"), time_constant=2.0, k=1.0), {}, 1.0)
+    assert duplicate_reason(cand("viscoelastic", ("mems", "acc_x"), time_constant=100.0,
+                                 k=1.0), {}, 1.0) == ""
+    # a sensor lag of 50 ms sampled every second is invisible
+    assert "lag" in duplicate_reason(cand("sensor_lag", ("T_die",), time_constant=0.05),
+                                     {"time_constant": 1.0}, 1.0)
+    # a positive gain that went to zero: the effect is absent
+    assert "bound" in duplicate_reason(cand("heat_source", ("P_aux", "pcb"), gain=1e-9),
+                                       {"gain": 0.1}, 1.0)
+    assert duplicate_reason(cand("heat_source", ("P_aux", "pcb"), gain=0.02), {"gain": 0.1},
+                            1.0) == ""
+
+
+def test_an_unmeasured_node_that_mimicked_the_effect_is_named():
+    from pathlib import Path
+
+    from thermojax import parse_model
+    from thermojax.investigation._investigate import Step, absorbing_nodes
+
+    text = (Path(__file__).parent / "hidden" / "models" / "chain3.toml").read_text()
+    spec = parse_model(text)  # housing and die measured, pcb not
+
+    def step(c_pcb, g_hp, c_housing):
+        params = {"nodes.pcb.capacitance": {"value": c_pcb, "std": 0.1, "free": True},
+                  "links.housing-pcb.conductance": {"value": g_hp, "std": 0.01, "free": True},
+                  "nodes.housing.capacitance": {"value": c_housing, "std": 0.2, "free": True}}
+        return Step(spec, None, {}, {"parameters": params})
+
+    before = step(6.0, 0.40, 25.0)
+    # the pcb's capacitance falls back from 6 to 4 J/K (20 std, 33 %) once the effect is in
+    moved = absorbing_nodes(before, step(4.0, 0.401, 20.0))
+    assert moved == {"pcb": ["nodes.pcb.capacitance"]}  # housing is measured: not named
+    # shifts within their noise, or large in std but tiny in share, name nothing
+    assert absorbing_nodes(before, step(6.2, 0.41, 25.0)) == {}

@@ -62,6 +62,7 @@ class KalmanOutput(eqx.Module):
     P_filt: Float[Array, "times states states"]
     m_pred: Float[Array, "times states"]  # prior mean at k (before the update)
     P_pred: Float[Array, "times states states"]
+    sample_nll: Float[Array, " times"]  # each sample's term of `nll` (0 where unmeasured)
 
 
 def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanOutput:
@@ -108,7 +109,7 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanO
         return (m_next, 0.5 * (P_next + P_next.T)), out
 
     _, (nll, e, s, m_f, P_f, m_p, P_p) = jax.lax.scan(step, (m0, P0), (u, u_next, y, mask))
-    return KalmanOutput(jnp.sum(nll), e, s, m_f, P_f, m_p, P_p)
+    return KalmanOutput(jnp.sum(nll), e, s, m_f, P_f, m_p, P_p, nll)
 
 
 def _transition(model, system, dt):
@@ -141,6 +142,14 @@ def kalman_nll(model: ThermalModel, data: Dataset, run_initial=None) -> Float[Ar
     return jnp.sum(kalman_runs(model, data, run_initial, lambda ts, kf: kf.nll))
 
 
+@eqx.filter_jit
+def kalman_sample_nll(model: ThermalModel, data: Dataset, run_initial=None
+                      ) -> Float[Array, "runs times"]:
+    """Each sample's `−log p(y_k | y_<k)` under the filter (0 where unmeasured): summed
+    over a held-out block, the prequential score of parameters fitted without it."""
+    return kalman_runs(model, data, run_initial, lambda ts, kf: kf.sample_nll)
+
+
 def rts_smoother(model: ThermalModel, ts, kf: KalmanOutput):
     """Rauch-Tung-Striebel smoothed means and stds of every node: ((times, states), (times, states))."""
     system = model.linear_system()
@@ -162,3 +171,48 @@ def rts_smoother(model: ThermalModel, ts, kf: KalmanOutput):
     m_s = jnp.concatenate([m_s, kf.m_filt[-1:]], axis=0)
     P_s = jnp.concatenate([P_s, kf.P_filt[-1:]], axis=0)
     return m_s, jnp.sqrt(jnp.clip(jnp.diagonal(P_s, axis1=1, axis2=2), 0.0))
+
+
+def innovation_map(model: ThermalModel, ts, mask, P0, V):
+    """The whitened innovations of one run that output-space perturbations `V` (times,
+    outputs, m) cause: the Kalman filter's recursion with its own (data-independent)
+    gains applied to `V`, `ε⁺ = F (ε + K e)`, `e = V − C ε`, whitened by the Cholesky
+    factor of `S_k` (zero where unmeasured). Linear in `V`: the innovations of the data
+    are the map of the free-run residuals (exactly, for a linear model), and the
+    derivative of the innovations along an effect that enters as a free-run output
+    direction `d` is minus the map of `d`. With nonlinear effects `F` is the linear
+    part's `Φ`."""
+    system = model.linear_system()
+    dt = sample_period(ts)
+    Phi = discretize(system, dt).Phi
+    _, Qd = discretize_process_noise(system.A, jnp.diag(model.process_noise ** 2), dt)
+    R = jnp.diag(model.noise ** 2)
+    C = system.C
+    eye_p = jnp.eye(C.shape[0])
+
+    def step(carry, inp):
+        eps, P = carry
+        v, mask_k = inp
+        Cm = C * mask_k[:, None]
+        both = mask_k[:, None] & mask_k[None, :]
+        S = jnp.where(both, Cm @ P @ Cm.T + R, eye_p)
+        L = jnp.linalg.cholesky(S)
+        e = (v - C @ eps) * mask_k[:, None]
+        K = jax.scipy.linalg.cho_solve((L, True), Cm @ P).T
+        w = jax.scipy.linalg.solve_triangular(L, e, lower=True) * mask_k[:, None]
+        IKC = jnp.eye(P.shape[0]) - K @ Cm
+        P_f = IKC @ P @ IKC.T + K @ jnp.where(both, R, 0.0) @ K.T
+        P_next = Phi @ P_f @ Phi.T + Qd
+        return (Phi @ (eps + K @ e), 0.5 * (P_next + P_next.T)), w
+
+    eps0 = jnp.zeros((Phi.shape[0], V.shape[-1]), V.dtype)
+    _, w = jax.lax.scan(step, (eps0, P0), (V, mask))
+    return w
+
+
+@eqx.filter_jit
+def dataset_innovation_map(model: ThermalModel, data: Dataset, V):
+    """`innovation_map` of every run: `V` (runs, times, outputs, m) -> same shape."""
+    P0 = jnp.diag(model.initial_std ** 2)
+    return jax.vmap(lambda ts, mask, v: innovation_map(model, ts, mask, P0, v))(
+        data.ts, data.mask, V)

@@ -54,6 +54,9 @@ class Candidate:
     lr_deflation: float = 1.0  # long-run variance ratio dividing the statistic (non-white)
     holdout_spread: float | None = None  # fold-to-fold spread of the held-out gain
     score_test: float | None = None  # the score-test statistic (kept once refitted)
+    hold: str | None = None  # the hold the likelihood chose for a column the effect brings
+    duplicate: str = ""  # why the refitted effect only duplicates existing structure
+    absorbed_by: dict = field(default_factory=dict)  # unmeasured node -> moved parameters
 
     def __post_init__(self):
         if self.score_test is None and self.method == "score":
@@ -78,7 +81,7 @@ class Candidate:
                 "tied_with": [[k, list(w)] for k, w in self.tied_with],
                 "supported": bool(self.supported), "method": self.method,
                 "holdout_gain": _finite(self.holdout_gain), "parameters": self.parameters,
-                "note": self.note}
+                "hold": self.hold, "absorbed_by": self.absorbed_by, "note": self.note}
 
 
 def _finite(x):
@@ -97,13 +100,6 @@ def column_role(name: str, values: np.ndarray) -> str:
     if low.startswith(("p_", "q_")) or "power" in low or "heat" in low:
         return "power"
     return "other"
-
-
-def column_hold(values: np.ndarray) -> str:
-    """"zoh" for a switched column (mostly unchanged between samples), else "foh"."""
-    v = np.asarray(values, float)
-    d = np.diff(v[np.isfinite(v)])
-    return "zoh" if d.size and np.mean(d == 0) > 0.5 else "foh"
 
 
 def enumerate_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str]
@@ -131,7 +127,8 @@ def enumerate_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str]
 
 def new_effect(spec: ModelSpec, lowered: ModelSpec, kind: str, where, holds: dict[str, str]
                ) -> Effect:
-    """The effect `kind` at `where` with its first-guess parameters, ready to add."""
+    """The effect `kind` at `where` with its first-guess parameters, ready to add; a data
+    column it brings in is held as `holds` says (column name -> "zoh" or "foh")."""
     impl = KINDS[kind]
     params = {k: Parameter(float(v)) for k, v in impl.initial_parameters(lowered, where).items()}
     if kind == "extra_node" and len(where) == 1:
@@ -229,14 +226,16 @@ def _heat_responses(model, data, W):
 
 
 def score_candidates(result, data: Dataset, places, columns: dict, weights, residuals,
-                     jacobian, deflation: float = 1.0) -> list[Candidate]:
+                     jacobian, deflation: float = 1.0, whiten=None) -> list[Candidate]:
     """Score-test every `(kind, where)` in `places` at the fitted `result`.
 
     `residuals` (N,) and `jacobian` (N, P): the noise-weighted output-error residuals
     (data rows, (runs, T, p) flattened, zero where unmeasured) and their Jacobian in the
     fitted parameters; `weights` (runs, T, p): 1/σ where measured, else 0.
     `deflation`: the residuals' long-run variance ratio; p-values are those of the
-    statistic divided by it (the reported score is not).
+    statistic divided by it (the reported score is not). `whiten`, when given, maps
+    output-space directions (runs, T, p, m) to the rows of `residuals` (N, m) instead of
+    weighting them (the Kalman likelihood's innovations: `innovation_directions`).
     """
     ctx = ScoreContext(result.lowered_spec, result.model, data, result.state.run_initial,
                        columns)
@@ -261,14 +260,26 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
         W = np.stack([raw[i][3][j] for i, j in heat])
         out = np.asarray(_heat_responses(result.model, data, jnp.asarray(W)))
         responses = {key: out[k] for k, key in enumerate(heat)}
+    shape = np.shape(weights)
+    keys = [(i, j) for i, (_, _, _, dirs) in enumerate(raw) for j in range(len(dirs))]
+    directions = {}
+    for i, j in keys:
+        _, _, how, dirs = raw[i]
+        d = responses[(i, j)] if how == "heat" else dirs[j]
+        directions[(i, j)] = np.broadcast_to(np.asarray(d, float), shape)
+    if whiten is not None and keys:
+        finite = [k for k in keys if np.all(np.isfinite(directions[k]))]
+        mapped = whiten(np.stack([directions[k] for k in finite], axis=-1)) if finite else []
+        directions = {k: mapped[..., n].reshape(-1) for n, k in enumerate(finite)}
+    else:
+        directions = {k: (d * weights).reshape(-1) for k, d in directions.items()}
     cands = []
     for i, (kind, where, how, dirs) in enumerate(raw):
         one_sided = EFFECT_KINDS[kind].parameters[0] in EFFECT_KINDS[kind].positive
         scores = []
-        for j, d in enumerate(dirs):
-            d = responses[(i, j)] if how == "heat" else d
-            dw = (np.asarray(d) * weights).reshape(-1)
-            if not np.all(np.isfinite(dw)):
+        for j in range(len(dirs)):
+            dw = directions.get((i, j))
+            if dw is None or not np.all(np.isfinite(dw)):
                 continue
             dp = dw - U @ (U.T @ dw)
             norm2 = float(dp @ dp)

@@ -41,13 +41,14 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
 import dataclasses
 
 from ..fitting._bias import fit_bias, viscoelastic_candidate
-from ._candidates import (Candidate, benjamini_hochberg, column_hold, column_role,
+from ._candidates import (Candidate, benjamini_hochberg, column_role,
                           enumerate_places, new_effect, refit_p_value, score_candidates)
 from ..measurements._data import Experiment
 from ..fitting._fit import FitResult, fit, output_error_at, standardized_innovations
@@ -57,12 +58,15 @@ from ..model._model_file import dump_model, save_model
 from ..model._parameters_by_name import spec_parameters, with_spec_parameters
 from .._residual_analysis import ljung_box, long_run_variance_ratio
 from ._diagnostics import davies_p_value, davies_variation
-from ..model._spec import ModelSpec
+from ..model._spec import EFFECT_KINDS, ModelSpec
+from ..model.effects import KINDS
 from ..measurements._telemetry import Telemetry
 
 TIE_LR = float(stats.chi2.ppf(0.95, 1))  # 3.84
 MIN_BIC_DROP = 10.0  # Kass & Raftery (1995): a Bayes factor above 150, "very strong"
 N_BLOCKS = 4  # held-out folds when there are fewer than three runs
+N_STARTS = 3  # output-error starts confirming each step's optimum before it is scored
+MULTISTART_TOL = 1e-3  # −log L a perturbed start must gain to replace the fit
 DAVIES_KINDS = ("extra_node", "viscoelastic")  # a time constant absent under the null
 VISCOELASTIC_TAU_RANGE = (1.0, 1e5)  # s, the τ search of `viscoelastic_candidate`
 
@@ -107,11 +111,11 @@ def _bias_runs(result, runs, bias):
 
 
 def evaluate(spec: ModelSpec, runs: list[Telemetry], likelihood: str, progress=None,
-             holdout: int | None = None) -> Step:
+             holdout: int | None = None, n_starts: int = 1) -> Step:
     """Fit `spec` to the runs, its bias channels with it (docs/formats.md §4), and measure
-    the fit (docs/formats.md §5 keys)."""
+    the fit (docs/formats.md §5 keys). `n_starts` > 1 adds perturbed output-error starts."""
     result = fit(spec, _experiments(spec, runs), likelihood=likelihood, progress=progress,
-                 holdout=holdout)
+                 holdout=holdout, n_starts=n_starts)
     biases = result.biases
     spec_out = result.spec
     nll, n_params, n = result.nll, result.n_params, result.n_samples
@@ -202,7 +206,7 @@ def rule_p_value(kind: str, lr: float, n_new: int, runs: list[Telemetry]) -> flo
     if kind == "viscoelastic":
         lo, hi = VISCOELASTIC_TAU_RANGE
     else:  # an extra node's local time constant: from the sample period to the record
-        lo = min(float(np.median(np.diff(t.ts))) for t in runs)
+        lo = sample_period(runs)
         hi = sum(float(t.ts[-1] - t.ts[0]) for t in runs)
     return davies_p_value(lr, max(n_new - 1, 1), davies_variation(math.log(max(hi / lo, 1.0))))
 
@@ -233,44 +237,60 @@ def _viscoelastic_candidates(step: Step, runs: list[Telemetry], places,
             continue
         _, white, _ = ljung_box(bias_fit.residuals)
         d = long_run_variance_ratio(bias_fit.residuals) if not white > white_p else 1.0
-        out.append(Candidate(kind, tuple(where), float(lr),
-                             rule_p_value(kind, lr / d, 2, runs), method="refit",
-                             delta_bic=-lr + 2 * math.log(n), lr_deflation=d,
-                             parameters={"time_constant": bias_fit.time_constants[name][0],
-                                         "k": k}))
+        c = Candidate(kind, tuple(where), float(lr), rule_p_value(kind, lr / d, 2, runs),
+                      method="refit", delta_bic=-lr + 2 * math.log(n), lr_deflation=d,
+                      parameters={"time_constant": bias_fit.time_constants[name][0], "k": k})
+        c.duplicate = duplicate_reason(c, {}, sample_period(runs))
+        out.append(c)
     return out
 
 
-def _refit(c: Candidate, step: Step, runs, likelihood, holds, initial, say,
+def _refit(c: Candidate, step: Step, runs, likelihood, new_columns, initial, say,
            white_p: float = 0.01) -> bool:
     """Refit the model of `step` with candidate `c` added; on success `c` holds the
     likelihood ratio, its p-value, Δ BIC, the extended step and the fitted parameters.
 
     The refit starts from the fitted model plus the effect's first guess and, with
-    `initial`, also from the user's values; the better likelihood is kept."""
+    `initial`, also from the user's values; the better likelihood is kept. An effect that
+    brings a data column into the model (one of `new_columns`) is fitted with the column
+    held both ways, "zoh" and "foh", and keeps the hold of the better likelihood
+    (`c.hold`; the other's likelihood ratio goes into the note)."""
     spec, lowered = step.spec, step.result.lowered_spec
     say(f"refitting with {c.kind} {list(c.where)} (score {c.score:.1f})")
-    ext = None
-    try:
-        effect = new_effect(spec, lowered, c.kind, c.where, holds)
-        extended = spec.replace(effects=spec.effects + (effect,))
-        starts = [extended]
-        if initial is not None:
-            starts.append(with_spec_parameters(extended, spec_parameters(initial)))
-    except Exception as err:
-        c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
-        starts = []
-    for start in starts:
+    brings = [w for w in c.where if w in new_columns]
+    options = ("zoh", "foh") if brings else (None,)
+    by_hold, ext = {}, None
+    for hold in options:
         try:
-            got = evaluate(start, runs, likelihood)
-        except Exception as err:  # one candidate's failure must not end the loop
+            effect = new_effect(spec, lowered, c.kind, c.where,
+                                {w: hold for w in brings})
+            extended = spec.replace(effects=spec.effects + (effect,))
+            starts = [extended]
+            if initial is not None:
+                starts.append(with_spec_parameters(extended, spec_parameters(initial)))
+        except Exception as err:
             c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
-            continue
+            starts = []
+        for start in starts:
+            try:
+                got = evaluate(start, runs, likelihood)
+            except Exception as err:  # one candidate's failure must not end the loop
+                c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
+                continue
+            if hold not in by_hold or got.record["nll"] < by_hold[hold].record["nll"]:
+                by_hold[hold] = got
+    for hold, got in by_hold.items():
         if ext is None or got.record["nll"] < ext.record["nll"]:
-            ext = got
+            ext, c.hold = got, hold
     if ext is None:
         c.supported = False
         return False
+    if len(by_hold) == 2:
+        other = next(h for h in by_hold if h != c.hold)
+        lr_other = 2 * (by_hold[other].record["nll"] - ext.record["nll"])
+        c.note = (f"{', '.join(brings)} held as {c.hold!r}: its likelihood ratio over "
+                  f"{other!r} is {lr_other:.1f}")
+        say(c.note)
     lr = 2 * (step.record["nll"] - ext.record["nll"])
     n_new = ext.record["n_params"] - step.record["n_params"]
     c.score, c.method = float(lr), "refit"
@@ -280,7 +300,90 @@ def _refit(c: Candidate, step: Step, runs, likelihood, holds, initial, say,
     c.result = ext
     added = next(e for e in ext.spec.effects if (e.kind, tuple(e.where)) == c.key)
     c.parameters = {k: p.value for k, p in added.parameters.items()}
+    c.absorbed_by = absorbing_nodes(step, ext)
+    if c.absorbed_by:
+        moved = "; ".join(f"{n} ({', '.join(ps)})" for n, ps in c.absorbed_by.items())
+        c.note = "; ".join(filter(None, (c.note, (
+            f"near-tie with the unmeasured node {moved}: its parameters moved to mimic "
+            f"the effect when it was absent; a sensor on "
+            f"{' or '.join(c.absorbed_by)} would separate them"))))
+    first = KINDS[c.kind].initial_parameters(lowered, c.where)
+    c.duplicate = duplicate_reason(c, first, sample_period(runs))
+    if c.duplicate:
+        say(c.duplicate)
     return True
+
+
+FAST_FRACTION = 0.2  # a mass or lag faster than this share of a sample period is unseen
+MIN_RELAXATION_SAMPLES = 3.0  # a viscoelastic τ under this many samples is white noise
+AT_BOUND = 1e-6  # a positive parameter below this share of its first guess sits at zero
+
+
+def sample_period(runs: list[Telemetry]) -> float:
+    """The shortest of the runs' median sample periods (s)."""
+    return min(float(np.median(np.diff(t.ts))) for t in runs)
+
+
+def duplicate_reason(c: Candidate, first_guess: dict, period: float) -> str:
+    """Why the refitted effect of `c` (its `parameters`) only duplicates structure the
+    model already has, or "" when it does not: an added mass or sensor lag whose time
+    constant is far below the sample `period` (s), a viscoelastic τ below a few samples,
+    or a positive parameter at its bound (zero) relative to its `first_guess`."""
+    p = c.parameters or {}
+    if c.kind == "extra_node" and c.result is not None:
+        lowered = c.result.result.lowered_spec
+        new = next(e.name for e in c.result.spec.effects if (e.kind, tuple(e.where)) == c.key)
+        g = sum(k.conductance.value for k in lowered.links if new in k.between) + sum(
+            b.conductance.value for b in lowered.boundaries if b.node == new)
+        tau = p["capacitance"] / g if g > 0 else math.inf
+        if tau < FAST_FRACTION * period:
+            return (f"duplicate: the added mass's local time constant, {tau:.3g} s, is far "
+                    f"below the sample period ({period:g} s), so it only splits an existing "
+                    "conductance")
+    if c.kind == "sensor_lag" and p.get("time_constant", math.inf) < FAST_FRACTION * period:
+        return (f"duplicate: a lag of {p['time_constant']:.3g} s is far below the sample "
+                f"period ({period:g} s)")
+    if c.kind == "viscoelastic" and p.get("time_constant", math.inf) < \
+            MIN_RELAXATION_SAMPLES * period:
+        return (f"duplicate: a relaxation time of {p['time_constant']:.3g} s is below "
+                f"{MIN_RELAXATION_SAMPLES:g} samples ({period:g} s each): it follows the "
+                "temperature like the static terms")
+    for name in EFFECT_KINDS[c.kind].positive:
+        guess = first_guess.get(name)
+        if name in p and guess and p[name] < AT_BOUND * guess:
+            return f"duplicate: {name} went to its bound (zero): the effect is absent"
+    return ""
+
+
+ABSORB_STDS = 3.0  # a shift beyond this many stds (and `ABSORB_SHARE`) is mimicry
+ABSORB_SHARE = 0.1
+
+
+def absorbing_nodes(step: Step, extended: Step) -> dict[str, list[str]]:
+    """Unmeasured nodes of `step` whose own parameters (capacitance, the conductances
+    touching them) moved when the candidate's effect was added, by more than
+    `ABSORB_STDS` of their std and `ABSORB_SHARE` of their value: node -> parameters.
+    Without the effect those parameters were bent to mimic it, so the node and the
+    effect partly stand in for each other."""
+    spec = step.spec
+    measured = {s.node for s in spec.sensors}
+    before, after = step.record["parameters"], extended.record["parameters"]
+    out: dict[str, list[str]] = {}
+    for node in spec.node_names:
+        if node in measured:
+            continue
+        for name, p in before.items():
+            group, _, rest = name.partition(".")
+            key = rest.rpartition(".")[0]
+            touches = (group == "nodes" and key == node) or (
+                group in ("links", "boundaries") and node in key.split("-"))
+            q = after.get(name)
+            if not touches or q is None or not p.get("free") or p.get("std") is None:
+                continue
+            shift = abs(q["value"] - p["value"])
+            if shift > ABSORB_STDS * p["std"] and shift > ABSORB_SHARE * abs(p["value"]):
+                out.setdefault(node, []).append(name)
+    return out
 
 
 def deflated_delta_bic(c: Candidate) -> float:
@@ -296,8 +399,11 @@ def _judge(cands: list[Candidate], fdr: float) -> None:
     ok = benjamini_hochberg([c.p_value for c in cands], fdr)
     for c, passed in zip(cands, ok):
         dbic = deflated_delta_bic(c)
-        c.supported = bool(passed and c.method == "refit" and dbic <= -MIN_BIC_DROP)
-        if passed and c.method == "refit" and not c.supported:
+        c.supported = bool(passed and c.method == "refit" and dbic <= -MIN_BIC_DROP
+                           and not c.duplicate)
+        if c.duplicate:
+            c.note = "; ".join(filter(None, (c.duplicate, c.note)))
+        elif passed and c.method == "refit" and not c.supported:
             c.note = c.note or (f"Δ BIC {dbic:.1f} (deflated by {c.lr_deflation:.2f} for "
                                 f"autocorrelated residuals) is not a drop of {MIN_BIC_DROP:g}")
         if passed and c.method == "score":
@@ -307,10 +413,20 @@ def _judge(cands: list[Candidate], fdr: float) -> None:
         c.tied_with = [d.key for d in refitted if d is not c and abs(d.score - c.score) < TIE_LR
                        and (c.supported or d.supported)]
         if c.tied_with:
-            c.note = (f"near-tie: likelihood ratios within {TIE_LR:.2f} (the 95 % point of "
-                      "χ²₁) of " + ", ".join(f"{k} {list(w)}" for k, w in c.tied_with) +
-                      ", so the data cannot tell them apart; " +
-                      separation_advice({c.kind, *(k for k, _ in c.tied_with)}))
+            tie = (f"near-tie: likelihood ratios within {TIE_LR:.2f} (the 95 % point of "
+                   "χ²₁) of " + ", ".join(f"{k} {list(w)}" for k, w in c.tied_with) +
+                   ", so the data cannot tell them apart; " +
+                   separation_advice({c.kind, *(k for k, _ in c.tied_with)}))
+            c.note = "; ".join(filter(None, (tie, c.note)))
+
+
+def innovation_directions(result: FitResult, data):
+    """`f(V)`: output-space directions `V` (runs, T, p, m), free-run °C, to the whitened
+    innovations they cause in the fitted Kalman filter, (runs, T, p, m)
+    (`fitting._likelihood.dataset_innovation_map`)."""
+    from ..fitting._likelihood import dataset_innovation_map
+
+    return lambda V: np.asarray(dataset_innovation_map(result.model, data, jnp.asarray(V)))
 
 
 def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits: int = 3,
@@ -336,32 +452,26 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     thermal = [(k, w) for k, w in places if k != "viscoelastic"]
     data, weights, r, J = output_error_at(result, _experiments(lowered, runs))
     weights, r, J = np.array(weights), np.array(r), np.array(J)
+    whiten = None
     if likelihood == "kalman":
-        # The Kalman measurement noise is not the free-run residuals' scale (the process
-        # noise takes the rest): weigh by the residuals' own std per column instead.
-        rw = r.reshape(weights.shape)
-        for j in range(weights.shape[-1]):
-            m = weights[..., j] > 0
-            sd = float(np.std(rw[..., j][m])) if m.any() else 0.0
-            if sd > 0:
-                scale = np.where(m, 1.0 / sd, 0.0)
-                rw[..., j] = rw[..., j] * scale
-                J.reshape(*weights.shape, -1)[..., j, :] *= scale[..., None]
-                weights[..., j] = weights[..., j] * scale
-        r = rw.reshape(-1)
+        # Score on the innovations: residuals, the fitted parameters' directions and
+        # every candidate's direction go through the fitted filter (`innovation_map`).
+        whiten = innovation_directions(result, data)
+        scale = np.where(weights > 0, 1.0 / np.where(weights > 0, weights, 1.0), 0.0)
+        r = whiten((r.reshape(weights.shape) * scale)[..., None]).reshape(-1)
+        J = whiten(J.reshape(*weights.shape, -1) * scale[..., None]).reshape(r.size, -1)
     columns = _padded_columns(runs, set(unused) | set(spec.input_columns), data.ts.shape[1])
     say(f"scoring {len(places)} candidate effects")
     try:
         cands = score_candidates(result, data, thermal, columns, weights, r, J,
                                  deflation=step.deflation(white_p if white_p is not None
-                                                          else 0.01))
+                                                          else 0.01), whiten=whiten)
     except Exception as err:  # scoring failure: no thermal candidate this step
         say(f"scoring failed: {type(err).__name__}: {err}")
         cands = []
     cands += _viscoelastic_candidates(step, runs, places,
                                       white_p if white_p is not None else 0.01)
     cands.sort(key=lambda c: -c.score if np.isfinite(c.score) else math.inf)
-    holds = {c: column_hold(columns[c]) for c in unused}
     done = tried = 0
     for c in list(cands):  # refit the best few thermal candidates (failures count half)
         if done >= refits or tried >= 2 * refits:
@@ -369,7 +479,7 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
         if c.method != "score" or not c.score > 0:
             continue
         tried += 1
-        done += _refit(c, step, runs, likelihood, holds, initial, say,
+        done += _refit(c, step, runs, likelihood, set(unused), initial, say,
                        white_p if white_p is not None else 0.01)
     cands.sort(key=lambda c: (c.method != "refit",
                               -c.score if np.isfinite(c.score) else math.inf))
@@ -417,36 +527,51 @@ def _held_rows(fold, n: int) -> slice:
     return slice(0, n) if fold[1] is None else slice(*fold[1])
 
 
-def _fit_without(spec, experiments, fold):
-    """Output-error fit of `spec` with the fold's measurements masked; its predictions
-    still cover them (the free run goes through the held-out block)."""
+def _fit_without(spec, experiments, fold, likelihood="output_error"):
+    """Fit of `spec` with the fold's measurements masked; its predictions still cover
+    them (the free run, or the filter, goes through the held-out block)."""
     r, span = fold
     if span is None:
-        res = fit(spec, experiments, likelihood="output_error", holdout=r)
+        res = fit(spec, experiments, likelihood=likelihood, holdout=r)
     else:
         e = experiments[r]
         y = np.array(e.outputs, float)
         y[span[0]:span[1]] = np.nan
         masked = [*experiments[:r], dataclasses.replace(e, outputs=y), *experiments[r + 1:]]
-        res = fit(spec, masked, likelihood="output_error")
+        res = fit(spec, masked, likelihood=likelihood)
     if not np.isfinite(res.nll) or not all(np.all(np.isfinite(p)) for p in res.predictions):
         raise FloatingPointError("the held-out fit went non-finite")
     return res
 
 
-def _thermal_fold_gains(spec_base, spec_ext, runs, sigma, folds, say) -> list[float]:
+def held_out_nll(res, experiments, fold, rows, sigma, likelihood) -> float:
+    """−log L of the fold's rows under a fit made without them: the free run's residuals
+    over `sigma` (output error; the constant terms cancel between models), or, under
+    the Kalman likelihood, the filter run through every sample with those parameters
+    and each held-out sample's one-step predictive term summed (prequential)."""
+    r = fold[0]
+    if likelihood == "kalman":
+        from ..fitting._likelihood import kalman_sample_nll
+        from ..measurements._data import Dataset
+
+        data = Dataset.from_experiments(experiments)
+        per = np.asarray(kalman_sample_nll(res.model, data, res.state.run_initial))
+        return float(np.sum(per[r, :len(experiments[r].ts)][rows]))
+    e = (experiments[r].outputs[rows] - res.predictions[r][rows]) / sigma[None, :]
+    return 0.5 * float(np.nansum(e ** 2))
+
+
+def _thermal_fold_gains(spec_base, spec_ext, runs, sigma, folds, say,
+                        likelihood="output_error") -> list[float]:
     experiments = {id(s): _experiments(s, runs) for s in (spec_base, spec_ext)}
     gains = []
     for fold in folds:
         r = fold[0]
         rows = _held_rows(fold, len(runs[r].ts))
-        ssr = []
-        for s in (spec_base, spec_ext):
-            res = _fit_without(s, experiments[id(s)], fold)
-            e = (experiments[id(spec_base)][r].outputs[rows] - res.predictions[r][rows]) \
-                / sigma[None, :]
-            ssr.append(float(np.nansum(e ** 2)))
-        gains.append(0.5 * (ssr[0] - ssr[1]))
+        held = [held_out_nll(_fit_without(s, experiments[id(s)], fold, likelihood),
+                             experiments[id(s)], fold, rows, sigma, likelihood)
+                for s in (spec_base, spec_ext)]
+        gains.append(held[0] - held[1])
         say(f"held-out fold {fold}: −log L change {-gains[-1]:.1f}")
     return gains
 
@@ -521,11 +646,8 @@ def _choose(cands: list[Candidate], current: Step, runs, likelihood, holdout_che
                     sigma = np.array([current.record["parameters"].get(
                         f"sensors.{s}.noise", {"value": 0.01})["value"]
                         for s in current.spec.sensor_columns])
-                    if likelihood == "kalman":  # held-out fits are free runs: their scale
-                        sigma = np.array([current.record["rmse"][s]
-                                          for s in current.spec.sensor_columns])
                     gains = _thermal_fold_gains(current.spec, c.result.spec, runs, sigma,
-                                                folds, say)
+                                                folds, say, likelihood)
                 ok, c.holdout_gain, c.holdout_spread, why = holdout_verdict(gains)
                 if not ok:
                     c.supported = False
@@ -551,6 +673,24 @@ def _viscoelastic_step(current: Step, c: Candidate, runs, likelihood) -> Step:
                     likelihood)
 
 
+def confirmed_optimum(step: Step, runs, likelihood, say) -> Step:
+    """`step`, or a better fit of its model from `N_STARTS` output-error starts (the first
+    at its fitted values, the others perturbed): a step is scored only from a fit that
+    is not a local optimum. The gain goes into the record (`multistart_gain`, −log L)."""
+    try:
+        again = evaluate(step.spec, runs, likelihood, n_starts=N_STARTS)
+    except Exception as err:  # the step's own fit stands
+        say(f"multi-start check failed: {type(err).__name__}: {err}")
+        return step
+    gain = step.record["nll"] - again.record["nll"]
+    if gain > MULTISTART_TOL:
+        say(f"multi-start: a better optimum, −log L lower by {gain:.3f}")
+        again.record["added"] = step.record["added"]
+        step = again
+    step.record["multistart_gain"] = float(max(gain, 0.0))
+    return step
+
+
 def _extend(current: Step, chosen: Candidate, runs, likelihood) -> Step:
     """The next step: the extended step `_choose` built for `chosen`, its record's `added`
     filled in."""
@@ -558,7 +698,8 @@ def _extend(current: Step, chosen: Candidate, runs, likelihood) -> Step:
     added = next(e for e in nxt.spec.effects if (e.kind, tuple(e.where)) == chosen.key)
     nxt.record["added"] = {"kind": added.kind, "where": list(added.where),
                            "parameters": {k: p.value for k, p in added.parameters.items()},
-                           **({"name": added.name} if added.name else {})}
+                           **({"name": added.name} if added.name else {}),
+                           **({"hold": added.hold} if added.hold else {})}
     return nxt
 
 
@@ -608,6 +749,9 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
             stopped = "max_steps"
             break
         t_step = time.perf_counter()
+        current = confirmed_optimum(current, runs, likelihood, say)
+        records[-1] = rec = current.record
+        steps_traces[-1] = current.traces
         cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say,
                               white_p=white_p, initial=spec)
         chosen = _choose(cands, current, runs, likelihood, holdout_check, say)
