@@ -15,7 +15,10 @@ with every link or boundary conductance `G0 (1 + α (T̄ − 25)) (1 + c·u_inpu
 `C_i(T) = C0 (1 + β (T_i − 25))` (`capacitance_temperature`), plus the extra
 states of `sensor_lag` (dr/dt = (T − r)/τ) and `viscoelastic` (dε/dt = (T − ε)/τ).
 A sensor reads `r + gain (r − 25) + offset` with `r` the (lagged) node
-temperature; a bias column reads `Σ_p c_p (T − 25)^p + Σ k (T_node − ε)`.
+temperature; a bias column reads `Σ_p c_p (T − 25)^p + Σ g (T_a − T_b) + Σ r dT_n/dt
++ Σ k (T_node − ε)`, its `coefficients` ordered as formats.md §4 (polynomial, then one per
+`gradients` pair, then one per `rates` node), dT_n/dt the right-hand side's exact value
+at the sample (state and input sample there; a ZOH jump gives the right-hand limit).
 
 Inputs are piecewise linear between samples (`hold = "foh"`, default) or
 piecewise constant with the left sample's value (`"zoh"`). Integration runs
@@ -99,10 +102,7 @@ class _Network:
         self.sensors = {s["column"]: dict(node=s["node"], noise=_value(s.get("noise", 0.0)),
                                           lag=None, offset=0.0, gain=0.0)
                         for s in doc.get("sensors", [])}
-        self.biases = {b["column"]: dict(temperature=b["temperature"],
-                                         coefficients=[float(c) for c in b.get("coefficients", [])],
-                                         noise=_value(b.get("noise", 0.0)))
-                       for b in doc.get("biases", [])}
+        self.biases = {b["column"]: self._bias(b) for b in doc.get("biases", [])}
         self.strains: list[dict] = []
         # Holds: from the model's own entries, then the caller's, then foh.
         self.holds: dict[str, str] = {}
@@ -113,6 +113,30 @@ class _Network:
         for effect in doc.get("effects", []):
             self._apply(effect)
         self._compile()
+
+    @staticmethod
+    def _bias(b: dict) -> dict:
+        """A `[[biases]]` entry: coefficients split as polynomial, gradients, rates (§4)."""
+        coefs = [float(c) for c in b.get("coefficients", [])]
+        grads = [tuple(pair) for pair in b.get("gradients", [])]
+        rates = list(b.get("rates", []))
+        if any(len(pair) != 2 for pair in grads):
+            raise ValueError(f"bias '{b['column']}': gradients are pairs of nodes, got {grads}")
+        n_poly = len(coefs) - len(grads) - len(rates)
+        if coefs and n_poly < 0:
+            raise ValueError(f"bias '{b['column']}': {len(coefs)} coefficients for "
+                             f"{len(grads)} gradient(s) and {len(rates)} rate(s)")
+        if "order" in b and n_poly > int(b["order"]) + 1:
+            raise ValueError(f"bias '{b['column']}': {n_poly} polynomial coefficients for order "
+                             f"{b['order']}")
+        if not coefs:
+            n_poly = 0
+        return dict(temperature=b["temperature"], poly=coefs[:max(n_poly, 0)],
+                    grads=grads, grad_coefs=coefs[n_poly:n_poly + len(grads)] if coefs else
+                    [0.0] * len(grads),
+                    rates=rates, rate_coefs=coefs[n_poly + len(grads):] if coefs else
+                    [0.0] * len(rates),
+                    noise=_value(b.get("noise", 0.0)))
 
     # -- effects ------------------------------------------------------------------------------
 
@@ -212,6 +236,8 @@ class _Network:
         idx = {name: i for i, name in enumerate(self.names)}
         for name in [*(s["node"] for s in self.sensors.values()),
                      *(b["temperature"] for b in self.biases.values()),
+                     *(n for b in self.biases.values() for pair in b["grads"] for n in pair),
+                     *(n for b in self.biases.values() for n in b["rates"]),
                      *(s["node"] for s in self.strains)]:
             if name not in idx:
                 raise ValueError(f"unknown node '{name}'")
@@ -377,6 +403,12 @@ class _Network:
             raise RuntimeError(f"steady state not found: {msg}")
         return T
 
+    def node_rates(self, X, U) -> np.ndarray:
+        """Exact dT/dt (times, nodes) in K/s from the right-hand side at each sample: the
+        state X[k] and the input sample U[k] (a ZOH input's value on [t_k, t_k+1), so at a
+        jump this is the right-hand limit)."""
+        return np.array([self.rhs(x, u)[:self.n] for x, u in zip(X, U)]).reshape(len(X), self.n)
+
     def observe(self, X, U, rng=None, noise=True) -> dict[str, np.ndarray]:
         """Sensor and bias columns from states X (times, states) and inputs U (times, cols)."""
         n = self.n
@@ -385,11 +417,18 @@ class _Network:
         for c, s in self.sensors.items():
             r = X[:, n + self.lag_cols.index(c)] if s["lag"] is not None else T[:, self.idx[s["node"]]]
             out[c] = r + s["gain"] * (r - T_REF) + s["offset"]
+        Tdot = None
+        if any(b["rates"] for b in self.biases.values()):
+            Tdot = self.node_rates(X, U)
         for c, b in self.biases.items():
             dT = T[:, self.idx[b["temperature"]]] - T_REF
             y = np.zeros(len(X))
-            for p, cp in enumerate(b["coefficients"]):
+            for p, cp in enumerate(b["poly"]):
                 y = y + cp * dT**p
+            for (na, nb), cg in zip(b["grads"], b["grad_coefs"]):
+                y = y + cg * (T[:, self.idx[na]] - T[:, self.idx[nb]])
+            for node, cr in zip(b["rates"], b["rate_coefs"]):
+                y = y + cr * Tdot[:, self.idx[node]]
             out[c] = y
         for k, s in enumerate(self.strains):
             eps = X[:, n + len(self.lag_cols) + k]
@@ -464,7 +503,8 @@ def simulate_truth(model, ts, inputs: dict[str, np.ndarray], rng=None, noise: bo
     **Arguments:**
 
     - `model`: path to a model TOML, or the model as a dict (spec §2, plus the
-      generator's extensions: `coefficients` on a `[[biases]]` entry, a top-level
+      generator's extensions: `coefficients` on a `[[biases]]` entry (polynomial, then
+      one per `gradients` pair, then one per `rates` node), a top-level
       `input_holds = {column = "zoh"}` for columns no entry of the model names).
     - `ts`: sample times (s), strictly increasing.
     - `inputs`: column → samples, for every column the model and its effects use.

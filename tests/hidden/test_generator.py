@@ -416,6 +416,81 @@ def test_viscoelastic_bias():
     np.testing.assert_allclose(y["bias"], 0.1 + 0.02 * (Tm - 25) + 0.2 * (Tn - eps), atol=1e-12)
 
 
+def _two_with_rate_bias(order=1, coefficients=(0.1, 0.02, 0.5, 30.0, -7.0)):
+    doc = copy.deepcopy(_TWO)
+    doc["biases"] = [dict(column="bias", temperature="m", order=order, gradients=[["n", "m"]],
+                          rates=["m", "n"], coefficients=list(coefficients))]
+    return doc
+
+
+def test_bias_gradients_and_rates_are_exact_on_a_linear_network():
+    """Coefficients in §4 order (polynomial, gradient pairs, rate nodes); a rate term is
+    the exact dT/dt = A x + B u at the sample, here assembled from the TOML by `_matrices`
+    with the states of the expm reference (u the sample's value; P is ZOH, so at a switch
+    the right-hand limit)."""
+    ts = np.arange(241.0)
+    inputs = _two_inputs(ts)
+    doc = _two_with_rate_bias()
+    y = g.simulate_truth(doc, ts, inputs, noise=False)
+    plain = {k: v for k, v in doc.items() if k != "biases"}
+    c, K, Gm, _, cols, _ = _matrices(plain)
+    X, _ = exact_linear(plain, ts, inputs)
+    U = np.column_stack([inputs[col] for col in cols])
+    Tdot = (-X @ K.T + U @ Gm.T) / c
+    n, m = X[:, 0], X[:, 1]
+    ref = 0.1 + 0.02 * (m - 25) + 0.5 * (n - m) + 30.0 * Tdot[:, 1] - 7.0 * Tdot[:, 0]
+    assert np.ptp(30.0 * Tdot[:, 1]) > 1.0 and np.ptp(7.0 * Tdot[:, 0]) > 1.0  # terms that show
+    np.testing.assert_allclose(y["bias"], ref, rtol=0, atol=1e-7)
+
+
+def test_bias_rates_match_central_differences_with_nonlinear_effects():
+    """With radiation, a temperature-dependent capacitance and a strain, the rate term is
+    the right-hand side's derivative: central differences of a densely sampled run agree
+    (to the differences' own O(h²) error) away from the ZOH power switches."""
+    h = 0.05
+    ts = np.arange(0.0, 120.0 + h / 2, h)
+    inputs = _two_inputs(ts)
+    doc = _two_with_rate_bias(order=2, coefficients=(0.1, 0.02, 0.0, 0.0, 1.0, 0.0))
+    doc["effects"] = [_EFFECTS["radiation"], _EFFECTS["capacitance_temperature"],
+                      dict(kind="viscoelastic", where=["n", "bias"], time_constant=20.0, k=0.3)]
+    y, (X, names) = g.simulate_truth(doc, ts, inputs, noise=False, return_states=True)
+    n, m = X[:, names.index("n")], X[:, names.index("m")]
+    eps = X[:, names.index("strain:n:bias")]
+    rate = y["bias"] - (0.1 + 0.02 * (m - 25) + 0.3 * (n - eps))  # the rate term of `m` alone
+    fd = (m[:-4] - 8 * m[1:-3] + 8 * m[3:-1] - m[4:]) / (12 * h)  # fourth order, at 2..N-3
+    P = inputs["P"]
+    near_switch = np.zeros(len(ts), dtype=bool)
+    for k in np.flatnonzero(np.diff(P) != 0):
+        near_switch[max(k - 2, 0):k + 4] = True
+    keep = ~near_switch[2:-2]
+    assert keep.sum() > 0.9 * keep.size and np.ptp(rate) > 0.05
+    np.testing.assert_allclose(rate[2:-2][keep], fd[keep], rtol=0, atol=1e-6)
+    # the derivative of `n` jumps with P (a ZOH switch): the generator takes the right limit
+    doc2 = _two_with_rate_bias(order=2, coefficients=(0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    doc2["effects"] = doc["effects"][:2]
+    y2, (X2, names2) = g.simulate_truth(doc2, ts, inputs, noise=False, return_states=True)
+    n2 = X2[:, names2.index("n")]
+    k = int(np.flatnonzero(np.diff(P) != 0)[0]) + 1  # first sample with the new power
+    right = (-3 * n2[k] + 4 * n2[k + 1] - n2[k + 2]) / (2 * h)  # one-sided, second order
+    left = (3 * n2[k] - 4 * n2[k - 1] + n2[k - 2]) / (2 * h)
+    assert abs(right - left) > 0.5
+    assert abs(y2["bias"][k] - right) < 1e-3 * abs(right - left)
+
+
+def test_bias_coefficient_count_is_checked():
+    ts = np.arange(11.0)
+    inputs = _two_inputs(ts)
+    with pytest.raises(ValueError, match="coefficients for"):
+        g.simulate_truth(_two_with_rate_bias(coefficients=(1.0, 2.0)), ts, inputs)
+    with pytest.raises(ValueError, match="polynomial coefficients for order"):
+        g.simulate_truth(_two_with_rate_bias(order=0, coefficients=(1.0, 2.0, 3.0, 4.0, 5.0)),
+                         ts, inputs)
+    bad = _two_with_rate_bias()
+    bad["biases"][0]["rates"] = ["nowhere", "n"]
+    with pytest.raises(ValueError, match="unknown node"):
+        g.simulate_truth(bad, ts, inputs)
+
+
 def test_analytic_jacobian_matches_finite_differences():
     doc = copy.deepcopy(_TWO)
     doc["sensors"][0]["noise"] = 0.01
@@ -486,7 +561,8 @@ def test_profiles_are_prefix_stable_and_sane():
 @pytest.mark.parametrize("name", g.case_names())
 def test_case_loads_and_generates(name):
     case = g.load_case(name)
-    assert len(g.case_names()) == 15  # a case per effect kind, null, out of vocabulary, one run
+    # a case per effect kind, null, out of vocabulary, one run, and the issue-10 cases
+    assert len(g.case_names()) >= 15
     assert case["header"] and "etect" in case["header"]  # every case says why it shows
     assert len(case["runs"]) == (1 if name == "one_run" else 3)
     assert all(s.get("noise") == 0.01 for s in case["truth"]["sensors"])
@@ -495,9 +571,10 @@ def test_case_loads_and_generates(name):
         assert case["expected"]["kind"] == case["hidden"]
     runs = g.generate_case(name, seed=5, horizon_s=120.0)
     assert len(runs) == len(case["runs"])
-    for ts, cols in runs:
+    for run, (ts, cols) in zip(case["runs"], runs):
+        dt = float(run.get("dt_s", 1.0))
         assert list(cols) == case["data_columns"]
-        assert ts[0] == 0 and np.all(np.diff(ts) == 1.0) and len(ts) == 121
+        assert ts[0] == 0 and np.allclose(np.diff(ts), dt) and len(ts) == round(120 / dt) + 1
         for col, v in cols.items():
             assert v.shape == ts.shape and np.all(np.isfinite(v)), col
         for col in case["unrecorded"]:
@@ -506,8 +583,9 @@ def test_case_loads_and_generates(name):
     # the noise exactly, the integration to its tolerance).
     last = len(runs) - 1
     again = g.generate_case(name, seed=5, horizon_s=60.0, runs=[last])
+    n60 = len(again[0][0])
     for col, v in again[0][1].items():
-        np.testing.assert_allclose(v, runs[last][1][col][:61], rtol=0,
+        np.testing.assert_allclose(v, runs[last][1][col][:n60], rtol=0,
                                    atol=0 if col in case["input_columns"] else 1e-8)
 
 
