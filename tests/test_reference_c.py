@@ -60,6 +60,8 @@ def test_generated_source_is_static(tmp_path):
     src = ref.generate_c(ref.FixedObserver(system, "q16.16", IMU6_SCALING["q16.16"]), "obs")
     assert "malloc" not in src.source and "static const int32_t OBS_PHI[6][6]" in src.source
     assert "int64_t" in src.source
+    # without bias channels: no bias code, the harness writes states, residuals, flags
+    assert src.q == 0 and "obs_bias" not in src.source and "OBS_Q" not in src.header
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

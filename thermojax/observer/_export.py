@@ -266,6 +266,12 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
         arrays["bias_rate_nodes"] = np.array(rate_nodes, dtype=np.int64)
         arrays["bias_rate_A"] = A_c[rate_nodes]
         arrays["bias_rate_B"] = np.asarray(system.B, float)[rate_nodes]
+    bias_eval = None
+    channels = ref.bias_channels_from_metadata(biases, list(names))
+    if channels:  # evaluated by the reference observers and the generated C
+        rows_ = arrays.get("bias_rate_nodes")
+        bias_eval = ref.BiasEvaluator(channels, dt, arrays.get("bias_rate_A"),
+                                      arrays.get("bias_rate_B"), rows_)
     fixed_meta = None
     fixed_obs = None
     if fmt is not None:
@@ -273,7 +279,7 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                             for j in range(m)])
         scaling = ref.FixedScaling(x_ref, y_ref, u_ref, u_scale)
         try:
-            fixed_obs = ref.FixedObserver(obs_system, fmt, scaling, faults)
+            fixed_obs = ref.FixedObserver(obs_system, fmt, scaling, faults, biases=bias_eval)
         except ValueError as err:
             raise InputError(str(err), file=where, field="--fixed") from None
         arrays["u_scale"] = u_scale
@@ -316,7 +322,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     out.mkdir(parents=True, exist_ok=True)
     meta["files"] = {}
     c_names = (list(names), list(inputs), list(sensor_names))
-    sources = [ref.generate_c(ref.FloatObserver(obs_system, faults), FLOAT_PREFIX, c_names)]
+    sources = [ref.generate_c(ref.FloatObserver(obs_system, faults, biases=bias_eval),
+                              FLOAT_PREFIX, c_names)]
     if fixed_obs is not None:
         sources.append(ref.generate_c(fixed_obs, fixed_prefix(fmt.name), c_names))
     for src in sources:

@@ -9,7 +9,7 @@ the derived fixed-point error bound, and a C99 generator that repeats all of it.
 """
 
 from ._artifact import ArtifactError, ObserverArtifact, load_observer
-from ._bias import BiasChannel, BiasEvaluator, bias_channels_from_metadata
+from ._bias import BiasChannel, BiasEvaluator, FixedBiasEvaluator, bias_channels_from_metadata
 from ._bound import ErrorBound, error_series, quantization_error_bound
 from ._c_source import CSource, generate_c
 from ._faults import ChannelMonitor, FaultConfig
@@ -22,7 +22,7 @@ from ._run import ObserverRun
 from ._system import ObserverSystem
 
 __all__ = [
-    "ArtifactError", "BiasChannel", "BiasEvaluator", "BiasInterpolator", "CSource", "ChannelMonitor", "DoubleBuffer",
+    "ArtifactError", "BiasChannel", "BiasEvaluator", "FixedBiasEvaluator", "BiasInterpolator", "CSource", "ChannelMonitor", "DoubleBuffer",
     "ErrorBound", "FORMATS", "FaultConfig", "FixedFormat", "FixedObserver", "FixedScaling",
     "FloatObserver", "MultiRateRun", "ObserverArtifact", "ObserverRun", "ObserverSystem",
     "Q15", "Q16_16", "Q8_24", "decode", "encode", "error_series", "fixed_format",

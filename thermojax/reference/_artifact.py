@@ -118,7 +118,7 @@ class ObserverArtifact:
                                 file=str(self.folder / ARRAYS), field="u_scale")
         obs = FixedObserver(self.system, fmt,
                             FixedScaling(a["x_ref"], a["y_ref"], a["u_ref"], a["u_scale"]),
-                            self.faults)
+                            self.faults, biases=self.bias_evaluator())
         for name in obs.MATRICES:
             key = f"fixed_{name}"
             if key not in a:

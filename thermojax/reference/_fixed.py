@@ -21,6 +21,11 @@ Step (integer codes throughout):
     x⁻ = sat(rnd(Phi x << a0 + B0 u[k-1] << a1 + B1 u[k] << a2, F_pred))
     r  = sat(y - rnd(C x⁻ << c0 + D u[k] << c1, F_out))
     x  = sat(x⁻ + rnd(sum_{j in use} L[:, j] r[j], f_L))
+
+Bias channels (optional, `biases=`): after the correction, `FixedBiasEvaluator` (in
+`_bias.py`, where its formats and scaling rule are stated) evaluates every channel from the
+corrected state codes and the input codes: polynomial by Horner, gradients, exact rate
+rows, viscoelastic strain states; each channel an int32 code with its own fractional bits.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import dataclasses
 
 import numpy as np
 
+from ._bias import FixedBiasEvaluator
 from ._faults import ChannelMonitor, FaultConfig
 from ._formats import FixedFormat, decode, encode, fixed_format, round_shift, saturate
 from ._run import ObserverRun, play
@@ -84,6 +90,11 @@ class FixedObserver:
     - `fmt`: `"q16.16"`, `"q8.24"`, `"q15"` or a `FixedFormat`.
     - `scaling`: a `FixedScaling` (offsets and input scales).
     - `faults`: a `FaultConfig` (limits, rails and thresholds are encoded once).
+    - `biases`: an optional float `BiasEvaluator`: its channels are evaluated in fixed point
+      (`FixedBiasEvaluator`, scaled from `faults.limits`) after each step from the
+      corrected state codes and the input codes; `self.bias (q,)` holds the int32 codes,
+      `run` records them (`ObserverRun.bias`, int64), `decode_bias` converts them and
+      `run_physical` returns them decoded.
 
     After construction: `coef[name]` (int64 codes), `coef_frac[name]` (fractional bits),
     `coef_error[name]` (quantized minus exact, physical units) for
@@ -94,7 +105,8 @@ class FixedObserver:
     MATRICES = ("Phi", "B0", "B1", "C", "D", "L")
 
     def __init__(self, system: ObserverSystem, fmt: FixedFormat | str = "q16.16",
-                 scaling: FixedScaling | None = None, faults: FaultConfig | None = None):
+                 scaling: FixedScaling | None = None, faults: FaultConfig | None = None,
+                 biases=None):
         self.system, self.fmt = system, fixed_format(fmt)
         self.scaling = FixedScaling() if scaling is None else scaling
         self.faults = FaultConfig() if faults is None else faults
@@ -161,6 +173,9 @@ class FixedObserver:
         self.x = np.zeros(n, np.int64)
         self.u_prev = np.zeros(m, np.int64)
         self.started = False
+        self.bias = None
+        self.biases = None if biases is None else FixedBiasEvaluator(
+            biases, F, self.x_ref, self.u_ref, self.u_scale, self.faults.limits)
 
     # -- the representation -------------------------------------------------------------
     def _check_overflow(self):
@@ -200,12 +215,18 @@ class FixedObserver:
     def decode_residuals(self, codes):
         return decode(codes, self.fmt.frac_bits, 0.0, self.fmt.state_scale)
 
+    def decode_bias(self, codes):
+        """Bias codes `(..., q)` to the channels' units (`code * 2**-g_c`)."""
+        return self.biases.decode(codes)
+
     # -- the step -------------------------------------------------------------------------
     def reset(self, x0_codes) -> None:
         """Start over from state codes `x0 (n,)`; the next step corrects `x⁻[0] = x0`."""
         self.x = saturate(np.asarray(x0_codes, np.int64).reshape(self.system.n_states), self.fmt)
         self.started = False
         self.monitor.reset()
+        if self.biases is not None:
+            self.biases.reset()
 
     def step(self, u, y, open_circuit=None):
         """One step on codes `u (m,)`, `y (p,)`; returns `(x, r, in_use_mask)` as codes."""
@@ -232,11 +253,16 @@ class FixedObserver:
             use = np.array([mask >> j & 1 for j in range(p)], np.int64)
             xm = saturate(xm + round_shift(c["L"][mask] @ (r * use), self.f_gain), F)
         self.x, self.u_prev, self.started = xm, u, True
+        if self.biases is not None:
+            self.bias = self.biases.step(xm, u)
         return xm, r, mask
 
     def run(self, x0_codes, u_codes, y_codes, open_circuit=None) -> ObserverRun:
         """Play back input and measurement codes `(T, m)`, `(T, p)` from state codes `x0`."""
-        return play(self, "FixedObserver", x0_codes, u_codes, y_codes, open_circuit, np.int64)
+        run = play(self, "FixedObserver", x0_codes, u_codes, y_codes, open_circuit, np.int64)
+        if run.bias is not None:
+            run = dataclasses.replace(run, bias=run.bias.astype(np.int64))
+        return run
 
     def run_physical(self, x0, u, y, open_circuit=None) -> ObserverRun:
         """`run` on physical values: encodes `x0`, `u`, `y` (NaN readings count as open
@@ -245,4 +271,5 @@ class FixedObserver:
         oc = np.isnan(y) if open_circuit is None else (np.asarray(open_circuit, bool) | np.isnan(y))
         run = self.run(self.encode_states(x0), self.encode_inputs(u), self.encode_outputs(y), oc)
         return dataclasses.replace(run, states=self.decode_states(run.states),
-                                   residuals=self.decode_residuals(run.residuals))
+                                   residuals=self.decode_residuals(run.residuals),
+                                   bias=None if run.bias is None else self.decode_bias(run.bias))

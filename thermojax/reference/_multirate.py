@@ -1,7 +1,9 @@
 """Multi-rate execution: the thermal step at 10…50 Hz, bias corrections at 1…4 kHz.
 
-The thermal task computes the bias correction `b[k] = b0 + K x[k]` after each observer
-step and publishes it through a `DoubleBuffer`: it writes the slot the reader is not
+The thermal task computes the bias correction after each observer step — the artifact's
+bias channels (`BiasEvaluator`: polynomial, gradients, exact rates, strain states; the
+same `_bias` code as the reference observer's `ObserverRun.bias`) or the older linear
+form `b[k] = b0 + K x[k]` — and publishes it through a `DoubleBuffer`: it writes the slot the reader is not
 using, then flips the index and bumps a sequence number (on a microcontroller, a single
 word store, so the reader never sees a half-written vector). The inertial task reads the
 published slot at every high-rate tick. When it sees a new sequence number it starts a
@@ -17,6 +19,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+
+from ._bias import BiasEvaluator
 
 
 class DoubleBuffer:
@@ -74,7 +78,7 @@ class MultiRateRun:
     published_at: np.ndarray
 
 
-def run_multirate(observer, x0, u, y, bias_matrix, bias_offset=None, ratio: int = 100,
+def run_multirate(observer, x0, u, y, bias_matrix=None, bias_offset=None, ratio: int = 100,
                   open_circuit=None, delay_ticks=None) -> MultiRateRun:
     """Run `observer` (a `FloatObserver`) at the thermal rate and interpolate its bias
     corrections to the inertial rate.
@@ -82,25 +86,50 @@ def run_multirate(observer, x0, u, y, bias_matrix, bias_offset=None, ratio: int 
     **Arguments:**
 
     - `observer`, `x0`, `u (T, m)`, `y (T, p)`, `open_circuit`: as `FloatObserver.run`.
-    - `bias_matrix (q, n)`, `bias_offset (q,)`: `b = bias_offset + bias_matrix @ x`.
+    - `bias_matrix`: a `BiasEvaluator` (e.g. `load_observer(DIR).bias_evaluator()`): the
+      bias channels evaluated at the thermal rate from the corrected estimates `x[k]` and
+      `u[k]` (strain states from rest at `x[0]`); or `None`: the observer's own
+      `biases` (an artifact's `float_observer()`); or the linear form, a matrix
+      `(q, n)` with `bias_offset (q,)`: `b = bias_offset + bias_matrix @ x`.
     - `ratio`: inertial ticks per thermal step (2000 Hz / 20 Hz = 100).
     - `delay_ticks (T,)`: ticks after the start of its period at which step `k`'s result
       is published (the thermal task's run time, with jitter); default 0.
 
-    The interpolator starts at `b[0]` (the bias of `x0`).
+    The interpolator starts at the bias of `x0` (for bias channels: `x0` and `u[0]`, strain
+    states at rest).
     """
-    K = np.atleast_2d(np.asarray(bias_matrix, float))
-    b0 = np.zeros(K.shape[0]) if bias_offset is None else np.asarray(bias_offset, float)
+    if bias_matrix is None:
+        bias_matrix = getattr(observer, "biases", None)
+        if not isinstance(bias_matrix, BiasEvaluator):
+            raise ValueError("`run_multirate`: no bias given and the observer has no bias "
+                             "channels; pass a `BiasEvaluator` or a bias matrix.")
     run = observer.run(x0, u, y, open_circuit)
-    bias = b0 + np.asarray(run.states, float) @ K.T
+    if isinstance(bias_matrix, BiasEvaluator):
+        if bias_offset is not None:
+            raise ValueError("`run_multirate(bias_offset=...)` goes with a bias matrix, not "
+                             "with bias channels (their constant is their polynomial's).")
+        ev = bias_matrix
+        u_f = np.asarray(u, float)
+        ev.reset()
+        initial = ev.step(np.asarray(x0, float), u_f[0])
+        bias = (np.asarray(run.bias, float) if run.bias is not None
+                and getattr(observer, "biases", None) is ev else
+                ev.run(np.asarray(run.states, float), u_f))
+        ev.reset()
+    else:
+        K = np.atleast_2d(np.asarray(bias_matrix, float))
+        b0 = np.zeros(K.shape[0]) if bias_offset is None else np.asarray(bias_offset, float)
+        bias = b0 + np.asarray(run.states, float) @ K.T
+        initial = b0 + K @ np.asarray(x0, float)
+    q = bias.shape[1]
     T = bias.shape[0]
     delay = np.zeros(T, int) if delay_ticks is None else np.asarray(delay_ticks, int)
     if np.any(delay < 0) or np.any(delay >= ratio):
         raise ValueError(f"`run_multirate(delay_ticks=...)` must lie in 0..{ratio - 1}.")
     at = np.arange(T) * ratio + delay
-    buf = DoubleBuffer(K.shape[0])
-    reader = BiasInterpolator(K.shape[0], ratio, initial=b0 + K @ np.asarray(x0, float))
-    out = np.empty((T * ratio, K.shape[0]))
+    buf = DoubleBuffer(q)
+    reader = BiasInterpolator(q, ratio, initial=initial)
+    out = np.empty((T * ratio, q))
     k = 0
     for t in range(T * ratio):
         while k < T and at[k] == t:
