@@ -53,9 +53,11 @@ def add_montecarlo(sub):
 
     p = sub.add_parser("montecarlo", help="unit-variance Monte Carlo study, in resumable chunks",
                        description="Sample a population of units (the config's preset, "
-                       "spreads, correlated groups and die-attach voids), simulate each through "
-                       "the chamber profile and compensate it with the nominal model and with "
-                       "its own model. Units are computed in chunks sharded over every local "
+                       "spreads, correlated groups and die-attach voids), simulate each unit's "
+                       "calibration and test runs, identify it from its calibration run "
+                       "(batched MAP fits, the population as prior) and compensate its test "
+                       "run with the nominal model, a batch model (fit.batch_units), its "
+                       "fitted model and its true model. Units are computed in chunks sharded over every local "
                        "device, each chunk written atomically; --resume continues an "
                        "interrupted run. Writes DIR/report.json, DIR/report.md and "
                        "distribution plots.")

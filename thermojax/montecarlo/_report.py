@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._study import METHODS, PERCENTILES, summarize
+from ._study import PERCENTILES, summarize  # noqa: F401
 
 
 def write_report(out: Path, config, results: dict, names, study, atomic_write) -> dict:
@@ -24,10 +24,10 @@ def write_report(out: Path, config, results: dict, names, study, atomic_write) -
               "temperature_node": study.network.topology.node_names[study.bias.temperature],
               "population": config.population.describe(), "profile": config.profile,
               "n_units": config.n_units, "chunk_size": config.chunk_size, "seed": config.seed,
-              **summary,
-              "not_done": "per-unit identification by batched fits (issue 14, 2(b)) and a "
-                          "batch-level model fitted to a sample of units (2(c)); `own` uses "
-                          "each unit's true parameters, the bound such a fit can reach"}
+              "calibration_profile": study.calibration, "fit_settings": config.fit,
+              "batch_model_log_deviation": (None if study.batch_logdev is None else
+                                            dict(zip(names, study.batch_logdev.tolist()))),
+              **summary}
     report = json_safe(report)
     atomic_write(out / "report.json", (json.dumps(report, indent=1) + "\n").encode())
     atomic_write(out / "report.md", _markdown(report).encode())
@@ -49,11 +49,15 @@ def _markdown(r: dict) -> str:
              f"°C/min, {r['profile']['dwell']:g} s dwells, {r['profile']['dt']:g} s samples, "
              f"{r['profile']['power']:g} W.", "",
              "Methods: **nominal** = the nominal model's steady-state Kalman observer and the "
-             "bias model on its estimates (batch-level default matrices); **own** = the "
-             "unit's own true model (the ideal per-unit calibration bound).", "",
+             "bias model on its estimates (batch-level default matrices); **batch** = the "
+             "same with one model fitted to the pooled calibration runs of a sample of units; "
+             "**fitted** = each unit identified from its own calibration run (MAP "
+             "output-error fit, the population as prior) and compensated with its fitted "
+             "model; **own** = the unit's own true model (the ideal per-unit calibration "
+             "bound).", "",
              f"| method | within ±{r['bias_limit']:g} {u} (peak) | bias peak p50 / p95 / p99 / "
              f"max ({u}) | temperature peak p50 / p95 / max (K) |", "|---|---:|---:|---:|"]
-    for m in METHODS:
+    for m in r["methods"]:
         b, t = r["percentiles"][m]["bias_peak"], r["percentiles"][m]["temp_peak"]
         lines.append(f"| {m} | {100 * r['fraction_within_bias_spec'][m]:.1f} % | "
                      f"{b['p50']:.3g} / {b['p95']:.3g} / {b['p99']:.3g} / {b['max']:.3g} | "
@@ -66,7 +70,18 @@ def _markdown(r: dict) -> str:
     for i, s in enumerate(r["sensitivity"][:10]):
         lines.append(f"| {i + 1} | `{s['parameter']}` | {s['coefficient_per_sd']:+.3g} | "
                      f"{s['correlation']:+.2f} |")
-    lines += ["", f"Not done yet: {r['not_done']}.", ""]
+    if "fit" in r:
+        lines += ["", "## The per-unit fits", "",
+                  f"Median RMS of the calibration residuals {r['fit']['fit_rms_median']:.3f} "
+                  "noise stds (1 = fitted to the noise). Log-parameter errors (fitted minus "
+                  "true) against the population's spread and the fits' posterior stds; "
+                  "z = error / posterior std (about 1 where the std is honest):", "",
+                  "| parameter | population std | error RMS | posterior std (median) | z RMS |",
+                  "|---|---:|---:|---:|---:|"]
+        for p in r["fit"]["parameters"]:
+            lines.append(f"| `{p['parameter']}` | {p['prior_std']:.3g} | {p['error_rms']:.3g} "
+                         f"| {p['posterior_std_median']:.3g} | {p['z_rms']:.2f} |")
+    lines.append("")
     return "\n".join(lines)
 
 
@@ -81,7 +96,7 @@ def _plots(out: Path, results: dict, r: dict, atomic_write) -> list[str]:
                               "temperature per unit", "K")):
         fig = new_figure(figsize=(12, 6))
         ax = fig.add_subplot(1, 1, 1)
-        for m, label in METHODS.items():
+        for m, label in r["methods"].items():
             v = np.maximum(results[f"{m}_{key}"], 1e-12)
             bins = np.logspace(np.log10(v.min()) - 0.05, np.log10(v.max()) + 0.05, 30)
             ax.hist(v, bins=bins, alpha=0.6, label=label)
@@ -91,7 +106,7 @@ def _plots(out: Path, results: dict, r: dict, atomic_write) -> list[str]:
         ax.set_xscale("log")
         ax.set_xlabel(f"peak error over the profile ({unit})")
         ax.set_ylabel("number of units")
-        ax.set_title(f"{title}: {r['n_units']} units, nominal versus own model")
+        ax.set_title(f"{title}: {r['n_units']} units, by compensation method")
         ax.legend()
         name = f"{key}_distribution.png"
         tmp = out / f".{name}.tmp.png"

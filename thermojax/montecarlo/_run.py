@@ -18,6 +18,10 @@ from .._errors import InputError
 #: `THERMOJAX_MONTECARLO_PAUSE=S`: sleep S seconds after each chunk (tests interrupt runs).
 _PAUSE = os.environ.get("THERMOJAX_MONTECARLO_PAUSE")
 
+#: `[fit]` keys and defaults: Levenberg-Marquardt iterations per unit, fit the measured
+#: bias column too, units in the batch model's pooled fit (0: no batch method).
+FIT_KEYS = {"iterations": 20, "bias_column": True, "batch_units": 0}
+
 PROFILE_KEYS = {"lo": None, "hi": None, "rate": None, "dwell": None, "dt": None,
                 "power": 0.0, "start": 25.0}
 
@@ -36,6 +40,8 @@ class MonteCarloConfig:
     bias_limit: float
     sensor_noise: bool
     out: str | None
+    calibration: dict | None = None
+    fit: dict | None = None
 
     def resolved(self) -> dict:
         """Everything that determines the chunks' contents (hashed into the manifest)."""
@@ -43,18 +49,20 @@ class MonteCarloConfig:
                 "model_sha256": hashlib.sha256(self.model_path.read_bytes()).hexdigest(),
                 "population": _jsonable(self.population.describe()),
                 "n_units": self.n_units, "chunk_size": self.chunk_size, "seed": self.seed,
-                "profile": self.profile, "bias": self.bias, "sensor_noise": self.sensor_noise}
+                "profile": self.profile, "bias": self.bias, "sensor_noise": self.sensor_noise,
+                "calibration": self.calibration, "fit": self.fit}
 
 
 def _jsonable(x):
     return json.loads(json.dumps(x, default=str))
 
 
-def _whole(table: dict, key: str, default, minimum: int, file: str) -> int:
+def _whole(table: dict, key: str, default, minimum: int, file: str,
+           where: str | None = None) -> int:
     v = table.get(key, default)
     if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
         raise InputError(f"expected a whole number of at least {minimum}, got {v!r}.",
-                         file=file, field=key)
+                         file=file, field=where or key)
     return int(v)
 
 
@@ -83,11 +91,11 @@ def load_config(path) -> MonteCarloConfig:
     except tomllib.TOMLDecodeError as err:
         raise InputError(f"not valid TOML ({err}).", file=file) from None
     unknown = set(table) - {"model", "n_units", "chunk_size", "seed", "population", "profile",
-                            "spec", "out"}
+                            "calibration", "fit", "spec", "out"}
     if unknown:
         raise InputError(f"unknown key(s) {sorted(unknown)}; expected model, n_units, "
-                         "chunk_size, seed, population, profile, spec, out.", file=file,
-                         field=sorted(unknown)[0])
+                         "chunk_size, seed, population, profile, calibration, fit, spec, out.",
+                         file=file, field=sorted(unknown)[0])
     if "model" not in table:
         raise InputError("missing: the model file (relative to the config) or a built-in "
                          "name.", file=file, field="model")
@@ -103,14 +111,19 @@ def load_config(path) -> MonteCarloConfig:
                          "among the built-in models).", file=file, field="model")
     spec = io.load_model(model_path)
     population = population_from_config(spec, table.get("population", {}), file=file)
-    prof = table.get("profile", {})
-    if not isinstance(prof, dict) or set(prof) - set(PROFILE_KEYS):
-        raise InputError(f"expected a table with keys {', '.join(PROFILE_KEYS)}.", file=file,
-                         field="profile")
-    profile = {k: _num(prof, k, d, file, f"profile.{k}",
-                       positive=k in ("rate", "dt", "dwell")) for k, d in PROFILE_KEYS.items()}
-    if not profile["lo"] < profile["hi"]:
-        raise InputError("profile.lo must be below profile.hi.", file=file, field="profile.lo")
+    profile = _profile(table, "profile", file)
+    calibration = _profile(table, "calibration", file) if "calibration" in table else None
+    fit_table = table.get("fit", {})
+    if not isinstance(fit_table, dict) or set(fit_table) - set(FIT_KEYS):
+        raise InputError(f"expected a table with keys {', '.join(FIT_KEYS)}.", file=file,
+                         field="fit")
+    fit = {"iterations": _whole(fit_table, "iterations", FIT_KEYS["iterations"], 1, file,
+                                "fit.iterations"),
+           "bias_column": fit_table.get("bias_column", True),
+           "batch_units": _whole(fit_table, "batch_units", 0, 0, file, "fit.batch_units")}
+    if not isinstance(fit["bias_column"], bool):
+        raise InputError(f"expected true or false, got {fit['bias_column']!r}.", file=file,
+                         field="fit.bias_column")
     sp = table.get("spec", {})
     if not isinstance(sp, dict) or set(sp) - {"bias", "bias_limit", "sensor_noise"}:
         raise InputError("expected a table with keys bias, bias_limit, sensor_noise.",
@@ -121,7 +134,20 @@ def load_config(path) -> MonteCarloConfig:
         n_units=n_units, chunk_size=min(_whole(table, "chunk_size", 64, 1, file), n_units),
         seed=_whole(table, "seed", 0, 0, file), profile=profile, bias=sp.get("bias"),
         bias_limit=_num(sp, "bias_limit", 0.5, file, "spec.bias_limit", positive=True),
-        sensor_noise=bool(sp.get("sensor_noise", True)), out=table.get("out"))
+        sensor_noise=bool(sp.get("sensor_noise", True)), out=table.get("out"),
+        calibration=calibration, fit=fit)
+
+
+def _profile(table: dict, key: str, file: str) -> dict:
+    prof = table.get(key, {})
+    if not isinstance(prof, dict) or set(prof) - set(PROFILE_KEYS):
+        raise InputError(f"expected a table with keys {', '.join(PROFILE_KEYS)}.", file=file,
+                         field=key)
+    profile = {k: _num(prof, k, d, file, f"{key}.{k}",
+                       positive=k in ("rate", "dt", "dwell")) for k, d in PROFILE_KEYS.items()}
+    if not profile["lo"] < profile["hi"]:
+        raise InputError(f"{key}.lo must be below {key}.hi.", file=file, field=f"{key}.lo")
+    return profile
 
 
 def run_montecarlo(config: MonteCarloConfig, out: Path, resume: bool, progress=print) -> dict:
@@ -131,18 +157,21 @@ def run_montecarlo(config: MonteCarloConfig, out: Path, resume: bool, progress=p
     from ._chunks import ChunkStore, atomic_write_bytes, chunk_units
     from ._population import sample_units, varied_names
     from ._sharding import chunks_of_process, initialize_distributed, process_share, units_mesh
-    from ._study import Study
 
     initialize_distributed()
     index, count = process_share()
     names = varied_names(config.population)
-    study = Study(config.spec, names, config.profile, bias=config.bias,
-                  sensor_noise=config.sensor_noise, file=str(config.path))
+    study = study_of(config)
     store = ChunkStore(out, config.resolved(), config.n_units, config.chunk_size)
     store.open(resume=resume or count > 1)
+    fit = config.fit or FIT_KEYS
     mine = chunks_of_process(store.n_chunks, index, count)
     todo = [c for c in mine if not store.is_finished(c)]
     skipped = [c for c in mine if c not in todo]
+    if fit["batch_units"] and todo:
+        progress(f"fitting the batch model to units {config.n_units}.."
+                 f"{config.n_units + fit['batch_units'] - 1} (a sample beside the study's)")
+        set_batch_model(study, config)
     mesh = units_mesh()
     share = f" (process {index} of {count})" if count > 1 else ""
     progress(f"{config.n_units} units in {store.n_chunks} chunks of {config.chunk_size}{share}; "
@@ -178,3 +207,26 @@ def run_montecarlo(config: MonteCarloConfig, out: Path, resume: bool, progress=p
 
         report = write_report(out, config, gathered, names, study, atomic_write_bytes)
     return {"computed": todo, "skipped": skipped, "report": report}
+
+
+def study_of(config: MonteCarloConfig):
+    """The `Study` of a config, with the population's log-normal prior for the fit."""
+    from ._population import log_prior, varied_names
+    from ._study import Study
+
+    fit = config.fit or FIT_KEYS
+    return Study(config.spec, varied_names(config.population), config.profile,
+                 bias=config.bias, sensor_noise=config.sensor_noise, file=str(config.path),
+                 prior=log_prior(config.population), calibration=config.calibration,
+                 iterations=fit["iterations"], fit_bias=fit["bias_column"])
+
+
+def set_batch_model(study, config: MonteCarloConfig):
+    """Fit the study's batch model to `fit.batch_units` units drawn after the study's
+    own (indices n_units, n_units + 1, ...: the same population and seed, other units)."""
+    from ._population import sample_units
+
+    m = (config.fit or FIT_KEYS)["batch_units"]
+    sample = sample_units(config.spec, config.population,
+                          np.arange(config.n_units, config.n_units + m), seed=config.seed)
+    return study.set_batch_model(sample.log_deviation, sample.indices, config.seed)
