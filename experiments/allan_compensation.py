@@ -38,11 +38,8 @@ and `gyro_output.png`. About 1 min on two cores; `--quick` about 30 s.
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
-import json
 import sys
-from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +52,8 @@ from thermojax.measurements import _profiles as profiles
 from thermojax.model import ThermalModel
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "experiments"))
+from _study_cli import results_folder, study_parser, write_results  # noqa: E402
 
 
 def _phases_module():
@@ -240,40 +239,18 @@ def plot_output(res: dict, path: Path) -> Path:
     return save_figure(fig, path)
 
 
-def jsonable(res: dict) -> dict:
-    return {k: v for k, v in res.items() if not k.startswith("_")}
-
-
 def main(argv=None) -> Path:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=None,
-                        help="results folder (default: results/allan_compensation-<UTC time>/)")
-    parser.add_argument("--force", action="store_true",
-                        help="write into an existing results folder (files of the same name are replaced)")
-    parser.add_argument("--quick", action="store_true",
-                        help="test-sized run: quick calibration record, 1.5 h test record")
-    parser.add_argument("--seed", type=int, default=0)
+    parser = study_parser("allan_compensation", __doc__,
+                          "test-sized run: quick calibration record, 1.5 h test record")
     args = parser.parse_args(argv)
-    folder = args.out
-    if folder is None:
-        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
-        folder = ROOT / "results" / f"allan_compensation-{stamp}"
-    if folder.exists() and not args.force:
-        print(f"error: {folder} exists; choose another --out or pass --force to replace it.",
-              file=sys.stderr)
-        raise SystemExit(2)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = results_folder("allan_compensation", args.out, args.force)
     res = study(quick=args.quick, seed=args.seed)
-    text = table(res)
-    (folder / "allan.md").write_text(text)
-    (folder / "results.json").write_text(json.dumps(jsonable(res), indent=2, default=float))
+    write_results(folder, res, table(res), "allan.md")
     c = res["_plot"]["curves"]
     plot_allan(folder / "allan_deviation.png", {res["labels"][k]: c[k] for k in c},
                rate_unit="deg/h",
                title="Overlapping Allan deviation of the gyro output at rest")
     plot_output(res, folder / "gyro_output.png")
-    print(text)
-    print(f"results in {folder}")
     return folder
 
 

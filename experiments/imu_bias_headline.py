@@ -54,11 +54,8 @@ gradient) about 15 s.
 
 from __future__ import annotations
 
-import argparse
-import json
 import re
 import sys
-from datetime import datetime, timezone
 from pathlib import Path
 
 import equinox as eqx
@@ -70,6 +67,8 @@ from thermojax._plots import new_figure, save_figure
 from thermojax.model import ThermalModel
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "experiments"))
+from _study_cli import results_folder, study_parser, write_results  # noqa: E402
 IMU = ROOT / "configs" / "imu6.toml"
 
 G_PROOF_MASS = 1.13e-3  # W/K: mems <-> proof_mass (imu6.toml: 0.03), gives the 0.4 °C anchor
@@ -214,7 +213,7 @@ def study(quick: bool = False, sensor_noise: float = SENSOR_NOISE,
           observers=tuple(OBSERVERS)) -> dict:
     """Calibrate the static and each observer-based compensation on the calibration run
     and evaluate them on the test ramps. Returns the numbers (and the runs, under
-    `"runs"`, for plotting)."""
+    `"_runs"`, for plotting)."""
     cfg = QUICK if quick else FULL
     rng = np.random.default_rng(seed)
     model = imu_model()
@@ -240,7 +239,7 @@ def study(quick: bool = False, sensor_noise: float = SENSOR_NOISE,
                             **{k: natural(c) for k, c in coef.items()}},
            "calibration": {k: residual_stats(cal["bias"] - features(cal, k) @ coef[k])
                            for k in methods},
-           "rows": [], "runs": {}}
+           "rows": [], "_runs": {}}
     for rate in rates:
         run = simulate_run(model, rate, cfg, rng, sensor_noise, bias_noise, models, length)
         names = run["names"]
@@ -256,7 +255,7 @@ def study(quick: bool = False, sensor_noise: float = SENSOR_NOISE,
                 x[:, names.index("proof_mass")]
             row["proof_mass_estimate_error_rms_C"] = float(np.sqrt(np.mean(err ** 2)))
         out["rows"].append(row)
-        out["runs"][rate] = {**run, "residuals": resid}
+        out["_runs"][rate] = {**run, "residuals": resid}
     eig = -np.linalg.eigvals(np.asarray(model.linear_system().A)).real
     out["time_constants"] = {"proof_mass_local_s": float(0.003 / G_PROOF_MASS),
                              "fastest_mode_s": float(1.0 / eig.max()),
@@ -323,7 +322,7 @@ def table(res: dict) -> str:
 
 
 def plot(res: dict, path: Path, rate: float = 10.0) -> Path:
-    run = res["runs"][rate]
+    run = res["_runs"][rate]
     t = run["ts"] / 60.0
     names = run["names"]
     fig = new_figure(figsize=(12, 8))
@@ -349,40 +348,17 @@ def plot(res: dict, path: Path, rate: float = 10.0) -> Path:
     return save_figure(fig, path)
 
 
-def jsonable(res: dict) -> dict:
-    return {k: v for k, v in res.items() if k != "runs"}
-
-
 def main(argv=None) -> Path:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=None,
-                        help="results folder (default: results/imu_bias_headline-<UTC time>/)")
-    parser.add_argument("--force", action="store_true",
-                        help="write into an existing results folder (its files of the same name are replaced)")
-    parser.add_argument("--quick", action="store_true",
-                        help="test-sized run: 0…50 °C, 5 min dwells, 10 Hz")
-    parser.add_argument("--seed", type=int, default=0)
+    parser = study_parser("imu_bias_headline", __doc__,
+                          "test-sized run: 0…50 °C, 5 min dwells, 10 Hz")
     parser.add_argument("--bias-noise", type=float, default=BIAS_NOISE,
                         help=f"gyro white noise, °/h std per sample (default {BIAS_NOISE:g}; "
                              "a tactical 0.15 °/√h at 20 Hz is about 40)")
     args = parser.parse_args(argv)
-    folder = args.out
-    if folder is None:
-        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
-        folder = ROOT / "results" / f"imu_bias_headline-{stamp}"
-    if folder.exists():
-        if not args.force:
-            print(f"error: {folder} exists; choose another --out or pass --force to replace it.",
-                  file=sys.stderr)
-            raise SystemExit(2)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = results_folder("imu_bias_headline", args.out, args.force)
     res = study(quick=args.quick, seed=args.seed, bias_noise=args.bias_noise)
-    text = table(res)
-    (folder / "headline.md").write_text(text)
-    (folder / "results.json").write_text(json.dumps(jsonable(res), indent=2, default=float))
+    write_results(folder, res, table(res), "headline.md")
     plot(res, folder / "residual_10cpm.png")
-    print(text)
-    print(f"results in {folder}")
     return folder
 
 

@@ -51,11 +51,8 @@ refused, exit 2, unless `--force`) with `phases.md`, `results.json` and
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import sys
-from datetime import datetime, timezone
 from pathlib import Path
 
 import equinox as eqx
@@ -73,6 +70,8 @@ from thermojax.model import ThermalModel
 from thermojax.model._spec import Bias, Effect, Parameter
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "experiments"))
+from _study_cli import results_folder, study_parser, write_results  # noqa: E402
 IMU = ROOT / "configs" / "imu6.toml"
 
 COLUMN = "gyro_x_dph"
@@ -438,36 +437,14 @@ def plot(res: dict, path: Path) -> Path:
     return save_figure(fig, path)
 
 
-def jsonable(res: dict) -> dict:
-    return {k: v for k, v in res.items() if not k.startswith("_")}
-
-
 def main(argv=None) -> Path:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=None,
-                        help="results folder (default: results/seed_calibration_phases-<UTC time>/)")
-    parser.add_argument("--force", action="store_true",
-                        help="write into an existing results folder (files of the same name are replaced)")
-    parser.add_argument("--quick", action="store_true",
-                        help="test-sized run: 0…50 °C, 30 min soaks, 45 min viscoelastic dwell")
-    parser.add_argument("--seed", type=int, default=0)
+    parser = study_parser("seed_calibration_phases", __doc__,
+                          "test-sized run: 0…50 °C, 30 min soaks, 45 min viscoelastic dwell")
     args = parser.parse_args(argv)
-    folder = args.out
-    if folder is None:
-        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
-        folder = ROOT / "results" / f"seed_calibration_phases-{stamp}"
-    if folder.exists() and not args.force:
-        print(f"error: {folder} exists; choose another --out or pass --force to replace it.",
-              file=sys.stderr)
-        raise SystemExit(2)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = results_folder("seed_calibration_phases", args.out, args.force)
     res = study(quick=args.quick, seed=args.seed)
-    text = table(res)
-    (folder / "phases.md").write_text(text)
-    (folder / "results.json").write_text(json.dumps(jsonable(res), indent=2, default=float))
+    write_results(folder, res, table(res), "phases.md")
     plot(res, folder / "phase_residuals.png")
-    print(text)
-    print(f"results in {folder}")
     return folder
 
 

@@ -41,10 +41,7 @@ is refused, exit 2, unless `--force`) with `hysteresis.md`, `results.json` and
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
-from datetime import datetime, timezone
 from pathlib import Path
 
 import equinox as eqx
@@ -61,6 +58,8 @@ from thermojax.model import ThermalModel
 from thermojax.model._spec import Bias, Effect, Parameter
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "experiments"))
+from _study_cli import results_folder, study_parser, write_results  # noqa: E402
 IMU = ROOT / "configs" / "imu6.toml"
 
 COLUMN = "accel_x_ug"
@@ -264,36 +263,14 @@ def plot(res: dict, path: Path) -> Path:
     return save_figure(fig, path)
 
 
-def jsonable(res: dict) -> dict:
-    return {k: v for k, v in res.items() if not k.startswith("_")}
-
-
 def main(argv=None) -> Path:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", type=Path, default=None,
-                        help="results folder (default: results/viscoelastic_hysteresis-<UTC time>/)")
-    parser.add_argument("--force", action="store_true",
-                        help="write into an existing results folder (files of the same name are replaced)")
-    parser.add_argument("--quick", action="store_true",
-                        help="test-sized run: 10 min before the step, 1 h dwells")
-    parser.add_argument("--seed", type=int, default=0)
+    parser = study_parser("viscoelastic_hysteresis", __doc__,
+                          "test-sized run: 10 min before the step, 1 h dwells")
     args = parser.parse_args(argv)
-    folder = args.out
-    if folder is None:
-        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
-        folder = ROOT / "results" / f"viscoelastic_hysteresis-{stamp}"
-    if folder.exists() and not args.force:
-        print(f"error: {folder} exists; choose another --out or pass --force to replace it.",
-              file=sys.stderr)
-        raise SystemExit(2)
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = results_folder("viscoelastic_hysteresis", args.out, args.force)
     res = study(quick=args.quick, seed=args.seed)
-    text = table(res)
-    (folder / "hysteresis.md").write_text(text)
-    (folder / "results.json").write_text(json.dumps(jsonable(res), indent=2, default=float))
+    write_results(folder, res, table(res), "hysteresis.md")
     plot(res, folder / "hysteresis_loops.png")
-    print(text)
-    print(f"results in {folder}")
     return folder
 
 
