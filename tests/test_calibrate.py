@@ -121,6 +121,78 @@ def test_verification_fails_below_the_noise(example, results):
     assert by["accel_x_ug"].passed
 
 
+def oadev(y: np.ndarray, m: int) -> float:
+    """Overlapping Allan deviation by its definition (NIST SP 1065 eq. 11), written
+    independently of allantools: phase `x = cumsum(y)` (in sample periods), `σ²(mτ₀) =
+    Σ (x_{i+2m} − 2 x_{i+m} + x_i)² / (2 m² (N − 2m))` over the `N − 2m` overlapping
+    second differences of the `N = len(y) + 1` phase points."""
+    x = np.concatenate([[0.0], np.cumsum(y)])
+    d = x[2 * m:] - 2 * x[m:-m] + x[:-2 * m]
+    return float(np.sqrt(np.mean(d ** 2) / (2 * m ** 2)))
+
+
+def test_oadev_textbook():
+    """The test's own oadev on white noise: σ(τ) = σ_sample / √m."""
+    y = np.random.default_rng(3).standard_normal(200_000)
+    for m in (1, 4, 16):
+        assert oadev(y, m) == pytest.approx(1 / np.sqrt(m), rel=0.03)
+
+
+def test_verification_allan(results, tmp_path):
+    """The gyro's Allan deviation on the held-back run: figure, report numbers equal to an
+    independent computation on the same series, and the noise the truth injected."""
+    from thermojax.calibration import write_results
+
+    res = results
+    written = write_results(res, tmp_path)
+    png = tmp_path / "allan_gyro_x_dph.png"
+    assert written["allan_gyro_x_dph.png"] == png
+    head = png.read_bytes()[:24]
+    assert head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR"
+    assert int.from_bytes(head[16:20], "big") >= 1200  # px wide
+    assert not (tmp_path / "allan_accel_x_ug.png").exists()  # gyro channels only
+    report = json.loads((tmp_path / "report.json").read_text())
+    rows = report["stages"][-1]["allan"]
+    assert [(r["run"], r["channel"], r["rate_unit"]) for r in rows] == [
+        ("holdout", "gyro_x_dph", "deg/h")]
+    row = rows[0]
+    check = next(c for c in res.checks if c.channel == "gyro_x_dph")
+    keep = np.isfinite(check.residual)
+    assert keep.sum() == check.ts.size - 30  # skip_s = 300 s of a 10 s base
+    series = {"raw": check.measured[keep], "static polynomial": check.static_residual[keep],
+              "observer": check.residual[keep]}
+    assert list(row["outputs"]) == list(series)
+    for name, y in series.items():
+        o = row["outputs"][name]
+        ms = np.round(np.asarray(o["taus_s"]) / res.config.dt_s).astype(int)
+        assert ms[0] == 1 and np.all(ms[1:] == 2 * ms[:-1])  # octaves from dt_s
+        np.testing.assert_allclose(o["adev"], [oadev(y, m) for m in ms], rtol=1e-9)
+        assert np.all(np.asarray(o["lower"]) < o["adev"]) and np.all(np.asarray(o["upper"])
+                                                                     > o["adev"])
+        k = int(np.argmin(o["adev"]))
+        bi = o["bias_instability"]
+        assert bi["value"] == pytest.approx(o["adev"][k] / 0.664)
+        assert bi["lower"] < bi["value"] < bi["upper"] and bi["tau_s"] == o["taus_s"][k]
+    raw, static, obs = (row["outputs"][k] for k in series)
+    # the truth: white noise 10 × 0.02 °/h per 5 Hz inertial sample, N = 0.2/√5 °/h·√s;
+    # the observer-compensated output is that noise (read where the slope is −1/2)
+    truth_arw = 0.2 / np.sqrt(5.0)
+    arw = obs["angle_random_walk"]
+    assert arw is not None and arw["lower"] < arw["value"] < arw["upper"]
+    assert arw["value"] == pytest.approx(truth_arw, rel=0.1)
+    assert obs["angle_random_walk_deg_per_sqrt_h"]["value"] == pytest.approx(arw["value"] / 60)
+    # raw and static outputs carry the thermal drift: no −1/2 slope, or a worse one
+    for other in (raw, static):
+        assert (other["angle_random_walk"] is None
+                or other["angle_random_walk"]["value"] >= arw["value"])
+        assert other["adev"][-1] > 10 * obs["adev"][-1]
+        assert other["bias_instability"]["value"] > obs["bias_instability"]["value"]
+    assert raw["adev"][-1] > static["adev"][-1]  # the polynomial removes the slow part
+    md = (tmp_path / "report.md").read_text()
+    assert "Overlapping Allan deviation" in md
+    assert "| holdout | gyro_x_dph (deg/h) | observer |" in md
+
+
 @pytest.mark.slow
 def test_cli_end_to_end(example):
     root, _ = example
@@ -133,13 +205,16 @@ def test_cli_end_to_end(example):
     for stage in ("condition", "static_polynomial", "thermal_fit", "coupling", "verify"):
         assert f"{stage}:" in proc.stdout
     for name in ("report.json", "report.md", "model_calibrated.toml", "static_polynomial.png",
-                 "verification_residual.png", "observer/observer.json", ".thermojax"):
+                 "verification_residual.png", "allan_gyro_x_dph.png",
+                 "observer/observer.json", ".thermojax"):
         assert (out / name).is_file(), name
     report = json.loads((out / "report.json").read_text())
     assert report["schema"] == 1 and report["thermojax_version"]
     assert [s["stage"] for s in report["stages"]] == ["condition", "static_polynomial",
                                                      "thermal_fit", "coupling", "verify"]
     assert report["passed"] is True
+    assert report["stages"][-1]["allan"][0]["channel"] == "gyro_x_dph"
+    assert "Allan deviation" in proc.stdout
     from thermojax.io import load_model
 
     assert load_model(out / "model_calibrated.toml").biases[0].coefficients is not None

@@ -13,9 +13,9 @@ from ._conditioning import (ORIENTATIONS, OrientationSeparation, Outliers, Synch
 from ._hysteresis import hysteresis_loop_area
 from ._plateaus import Plateau, StaticPolynomial, find_plateaus, fit_static_polynomial
 from ._config import STAGES, CalibrationConfig, RunFiles, load_config
-from ._pipeline import (CalibrationResults, ChannelCheck, ChannelPolynomial, ConditionedRun,
-                        Coupling, condition, coupling, run_pipeline, static_polynomial,
-                        thermal_fit, verify)
+from ._pipeline import (CalibrationResults, ChannelAllan, ChannelCheck, ChannelPolynomial,
+                        ConditionedRun, Coupling, condition, coupling, run_pipeline,
+                        static_polynomial, thermal_fit, verification_allan, verify)
 from ._plots import plot_allan
 from ._report import write_results
 from ._synthetic import synthetic_imu_logs
@@ -29,5 +29,6 @@ __all__ = [
     "STAGES", "CalibrationConfig", "RunFiles", "load_config", "CalibrationResults",
     "ChannelCheck", "ChannelPolynomial", "ConditionedRun", "Coupling", "condition",
     "coupling", "run_pipeline", "static_polynomial", "thermal_fit", "verify",
+    "ChannelAllan", "verification_allan",
     "write_results", "synthetic_imu_logs",
 ]

@@ -13,7 +13,9 @@ plain data, and `run_pipeline(config)` running those a config names, in order:
    noise's correlation);
 5. `verify`: the fitted model exported as the reference observer, played back (float)
    on every held-back run, its bias output against the measured bias, pass or fail
-   against the config's bias-stability specification.
+   against the config's bias-stability specification; and the overlapping Allan
+   deviation of each gyro channel's raw, static-compensated and observer-compensated
+   output there (`verification_allan`).
 """
 
 from __future__ import annotations
@@ -375,7 +377,9 @@ class ChannelCheck:
     """One channel of one held-back run: the residual `measured − observer` bias
     (`residual (times,)`, channel unit; NaN before `skip_s`), its `rms`, `peak` (max |·|)
     and `mean`, the static polynomial's residual RMS for comparison (None without that
-    stage), the limits and `passed`."""
+    stage), the limits and `passed`; also the series the statistics came from, NaN before
+    `skip_s` like `residual`: `measured (times,)` the conditioned bias itself and
+    `static_residual (times,)` `measured − static polynomial` (None without that stage)."""
 
     run: str
     channel: str
@@ -387,6 +391,8 @@ class ChannelCheck:
     static_rms: float | None
     limits: dict
     passed: bool
+    measured: np.ndarray | None = None
+    static_residual: np.ndarray | None = None
 
 
 def verify(spec, runs: list[ConditionedRun], config: CalibrationConfig, observer_dir,
@@ -423,15 +429,106 @@ def verify(spec, runs: list[ConditionedRun], config: CalibrationConfig, observer
             ok = np.isfinite(res)
             rms = float(np.sqrt(np.mean(res[ok] ** 2)))
             peak = float(np.max(np.abs(res[ok])))
-            static_rms = None
+            static_rms = sres = None
             if static is not None and c in static:
-                sres = (r.bias[c] - static[c].polynomial(r.sensors[:, sensor_index]))[keep]
+                sres = np.where(keep, r.bias[c] - static[c].polynomial(
+                    r.sensors[:, sensor_index]), np.nan)
                 static_rms = float(np.sqrt(np.nanmean(sres ** 2)))
             lim = config.limits[c]
             passed = rms <= lim.get("rms", math.inf) and peak <= lim.get("peak", math.inf)
             checks.append(ChannelCheck(r.name, c, r.ts, res, rms, peak,
-                                       float(np.mean(res[ok])), static_rms, dict(lim), passed))
+                                       float(np.mean(res[ok])), static_rms, dict(lim), passed,
+                                       np.where(keep, r.bias[c], np.nan), sres))
     return checks
+
+
+#: The outputs whose Allan deviation the verification reads: label -> `ChannelCheck`
+#: field (each NaN before `skip_s`).
+ALLAN_OUTPUTS = {"raw": "measured", "static polynomial": "static_residual",
+                 "observer": "residual"}
+
+
+def is_gyro(channel: str) -> bool:
+    """A gyro channel: its name ends in `_dph` (deg/h, docs/formats.md §1) or starts with
+    `gyro`."""
+    return channel.endswith("_dph") or channel.lower().startswith("gyro")
+
+
+@dataclass(frozen=True)
+class ChannelAllan:
+    """The overlapping Allan deviation of one gyro channel on one held-back run, on the
+    conditioned `dt_s` base after `skip_s`: `curves` output -> `AllanDeviation` and
+    `noise` output -> `NoiseParameters` (angle random walk, bias instability, with
+    intervals), for the outputs of `ALLAN_OUTPUTS` present; `rate_unit` e.g. "deg/h"."""
+
+    run: str
+    channel: str
+    rate_unit: str
+    curves: dict
+    noise: dict
+
+
+def verification_allan(checks: list[ChannelCheck], dt_s: float) -> list[ChannelAllan]:
+    """The Allan deviation of raw, static-compensated and observer-compensated output of
+    every gyro channel (`is_gyro`) and held-back run, from the series `verify` kept
+    (`ChannelCheck.measured`, `.static_residual`, `.residual`, after `skip_s`), sampled
+    at `1/dt_s`. The series were low-passed before decimation (cutoff `cutoff_fraction`
+    × Nyquist), which lowers the shortest-τ points a little. Runs with fewer than 16
+    samples after `skip_s` are left out.
+
+    **Returns:** one `ChannelAllan` per gyro channel and run.
+    """
+    from .._plots import column_unit
+    from ._allan import allan_deviation, noise_parameters
+
+    out = []
+    for ch in checks:
+        keep = np.isfinite(ch.residual)
+        if not is_gyro(ch.channel) or keep.sum() < 16:
+            continue
+        unit = column_unit(ch.channel, bias=True)
+        curves, noise = {}, {}
+        for label, name in ALLAN_OUTPUTS.items():
+            y = getattr(ch, name)
+            if y is None:
+                continue
+            curves[label] = allan_deviation(np.asarray(y)[keep], 1.0 / dt_s)
+            noise[label] = noise_parameters(curves[label], unit)
+        out.append(ChannelAllan(ch.run, ch.channel, unit, curves, noise))
+    return out
+
+
+def _estimate(e, tau=None) -> dict | None:
+    """An `Estimate` (and the τ it was read at) as a report dict."""
+    if e is None:
+        return None
+    return {"value": e.value, "lower": e.lower, "upper": e.upper,
+            **({} if tau is None else {"tau_s": tau})}
+
+
+def allan_entry(allan: list[ChannelAllan]) -> list[dict]:
+    """The Allan results as report dicts: per run and channel, per output the curve
+    (`taus_s`, `adev`, `lower`, `upper`) and the noise terms with their intervals."""
+    rows = []
+    for a in allan:
+        outputs = {}
+        for label, curve in a.curves.items():
+            n = a.noise[label]
+            outputs[label] = {
+                "taus_s": curve.taus, "adev": curve.adev, "lower": curve.lower,
+                "upper": curve.upper,
+                "angle_random_walk": _estimate(n.angle_random_walk, n.angle_random_walk_tau),
+                "angle_random_walk_deg_per_sqrt_h": _estimate(
+                    n.angle_random_walk_deg_per_sqrt_h, n.angle_random_walk_tau),
+                "bias_instability": _estimate(n.bias_instability, n.bias_instability_tau),
+                "bias_instability_at_longest_tau": bool(
+                    n.bias_instability_tau >= curve.taus[-1]),
+                "rate_random_walk": _estimate(n.rate_random_walk, n.rate_random_walk_tau)}
+        ci = next(iter(a.curves.values())).ci
+        rows.append({"run": a.run, "channel": a.channel, "rate_unit": a.rate_unit,
+                     "sample_rate_hz": next(iter(a.curves.values())).sample_rate_hz,
+                     "ci": ci, "outputs": outputs})
+    return rows
 
 
 # ---------------------------------------------------------------------------
@@ -452,6 +549,7 @@ class CalibrationResults:
     fit: object | None = None
     coupling: Coupling | None = None
     checks: list[ChannelCheck] | None = None
+    allan: list[ChannelAllan] | None = None
     observer_dir: Path | None = None
     stages: list = field(default_factory=list)
 
@@ -605,14 +703,25 @@ def run_pipeline(config, *, observer_dir=None, progress=None) -> CalibrationResu
         for ch in res.checks:
             say(f"verify: {ch.run} {ch.channel}: RMS {ch.rms:.4g}, peak {ch.peak:.4g} "
                 f"(spec {ch.limits}) {'PASS' if ch.passed else 'FAIL'}")
+        res.allan = verification_allan(res.checks, config.dt_s)
+        for a in res.allan:
+            arw = {k: n.angle_random_walk for k, n in a.noise.items()}
+            say(f"verify: {a.run} {a.channel}: Allan deviation; ARW ({a.rate_unit}·√s) "
+                + ", ".join(f"{k} " + ("—" if e is None else f"{e.value:.3g}")
+                            for k, e in arw.items()))
         res.stages.append({
             "stage": "verify",
             "did": ("the calibrated model exported as the reference observer (float64), "
                     "played back on each held-back run from the steady state of its first "
                     "input; residual = measured − observer bias"
-                    + (f" after the first {config.skip_s:g} s" if config.skip_s else "")),
+                    + (f" after the first {config.skip_s:g} s" if config.skip_s else "")
+                    + "; overlapping Allan deviation (allantools, one-sigma intervals from "
+                    "Greenhall's EDF) of each gyro channel's raw, static-polynomial-"
+                    "compensated and observer-compensated output on the same samples, "
+                    "angle random walk and bias instability read off (IEEE Std 952)"),
             "passed": res.passed,
             "checks": [{"run": ch.run, "channel": ch.channel, "rms": ch.rms, "peak": ch.peak,
                         "mean": ch.mean, "static_polynomial_rms": ch.static_rms,
-                        "spec": ch.limits, "passed": ch.passed} for ch in res.checks]})
+                        "spec": ch.limits, "passed": ch.passed} for ch in res.checks],
+            "allan": allan_entry(res.allan)})
     return res

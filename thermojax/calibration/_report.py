@@ -1,5 +1,6 @@
 """The results folder of `thermojax calibrate`: report.json, report.md,
-model_calibrated.toml and plots (the observer folder is written by `verify`)."""
+model_calibrated.toml and plots (static polynomial, verification residual, the gyro
+channels' Allan deviation); the observer folder is written by `verify`."""
 
 from __future__ import annotations
 
@@ -51,6 +52,38 @@ def _fmt(v, s=None):
     return f"{v:.5g}" + ("" if s is None or not np.isfinite(s) else f" ± {s:.2g}")
 
 
+def _interval(e) -> str:
+    """`value [lower, upper]` of a report estimate dict, or —."""
+    if e is None:
+        return "—"
+    return f"{e['value']:.4g} [{e['lower']:.4g}, {e['upper']:.4g}]"
+
+
+def _allan_markdown(rows: list[dict]) -> list[str]:
+    """The verification's Allan table: ARW and bias instability per run, gyro channel
+    and output, with their confidence intervals."""
+    if not rows:
+        return []
+    lines = ["", f"Overlapping Allan deviation of the gyro output on the held-back runs "
+             f"(after skip_s, every {1 / rows[0]['sample_rate_hz']:g} s; intervals "
+             f"{100 * rows[0]['ci']:.0f} %; `allan_<channel>.png`). Angle random walk "
+             "N = σ(τ)·√τ where the slope is −1/2, bias instability B = min σ / 0.664 "
+             "(≤: the minimum is at the longest τ, an upper bound).", "",
+             "| run | channel | output | ARW, unit·√s | ARW, °/√h | τ, s | "
+             "bias instability, unit | τ, s |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        for out, o in r["outputs"].items():
+            arw, bi = o["angle_random_walk"], o["bias_instability"]
+            arw_tau = "—" if arw is None else f"{arw['tau_s']:g}"
+            lines.append(
+                f"| {r['run']} | {r['channel']} ({r['rate_unit']}) | {out} | {_interval(arw)} | "
+                f"{_interval(o['angle_random_walk_deg_per_sqrt_h'])} | "
+                f"{arw_tau} | "
+                f"{'≤ ' if o['bias_instability_at_longest_tau'] else ''}{_interval(bi)} | "
+                f"{bi['tau_s']:g} |")
+    return lines
+
+
 def report_markdown(res: CalibrationResults) -> str:
     c = res.config
     lines = [f"# Calibration of {', '.join(c.channels)}", "",
@@ -93,6 +126,7 @@ def report_markdown(res: CalibrationResults) -> str:
                 lines.append(f"| {k['run']} | {k['channel']} | {_fmt(k['rms'])} | "
                              f"{_fmt(k['peak'])} | {_fmt(k['static_polynomial_rms'])} | "
                              f"{k['spec']} | {'PASS' if k['passed'] else 'FAIL'} |")
+            lines += _allan_markdown(st.get("allan") or [])
         lines.append("")
     return "\n".join(lines)
 
@@ -149,8 +183,27 @@ def plot_verification(res: CalibrationResults, path: Path) -> Path:
     return path
 
 
+def plot_allan_curves(res: CalibrationResults, folder: Path) -> dict[str, Path]:
+    """`allan_<channel>.png` per gyro channel of the verification: the raw,
+    static-compensated and observer-compensated Allan deviation of each held-back run
+    with its confidence band (`plot_allan`). Returns name -> path."""
+    from ._plots import plot_allan
+
+    out = {}
+    for ch in dict.fromkeys(a.channel for a in res.allan or ()):
+        rows = [a for a in res.allan if a.channel == ch]
+        curves = {(label if len(rows) == 1 else f"{label}, {a.run}"): c
+                  for a in rows for label, c in a.curves.items()}
+        name = f"allan_{ch}.png"
+        out[name] = plot_allan(folder / name, curves, rows[0].rate_unit,
+                               f"{ch} on the held-back run{'s' if len(rows) > 1 else ''} "
+                               f"{', '.join(a.run for a in rows)}")
+    return out
+
+
 def write_results(res: CalibrationResults, folder) -> dict[str, Path]:
-    """Write report.json, report.md, model_calibrated.toml and the plots into `folder`
+    """Write report.json, report.md, model_calibrated.toml and the plots (with
+    `allan_<channel>.png` per gyro channel verified) into `folder`
     (the observer folder is already there when `run_pipeline` was given
     `observer_dir=folder / "observer"`). Returns name -> path."""
     from ..io import save_model
@@ -171,4 +224,6 @@ def write_results(res: CalibrationResults, folder) -> dict[str, Path]:
     if res.checks is not None:
         out["verification_residual.png"] = plot_verification(
             res, folder / "verification_residual.png")
+    for name, path in plot_allan_curves(res, folder).items():
+        out[name] = path
     return out
