@@ -64,6 +64,7 @@ import numpy as np
 
 import thermojax as tj
 from thermojax._plots import new_figure, save_figure
+from thermojax.measurements import _profiles as profiles
 from thermojax.model import ThermalModel
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -106,17 +107,12 @@ def imu_model(g_proof_mass: float = G_PROOF_MASS) -> ThermalModel:
 
 def profile(rate: float, lo: float, hi: float, dwell: float, dt: float):
     """Chamber temperature (°C) against time (s): soak at 25 °C, `rate` °C/min down to
-    `lo`, dwell, up to `hi`, dwell, back to 25 °C, dwell (each dwell `dwell` s)."""
+    `lo`, dwell, up to `hi`, dwell, back to 25 °C, dwell (each dwell `dwell` s); the
+    middle of `lo..hi` instead of 25 °C if that lies outside it."""
     start = 0.5 * (lo + hi) if not lo < T_REF < hi else T_REF
-    slope = rate / 60.0
-    knots_t, knots_T = [0.0, dwell], [start, start]
-    for target in (lo, hi, start):
-        knots_t.append(knots_t[-1] + abs(target - knots_T[-1]) / slope)
-        knots_T.append(target)
-        knots_t.append(knots_t[-1] + dwell)
-        knots_T.append(target)
-    ts = np.arange(0.0, knots_t[-1] + 0.5 * dt, dt)
-    return ts, np.interp(ts, knots_t, knots_T)
+    p = profiles.calibration_schedule(dt, lo, hi, (rate,), dwell, start, soak_s=dwell,
+                                      end_c=start)
+    return np.array(p.ts), np.array(p.temperature)
 
 
 def true_bias(states: np.ndarray, names) -> np.ndarray:

@@ -350,6 +350,24 @@ def test_calibration_schedule_custom_and_half_second():
     assert check_ramp_phases(p, (3.0,)) == [3.0, 3.0, 3.0]
 
 
+def test_calibration_schedule_end_c_moves_only_the_last_ramp():
+    """`end_c`: the last ramp goes there (the Monte Carlo and headline cycle: down, up,
+    back to the start); every earlier knot is unchanged."""
+    kw = dict(low_c=0.0, high_c=40.0, rates_c_per_min=(5.0, 10.0), dwell_s=60.0, soak_s=60.0)
+    p, q = calibration_schedule(**kw), calibration_schedule(**kw, end_c=25.0)
+    check_uniform(q, 1.0)
+    check_tiling(q)
+    assert [ph.kind for ph in q.phases] == [ph.kind for ph in p.phases]
+    assert check_ramp_phases(q, (5.0, 10.0)) == [5.0, 5.0, 5.0, 10.0, 10.0]
+    last = q.phases[-2]  # the last ramp: 40 -> 25 °C at 10 °C/min, 90 s
+    assert last.kind == "cooling_ramp" and last.duration == 90.0
+    n = samples_in(q, 0.0, last.start_s)
+    np.testing.assert_array_equal(q.temperature[n], p.temperature[n])
+    assert q.temperature[-1] == 25.0 and p.temperature[-1] == 0.0
+    with pytest.raises(InputError, match="end_c"):
+        calibration_schedule(end_c=120.0)
+
+
 @pytest.mark.parametrize("kwargs, field", [
     ({"low_c": -60.0}, "low_c"),
     ({"high_c": 110.0}, "high_c"),

@@ -567,13 +567,13 @@ def concatenate(*profiles: Profile) -> Profile:
 def calibration_schedule(dt: Real = 1.0, low_c: Real = -40.0, high_c: Real = 85.0,
                          rates_c_per_min: Sequence[Real] = (1.0, 5.0, 10.0),
                          dwell_s: Real = 1800.0, start_c: Real = 25.0,
-                         soak_s: Real = 1800.0) -> Profile:
+                         soak_s: Real = 1800.0, end_c: Real | None = None) -> Profile:
     """The seed's multi-phase thermal calibration profile.
 
     A soak at `start_c` for `soak_s`; a ramp to `low_c` at the first rate and a dwell
     there; then, for each rate in order, a ramp `low_c → high_c`, a dwell at `high_c`, a
     ramp `high_c → low_c` and a dwell at `low_c`. Every dwell lasts `dwell_s`. The
-    profile ends at `low_c`.
+    profile ends at `low_c`, or at `end_c` if given (the last ramp goes there instead).
 
     **Arguments:**
 
@@ -583,6 +583,8 @@ def calibration_schedule(dt: Real = 1.0, low_c: Real = -40.0, high_c: Real = 85.
     - `dwell_s`: plateau length, s (>= 0).
     - `start_c`: room temperature of the initial soak, °C (within the chamber range).
     - `soak_s`: initial soak length, s (>= 0).
+    - `end_c`: temperature of the last ramp's end and final dwell, °C (within the
+      chamber range; default `low_c`).
     """
     call = "calibration_schedule"
     dt = _dt(call, dt)
@@ -602,14 +604,15 @@ def calibration_schedule(dt: Real = 1.0, low_c: Real = -40.0, high_c: Real = 85.
                          field="rates_c_per_min")
     dwell_len = _nonnegative(call, "dwell_s", dwell_s)
     soak_len = _nonnegative(call, "soak_s", soak_s)
+    end = low if end_c is None else _in_chamber(call, "end_c", end_c)
     b = _Builder(call, start, dt)
     b.hold(soak_len)
     b.ramp_to(low, rates[0])
     b.hold(dwell_len)
-    for rate in rates:
+    for i, rate in enumerate(rates):
         b.ramp_to(high, rate)
         b.hold(dwell_len)
-        b.ramp_to(low, rate)
+        b.ramp_to(end if i == len(rates) - 1 else low, rate)
         b.hold(dwell_len)
     return b.build()
 

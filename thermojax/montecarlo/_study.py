@@ -66,17 +66,13 @@ _LEAVES = {"nodes": ("log_capacitance", "capacitance"), "links": ("log_conductan
 
 def ramp_profile(lo: float, hi: float, rate: float, dwell: float, dt: float,
                  start: float = T_REF):
-    """Chamber temperature (°C) against time (s): soak at `start` for `dwell` s, `rate`
-    °C/min down to `lo`, dwell, up to `hi`, dwell, back to `start`, dwell."""
-    slope = rate / 60.0
-    knots_t, knots_T = [0.0, dwell], [start, start]
-    for target in (lo, hi, start):
-        knots_t.append(knots_t[-1] + abs(target - knots_T[-1]) / slope)
-        knots_T.append(target)
-        knots_t.append(knots_t[-1] + dwell)
-        knots_T.append(target)
-    ts = np.arange(0.0, knots_t[-1] + 0.5 * dt, dt)
-    return ts, np.interp(ts, knots_t, knots_T)
+    """`(ts, chamber)`, s and °C, shapes `(times,)`: soak at `start` for `dwell` s, `rate`
+    °C/min down to `lo`, dwell, up to `hi`, dwell, back to `start`, dwell (the
+    one-rate `calibration_schedule` of `thermojax.measurements`)."""
+    from ..measurements._profiles import calibration_schedule
+
+    p = calibration_schedule(dt, lo, hi, (rate,), dwell, start, soak_s=dwell, end_c=start)
+    return np.array(p.ts), np.array(p.temperature)
 
 
 @dataclass(frozen=True)
