@@ -45,9 +45,9 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
       has its own initial state.
     - `likelihood`: `"output_error"` (truncated Gauss-Newton on free-run residuals
       weighted by each sensor's noise; estimated noise stds take their ML
-      values, iterated to convergence) or `"kalman"` (truncated Newton with exact
-      Hessians on the Kalman prediction-error likelihood, started from the
-      output-error fit).
+      values, iterated to convergence) or `"kalman"` (truncated Newton steps with the
+      Fisher information, i.e. scoring, on the Kalman prediction-error likelihood,
+      started from the output-error fit).
     - `solver`: default `TruncatedGaussNewton()` for output error and
       `TruncatedNewton()` for Kalman; an optimistix least-squares solver (output
       error) or minimiser (Kalman) may be passed instead.

@@ -1,8 +1,8 @@
 """What the data can and cannot tell: the Fisher information in plain words.
 
 The fit's parameters are logs of positive quantities, so the Fisher
-information `F` (Gauss-Newton `JᵀJ` of the weighted residuals, or the Hessian
-of the Kalman `-log L`) is scale-free: `1/sqrt(μ)` along an eigenvector is the
+information `F` (Gauss-Newton `JᵀJ` of the weighted residuals, or the Kalman
+likelihood's Fisher information from innovation sensitivities) is scale-free: `1/sqrt(μ)` along an eigenvector is the
 relative uncertainty of that combination of parameters. A direction whose
 relative std exceeds `max_log_std` (default 1: the data cannot pin it within
 a factor e ≈ 2.7) is unidentifiable; the parameters that make it up get no

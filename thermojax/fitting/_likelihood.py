@@ -63,6 +63,7 @@ class KalmanOutput(eqx.Module):
     m_pred: Float[Array, "times states"]  # prior mean at k (before the update)
     P_pred: Float[Array, "times states states"]
     sample_nll: Float[Array, " times"]  # each sample's term of `nll` (0 where unmeasured)
+    innovation_cov: Float[Array, "times outputs outputs"]  # S_k (identity rows where unmeasured)
 
 
 def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanOutput:
@@ -105,11 +106,11 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanO
         P_f = 0.5 * (P_f + P_f.T)
         m_next, F = transition(m_f, u_k, u_k1)
         P_next = F @ P_f @ F.T + Qd
-        out = (nll, e, jnp.sqrt(jnp.diag(S)) * mask_k, m_f, P_f, m, P)
+        out = (nll, e, jnp.sqrt(jnp.diag(S)) * mask_k, m_f, P_f, m, P, S)
         return (m_next, 0.5 * (P_next + P_next.T)), out
 
-    _, (nll, e, s, m_f, P_f, m_p, P_p) = jax.lax.scan(step, (m0, P0), (u, u_next, y, mask))
-    return KalmanOutput(jnp.sum(nll), e, s, m_f, P_f, m_p, P_p, nll)
+    _, (nll, e, s, m_f, P_f, m_p, P_p, S) = jax.lax.scan(step, (m0, P0), (u, u_next, y, mask))
+    return KalmanOutput(jnp.sum(nll), e, s, m_f, P_f, m_p, P_p, nll, S)
 
 
 def _transition(model, system, dt):

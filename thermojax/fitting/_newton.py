@@ -1,8 +1,9 @@
 """A damped, truncated Newton minimiser for likelihoods that are not sums of squares.
 
-The Kalman prediction-error likelihood (`log det S` terms) is minimised with
-its exact Hessian (forward-over-reverse autodiff: the fit has tens of
-parameters, so the Hessian costs a few gradients). Like `TruncatedGaussNewton`,
+The Kalman prediction-error likelihood (`log det S` terms) is minimised with a
+curvature matrix `H` from the caller: the Kalman stage passes the Fisher information
+from forward sensitivities (the method of scoring: positive semidefinite, equal to the
+Hessian's expectation, and a third of its compilation). Like `TruncatedGaussNewton`,
 the step is taken only along eigen-directions whose curvature exceeds
 `min_curvature` (with log-parameters, curvature 1 is a std of one log unit,
 a factor e): the identifiable part converges quadratically, directions the data
@@ -11,16 +12,21 @@ predicted decrease of `-log L` on the identifiable part. Negative curvature
 far from the optimum is taken by its magnitude; steps are damped as in
 Levenberg-Marquardt (Nielsen's update, starting nearly undamped: the Kalman fit
 starts at the output-error optimum) and capped at `max_step`.
+
+The iteration runs on the host around two compiled programs the caller passes:
+the value, gradient and curvature (the same program then gives the fit's final
+information matrix) and the value at trial points. A Newton loop compiled as one
+`while_loop` would be a third program as large as the curvature's, compiled anew for
+every model structure: on a CPU that compilation, not the steps, is the cost.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import equinox as eqx
-import jax
-import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float, Int
+import numpy as np
 
 
 class TruncatedNewton(eqx.Module):
@@ -35,69 +41,66 @@ class TruncatedNewton(eqx.Module):
     max_backtracks: int = eqx.field(static=True, default=30)
 
 
-class NewtonSolution(eqx.Module):
-    """What `newton` returns: the parameters, `-log L` there, steps taken, convergence."""
+@dataclass(frozen=True)
+class NewtonSolution:
+    """What `newton` returns: the parameters (params,), `-log L` there, steps taken
+    (curvature evaluations), convergence."""
 
-    value: Float[Array, " params"]
-    loss: Float[Array, ""]
-    num_steps: Int[Array, ""]
-    converged: Bool[Array, ""]
+    value: np.ndarray
+    loss: float
+    num_steps: int
+    converged: bool
 
 
-def newton(fn: Callable, theta0: Float[Array, " params"], args,
-           solver: TruncatedNewton = TruncatedNewton(), max_steps=100) -> NewtonSolution:
-    """Minimise the scalar `fn(theta, args)` from `theta0` (params,) in at most `max_steps`
-    Newton steps (an int or an integer array: a traced limit does not recompile). Pure
-    and jittable."""
+def newton(value_grad_curvature: Callable, value: Callable, theta0,
+           solver: TruncatedNewton = TruncatedNewton(), max_steps: int = 100
+           ) -> NewtonSolution:
+    """Minimise from `theta0` (params,) in at most `max_steps` Newton steps.
+
+    `value_grad_curvature(theta) -> (f, g, H)` and `value(theta) -> f` evaluate the
+    objective (compiled once per structure by the caller); a non-finite `f` at a trial
+    point counts as infinite."""
 
     def loss_of(theta):
-        v = fn(theta, args)
-        return jnp.where(jnp.isfinite(v), v, jnp.inf)
+        v = float(value(theta))
+        return v if np.isfinite(v) else np.inf
 
-    def cond(carry):
-        return (carry[2] < max_steps) & ~carry[3]
-
-    def body(carry):
-        theta, loss, k, _, _, lam = carry
-        g = jax.grad(fn)(theta, args)
-        H = jax.hessian(fn)(theta, args)
-        mu, V = jnp.linalg.eigh(0.5 * (H + H.T))
-        curv = jnp.abs(mu)
+    theta = np.array(theta0, float)
+    lam, k, converged = 1e-3, 0, False
+    loss, g, H = _evaluate(value_grad_curvature, theta)
+    while k < max_steps:
+        mu, V = np.linalg.eigh(0.5 * (H + H.T))
+        curv = np.abs(mu)
         keep = curv > solver.min_curvature
-        Vg = jnp.where(keep, V.T @ g, 0.0)
-        predicted_newton = 0.5 * jnp.sum(jnp.where(keep, Vg ** 2 / jnp.where(keep, curv, 1.0),
-                                                   0.0))
-        done = predicted_newton < solver.tol
+        Vg = np.where(keep, V.T @ g, 0.0)
+        k += 1
+        if 0.5 * np.sum(Vg[keep] ** 2 / curv[keep]) < solver.tol:
+            converged = True
+            break
 
         def trial(lam):
-            coef = jnp.where(keep, Vg / (curv + lam), 0.0)
-            dx = -(V @ coef)
-            size = jnp.max(jnp.abs(dx))
-            dx = dx * jnp.minimum(1.0, solver.max_step / jnp.maximum(size, 1e-300))
+            dx = -(V @ np.where(keep, Vg / (curv + lam), 0.0))
+            dx = dx * min(1.0, solver.max_step / max(np.max(np.abs(dx)), 1e-300))
             predicted = -(g @ dx + 0.5 * dx @ (H @ dx))
             new = loss_of(theta + dx)
-            return dx, new, (loss - new) / jnp.maximum(jnp.abs(predicted), 1e-300)
-
-        def ls_cond(c):
-            return (c[2] <= 0) & (c[5] < solver.max_backtracks)
-
-        def ls_body(c):
-            _, _, _, lam, nu, j = c
-            lam = lam * nu
-            dx, new, rho = trial(lam)
-            return dx, new, rho, lam, 2 * nu, j + 1
+            return dx, new, (loss - new) / max(abs(predicted), 1e-300)
 
         dx, new, rho = trial(lam)
-        dx, new, rho, lam, _, _ = jax.lax.while_loop(
-            ls_cond, ls_body, (dx, new, rho, lam, 2.0 * jnp.ones(()), jnp.zeros((), int)))
-        better = (rho > 0) & ~done
-        lam = jnp.where(better, lam * jnp.maximum(1 / 3, 1 - (2 * jnp.minimum(rho, 1.0) - 1) ** 3),
-                        lam)
-        theta = jnp.where(better, theta + dx, theta)
-        loss = jnp.where(better, new, loss)
-        return theta, loss, k + 1, done | ~better, done, lam
+        nu = 2.0
+        for _ in range(solver.max_backtracks):
+            if rho > 0:
+                break
+            lam *= nu
+            nu *= 2
+            dx, new, rho = trial(lam)
+        if not rho > 0:
+            break
+        lam *= max(1 / 3, 1 - (2 * min(rho, 1.0) - 1) ** 3)
+        theta = theta + dx
+        loss, g, H = _evaluate(value_grad_curvature, theta)
+    return NewtonSolution(theta, float(loss), k, converged)
 
-    false = jnp.zeros((), bool)
-    init = (theta0, loss_of(theta0), jnp.zeros((), int), false, false, jnp.full((), 1e-3))
-    theta, loss, k, _, converged, _ = jax.lax.while_loop(cond, body, init)
-    return NewtonSolution(theta, loss, k, converged)
+
+def _evaluate(value_grad_curvature, theta):
+    f, g, H = value_grad_curvature(theta)
+    return float(f), np.asarray(g, float), np.asarray(H, float)
