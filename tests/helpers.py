@@ -172,14 +172,23 @@ def np_discretize(A, B, dt, holds):
     return Phi, G0 - B1, B1
 
 
-def np_van_loan(A, Qc, dt):
-    """`Qd = ∫0^dt e^{As} Qc e^{Aᵀs} ds` by adaptive quadrature (`scipy.integrate.quad_vec`)."""
+def np_van_loan(A, Qc, dt, method="quad"):
+    """`Qd = ∫0^dt e^{As} Qc e^{Aᵀs} ds`, (n, n), for `A` (n, n) 1/s, `Qc` (n, n) °C²/s:
+    by adaptive quadrature (`scipy.integrate.quad_vec`, `method="quad"`) or by Van Loan's
+    block exponential `expm([[-A, Qc], [0, Aᵀ]] dt)` (`"expm"`: fast, for optimizer loops)."""
     import scipy.integrate
     import scipy.linalg
 
-    Qd, _ = scipy.integrate.quad_vec(
-        lambda s: (lambda E: E @ Qc @ E.T)(scipy.linalg.expm(A * s)), 0.0, dt,
-        epsabs=1e-16, epsrel=1e-12)
+    if method == "expm":
+        n = A.shape[0]
+        M = np.zeros((2 * n, 2 * n))
+        M[:n, :n], M[:n, n:], M[n:, n:] = -A * dt, Qc * dt, A.T * dt
+        F = scipy.linalg.expm(M)
+        Qd = F[n:, n:].T @ F[:n, n:]
+    else:
+        Qd, _ = scipy.integrate.quad_vec(
+            lambda s: (lambda E: E @ Qc @ E.T)(scipy.linalg.expm(A * s)), 0.0, dt,
+            epsabs=1e-16, epsrel=1e-12)
     return 0.5 * (Qd + Qd.T)
 
 
@@ -201,6 +210,65 @@ def np_simulate(A, B, Cy, x0, U, dt, holds, Qd=None, rng=None):
 def np_steady(A, B, u0):
     """Equilibrium `x` with `A x + B u0 = 0`."""
     return np.linalg.solve(A, -B @ u0)
+
+
+def np_kalman(mm, U, Y, dt, m0, P0=None, *, mask=None, offset=None, van_loan="quad"):
+    """The reference continuous-discrete Kalman filter (docs/formats.md §2): update before
+    predict, every measured sample included (the first too), exact-hold sampling
+    (`np_discretize`), Van Loan process noise (`np_van_loan`), the textbook update
+    `P − K S Kᵀ` and `−log L = Σ_k ½ (log det(2π S_k) + e_kᵀ S_k⁻¹ e_k)` over measured rows.
+
+    - `mm`: dict with `A` (n, n) 1/s, `B` (n, inputs), `Cy` (sensors, n), `holds`, `q`
+      (n,) process-noise diffusion stds °C/√s, `noise` (sensors,) sensor stds °C, and
+      `initial_std` (n,) °C unless `P0` is given: `model_matrices` gives them all.
+    - `U` (T, inputs); `Y` (T, sensors) °C, NaN where dropped; `dt` s.
+    - `m0` (n,) initial mean °C; `P0` (n, n) °C² (default `diag(initial_std²)`).
+    - `mask` (T, sensors) bool, measured samples (default `isfinite(Y)`); `offset`
+      (sensors,) °C, the outputs are `Cy x + offset`; `van_loan`: `np_van_loan`'s method.
+
+    Returns a dict: `m_pred`, `m_filt` (T, n) and `P_pred`, `P_filt` (T, n, n), before and
+    after each sample's update; `innovations`, `innovation_std` (T, sensors) °C, 0 where
+    not measured; `nll_terms` (T,) `−log p(y_k | y_<k)`; `nll` their sum; `Phi` (n, n).
+    """
+    A, B, Cy = (np.asarray(mm[k], float) for k in ("A", "B", "Cy"))
+    U, Y = np.asarray(U, float), np.asarray(Y, float)
+    (T, p), n = Y.shape, A.shape[0]
+    mask = np.isfinite(Y) if mask is None else np.asarray(mask, bool)
+    y_off = np.zeros(p) if offset is None else np.asarray(offset, float)
+    Phi, B0, B1 = np_discretize(A, B, dt, mm["holds"])
+    Qd = np_van_loan(A, np.diag(np.asarray(mm["q"], float) ** 2), dt, method=van_loan)
+    r = np.asarray(mm["noise"], float) ** 2
+    drive = U @ B0.T + np.concatenate([U[1:], U[-1:]]) @ B1.T  # (T, n): u[T] := u[T-1]
+    m = np.array(m0, float)
+    P = np.diag(np.asarray(mm["initial_std"], float) ** 2) if P0 is None else np.array(P0, float)
+    out = {"m_pred": np.zeros((T, n)), "m_filt": np.zeros((T, n)),
+           "P_pred": np.zeros((T, n, n)), "P_filt": np.zeros((T, n, n)),
+           "innovations": np.zeros((T, p)), "innovation_std": np.zeros((T, p)),
+           "nll_terms": np.zeros(T)}
+    seen, full = mask.any(axis=1), mask.all(axis=1)
+    R = np.diag(r)
+    for k in range(T):
+        out["m_pred"][k], out["P_pred"][k] = m, P
+        if seen[k]:
+            obs = mask[k]
+            H, Rk = (Cy, R) if full[k] else (Cy[obs], R[np.ix_(obs, obs)])
+            S = H @ P @ H.T + Rk
+            S_inv = np.linalg.inv(S)
+            e = Y[k, obs] - H @ m - y_off[obs]
+            logdet = np.log(np.linalg.det(2 * np.pi * S))  # S is positive definite
+            out["nll_terms"][k] = 0.5 * (logdet + e @ S_inv @ e)
+            K = P @ H.T @ S_inv
+            m = m + K @ e
+            P = P - K @ S @ K.T
+            P = 0.5 * (P + P.T)
+            out["innovations"][k, obs] = e
+            out["innovation_std"][k, obs] = np.sqrt(np.diag(S))
+        out["m_filt"][k], out["P_filt"][k] = m, P
+        m = Phi @ m + drive[k]
+        P = Phi @ P @ Phi.T + Qd
+        P = 0.5 * (P + P.T)
+    out.update(nll=float(np.sum(out["nll_terms"])), Phi=Phi)
+    return out
 
 
 # ---------------------------------------------------------------------------

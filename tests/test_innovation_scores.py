@@ -20,7 +20,7 @@ from thermojax.measurements._data import Dataset, Experiment
 from thermojax.model import ThermalModel
 from thermojax.model._model_file import parse_model
 
-from helpers import np_discretize, np_van_loan
+from helpers import np_discretize, np_kalman
 
 DT, N = 60.0, 240
 C_A, C_B, G_AB, G_OUT, NOISE, Q = 4000.0, 20000.0, 15.0, 8.0, 0.05, (0.002, 0.004)
@@ -61,26 +61,18 @@ def network(extra: float = 0.0):
 
 
 def numpy_filter(U, Y, mask, extra=0.0, terms=False):
-    """Standardized innovations of the continuous-discrete filter (update before
-    predict, P0 = I, mean from the steady state of the first input); with `terms`, each
-    sample's −log p(y_k | y_<k) instead."""
+    """Standardized innovations (T,) of `helpers.np_kalman` on `Y` (T,) °C where `mask`
+    (T,) (P0 = I °C², mean from the steady state of the first input; 0 where not
+    measured); with `terms`, each sample's −log p(y_k | y_<k) instead."""
     A, B = network(extra)
-    Phi, B0, B1 = np_discretize(A, B, DT, ("foh", "zoh", "zoh"))
-    Qd = np_van_loan(A, np.diag(np.square(Q)), DT)
-    m, P = np.linalg.solve(A, -B @ U[0]), np.eye(2)
-    out = np.zeros(len(Y))
-    for k in range(len(Y)):
-        if mask[k]:
-            S = P[0, 0] + NOISE ** 2
-            e = Y[k] - m[0]
-            out[k] = 0.5 * (np.log(2 * np.pi * S) + e * e / S) if terms else e / np.sqrt(S)
-            K = P[:, 0] / S
-            m = m + K * e
-            P = P - np.outer(K, K) * S
-        u1 = U[k + 1] if k + 1 < len(U) else U[k]
-        m = Phi @ m + B0 @ U[k] + B1 @ u1
-        P = Phi @ P @ Phi.T + Qd
-    return out
+    mm = dict(A=A, B=B, Cy=np.array([[1.0, 0.0]]), holds=("foh", "zoh", "zoh"),
+              q=np.array(Q), noise=np.array([NOISE]))
+    ref = np_kalman(mm, U, Y[:, None], DT, np.linalg.solve(A, -B @ U[0]), np.eye(2),
+                    mask=mask[:, None])
+    if terms:
+        return ref["nll_terms"]
+    std = np.where(mask, ref["innovation_std"][:, 0], 1.0)
+    return ref["innovations"][:, 0] / std
 
 
 def free_run(U, extra=0.0, x0=None):

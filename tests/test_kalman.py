@@ -1,7 +1,7 @@
 """The Kalman likelihood (`kalman_run`, `kalman_nll`) and the RTS smoother against NumPy.
 
-The reference is a continuous-discrete Kalman filter written here in plain NumPy
-from the definition in formats spec §2 ("Likelihood"):
+The reference is the continuous-discrete Kalman filter of `helpers.np_kalman`, plain
+NumPy from the definition in formats spec §2 ("Likelihood"):
 
 - matrices from the TOML file read by `tomllib` (`helpers.model_matrices`), never
   through `ThermalNetwork`;
@@ -28,8 +28,8 @@ from thermojax.measurements._data import Dataset, Experiment
 from thermojax.fitting._likelihood import kalman_nll, kalman_run, rts_smoother
 from thermojax.model._model import ThermalModel
 
-from helpers import (CONFIGS, model_matrices, np_discretize, np_simulate, np_steady,
-                     np_van_loan, rtd2h_kalman_fit)
+from helpers import (CONFIGS, model_matrices, np_kalman, np_simulate, np_steady, np_van_loan,
+                     rtd2h_kalman_fit)
 
 # float64 throughout; the reference's quad_vec Van Loan integral is good to ~1e-12
 # relative, and the two filters differ only by roundoff in a few hundred steps.
@@ -38,49 +38,6 @@ RTOL = 1e-9
 
 # ---------------------------------------------------------------------------------------------
 # The independent reference
-
-
-def np_kalman(mm, U, Y, dt, x0):
-    """NumPy continuous-discrete Kalman filter (update before predict).
-
-    `mm`: `helpers.model_matrices`; `U` (T, inputs); `Y` (T, sensors) with NaN for a
-    dropped sample; `x0` the initial mean. Returns a dict of per-sample arrays and `nll`.
-    """
-    A, B, Cy = mm["A"], mm["B"], mm["Cy"]
-    n, p = A.shape[0], Cy.shape[0]
-    Phi, B0, B1 = np_discretize(A, B, dt, mm["holds"])
-    Qd = np_van_loan(A, np.diag(mm["q"] ** 2), dt)
-    R = np.diag(mm["noise"] ** 2)
-    m, P = np.array(x0, float), np.diag(mm["initial_std"] ** 2)
-    T = U.shape[0]
-    out = {k: [] for k in ("m_pred", "P_pred", "m_filt", "P_filt")}
-    innov, innov_std = np.zeros((T, p)), np.zeros((T, p))
-    nll = 0.0
-    for k in range(T):
-        out["m_pred"].append(m.copy())
-        out["P_pred"].append(P.copy())
-        obs = np.flatnonzero(np.isfinite(Y[k]))
-        if obs.size:
-            H = Cy[obs]
-            S = H @ P @ H.T + R[np.ix_(obs, obs)]
-            e = Y[k, obs] - H @ m
-            _, logdet = np.linalg.slogdet(2 * np.pi * S)
-            nll += 0.5 * (logdet + e @ np.linalg.solve(S, e))
-            K = P @ H.T @ np.linalg.inv(S)
-            m = m + K @ e
-            P = P - K @ S @ K.T
-            P = 0.5 * (P + P.T)
-            innov[k, obs] = e
-            innov_std[k, obs] = np.sqrt(np.diag(S))
-        out["m_filt"].append(m.copy())
-        out["P_filt"].append(P.copy())
-        u_next = U[k + 1] if k + 1 < T else U[k]
-        m = Phi @ m + B0 @ U[k] + B1 @ u_next
-        P = Phi @ P @ Phi.T + Qd
-        P = 0.5 * (P + P.T)
-    ref = {k: np.array(v) for k, v in out.items()}
-    ref.update(nll=nll, innovations=innov, innovation_std=innov_std, Phi=Phi)
-    return ref
 
 
 def np_rts(ref):

@@ -3,25 +3,24 @@ item 2).
 
 A building-like three-node model sampled every 300 s: wall, air and floor, one sensor
 on the air, the floor unmeasured, process noise on the air only (truly zero on the wall
-and the floor). The reference optimum comes from an independent NumPy Kalman filter
-(exact sampling by `scipy.linalg.expm`, Van Loan's block exponential, update before
-predict, the definitions of docs/formats.md §2) maximised by SciPy: L-BFGS-B on a
-parameterization that includes zero (process-noise stds bounded below by 0), then
-Nelder–Mead. `fit` must reach within 0.05 of its log-likelihood.
+and the floor). The reference optimum comes from the independent NumPy Kalman filter
+`helpers.np_kalman` (exact sampling by `scipy.linalg.expm`, Van Loan's block
+exponential, update before predict, the definitions of docs/formats.md §2) maximised by
+SciPy: L-BFGS-B on a parameterization that includes zero (process-noise stds bounded
+below by 0), then Nelder–Mead. `fit` must reach within 0.05 of its log-likelihood.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import scipy.linalg
 import scipy.optimize
 
 from thermojax.fitting._fit import fit
 from thermojax.measurements._data import Experiment
 from thermojax.model._model_file import parse_model
 
-from helpers import np_discretize
+from helpers import np_discretize, np_kalman, np_van_loan
 
 DT, N = 300.0, 500
 TRUTH = dict(c_wall=2e6, c_air=5e5, c_floor=4e6, g_wa=100.0, g_af=80.0, g_out=50.0,
@@ -72,36 +71,37 @@ def matrices(c_wall, c_air, c_floor, g_wa, g_af, g_out):
     return -K / c[:, None], G / c[:, None]
 
 
-def van_loan(A, q, dt):
-    """`Qd = ∫ e^{As} diag(q²) e^{Aᵀs} ds` by Van Loan's block exponential."""
-    n = A.shape[0]
-    M = np.zeros((2 * n, 2 * n))
-    M[:n, :n], M[:n, n:], M[n:, n:] = -A * dt, np.diag(q ** 2) * dt, A.T * dt
-    F = scipy.linalg.expm(M)
-    Qd = F[n:, n:].T @ F[:n, n:]
-    return 0.5 * (Qd + Qd.T)
-
-
 def numpy_nll(params, U, Y):
-    """−log L of the continuous-discrete filter (update before predict, P0 = I °C²,
-    mean from the steady state of the first input)."""
+    """−log L at `params` (J/K, W/K, sensor std °C, three process-noise stds °C/√s) of the
+    filter of `helpers.np_kalman` (P0 = I °C², mean from the steady state of the first
+    input, block-exponential Van Loan) written out for this one-sensor model: the SciPy
+    reference calls it thousands of times, at a third of the general filter's cost.
+    `reference_nll` is the general filter; the test checks that the two agree."""
     *phys, noise, q0, q1, q2 = params
     A, B = matrices(*phys)
     Phi, B0, B1 = np_discretize(A, B, DT, HOLDS)
-    Qd = van_loan(A, np.array([q0, q1, q2]), DT)
+    Qd = np_van_loan(A, np.diag(np.square([q0, q1, q2])), DT, method="expm")
     m, P = np.linalg.solve(A, -B @ U[0]), np.eye(3)
+    drive = U @ B0.T + np.concatenate([U[1:], U[-1:]]) @ B1.T
     nll = 0.0
     for k in range(len(Y)):
         S = P[1, 1] + noise ** 2
         e = Y[k] - m[1]
         nll += 0.5 * (np.log(2 * np.pi * S) + e * e / S)
         K = P[:, 1] / S
-        m = m + K * e
-        P = P - np.outer(K, K) * S
-        u_next = U[k + 1] if k + 1 < len(U) else U[k]
-        m = Phi @ m + B0 @ U[k] + B1 @ u_next
-        P = Phi @ P @ Phi.T + Qd
+        m = Phi @ (m + K * e) + drive[k]
+        P = Phi @ (P - np.outer(K, K) * S) @ Phi.T + Qd
     return nll
+
+
+def reference_nll(params, U, Y):
+    """`numpy_nll` by the general reference filter `helpers.np_kalman`."""
+    *phys, noise, q0, q1, q2 = params
+    A, B = matrices(*phys)
+    mm = dict(A=A, B=B, Cy=np.array([[0.0, 1.0, 0.0]]), holds=HOLDS,
+              q=np.array([q0, q1, q2]), noise=np.array([noise]))
+    return np_kalman(mm, U, Y[:, None], DT, np.linalg.solve(A, -B @ U[0]), np.eye(3),
+                     van_loan="expm")["nll"]
 
 
 def make_data(seed=0):
@@ -113,7 +113,8 @@ def make_data(seed=0):
     A, B = matrices(*(TRUTH[k] for k in ("c_wall", "c_air", "c_floor", "g_wa", "g_af",
                                           "g_out")))
     Phi, B0, B1 = np_discretize(A, B, DT, HOLDS)
-    L = np.linalg.cholesky(van_loan(A, np.array(TRUTH["q"]), DT) + 1e-30 * np.eye(3))
+    Qd = np_van_loan(A, np.diag(np.square(TRUTH["q"])), DT, method="expm")
+    L = np.linalg.cholesky(Qd + 1e-30 * np.eye(3))
     x = np.linalg.solve(A, -B @ U[0])
     Y = np.empty(N)
     for k in range(N):
@@ -155,6 +156,10 @@ def test_kalman_fit_reaches_the_optimum_with_zero_process_noise():
                                      "sensors.T_air.noise", "nodes.wall.process_noise",
                                      "nodes.air.process_noise", "nodes.floor.process_noise")]
     assert numpy_nll(mine, U, Y) == pytest.approx(result.nll, abs=1e-3)
+    # the one-sensor recursion is the general reference filter
+    ref_params = [*np.exp(ref.x[:7]), *ref.x[7:]]
+    for params in (mine, ref_params):
+        assert numpy_nll(params, U, Y) == pytest.approx(reference_nll(params, U, Y), abs=1e-8)
     # a process noise whose optimum is zero is reported at its bound, not as a tiny std
     for name in ("nodes.wall.process_noise", "nodes.floor.process_noise"):
         if p[name].get("at_bound"):
