@@ -181,12 +181,15 @@ def test_investigate_negative_max_steps(capsys, tmp_path, shock_csv):
 # Ctrl-C
 
 
-def interrupt_after(argv, seconds, tmp_path):
-    """Start `thermojax argv...` as a real process, send SIGINT after `seconds`."""
+def interrupt_after(argv, seconds, tmp_path, until=None):
+    """Start `thermojax argv...` as a real process, send SIGINT after `seconds` (or, with
+    `until` a path, as soon as that file appears, `seconds` at most)."""
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     proc = subprocess.Popen([sys.executable, "-m", "thermojax", *map(str, argv)], cwd=tmp_path,
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(seconds)
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline and not (until is not None and until.is_file()):
+        time.sleep(0.2)
     assert proc.poll() is None, proc.communicate()  # still working when interrupted
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=120)
@@ -206,23 +209,28 @@ def test_ctrl_c_during_fit_exits_130_and_writes_nothing(tmp_path, shock_csv):
 
 @pytest.mark.slow
 def test_ctrl_c_during_investigate_exits_130_and_resumes(tmp_path):
-    """The chain3 demo data: step 0 and the first added effect take a few seconds each;
-    an interrupt keeps the finished steps and a rerun resumes from them."""
+    """The chain3 demo data, cut to their first 1500 samples: step 0 takes a few seconds
+    after compilation and the first added effect about a minute; an interrupt keeps the
+    finished steps and a rerun resumes from them."""
     from thermojax.cli import demo_runs
     from thermojax.measurements import write_telemetry
 
+    n = 1500
     paths = []
     for i, (ts, columns) in enumerate(demo_runs()):
-        paths.append(write_telemetry(tmp_path / f"run{i}.csv", ts, columns))
+        paths.append(write_telemetry(tmp_path / f"run{i}.csv", ts[:n],
+                                     {k: v[:n] for k, v in columns.items()}))
     model = ROOT / "thermojax" / "data" / "chain3.toml"
     out = tmp_path / "inv"
     argv = ["investigate", "--model", model, *sum((["--data", p] for p in paths), []),
-            "--out", out, "--max-steps", "2"]
-    rc, _, err = interrupt_after(argv, 25, tmp_path)
+            "--out", out, "--max-steps", "1"]
+    # interrupted as soon as step 1 is checkpointed (while the report and plots are written)
+    rc, _, err = interrupt_after(argv, 300, tmp_path, until=out / "checkpoint.json")
     assert rc == 130, err
     assert "Traceback" not in err and "interrupted" in err
     assert (out / ".thermojax").is_file()
     finished = (out / "checkpoint.json").is_file()
+    assert finished
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     proc = subprocess.run([sys.executable, "-m", "thermojax", *map(str, argv)], cwd=tmp_path,
                           env=env, capture_output=True, text=True, timeout=900)
