@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 from scipy import stats
 
@@ -38,6 +40,12 @@ def pooled_autocorrelation(runs: list[np.ndarray], max_lag: int) -> tuple[np.nda
             if k < len(x):
                 num[k - 1] += float(x[k:] @ x[:-k])
     return (num / den if den > 0 else np.zeros(max_lag)), n_total
+
+
+def newey_west_lags(n: int) -> int:
+    """The Newey-West (1994) rule-of-thumb truncation lag `⌊4 (n/100)^(2/9)⌋` for a
+    sequence of `n` samples."""
+    return int(math.floor(4.0 * (max(n, 1) / 100.0) ** (2.0 / 9.0)))
 
 
 def default_lags(n: int) -> int:
@@ -169,11 +177,11 @@ def long_run_variance_ratio(runs: list[np.ndarray], bandwidth: int | None = None
 
     A χ² statistic built from autocorrelated residuals is too large by about this factor
     (the effective sample is smaller than the sample count); dividing by it deflates it.
-    `bandwidth` L defaults to `⌊4 (N/100)^{2/9}⌋` (Newey & West 1994), at least 1."""
+    `bandwidth` L defaults to `newey_west_lags(N)`, at least 1."""
     n = sum(int(np.isfinite(np.asarray(r, float)).sum()) for r in runs)
     if n < 3:
         return 1.0
-    lag = max(1, int(4 * (n / 100.0) ** (2.0 / 9.0))) if bandwidth is None else int(bandwidth)
+    lag = max(1, newey_west_lags(n)) if bandwidth is None else int(bandwidth)
     rho, _ = pooled_autocorrelation(runs, lag)
     k = np.arange(1, lag + 1)
     ratio = 1.0 + 2.0 * float(np.sum((1.0 - k / (lag + 1.0)) * rho))

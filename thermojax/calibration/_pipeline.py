@@ -294,6 +294,11 @@ def experiments(runs: list[ConditionedRun], spec) -> list:
                        if spec.biases else None) for r in runs]
 
 
+# lag-1 autocorrelation of a column's weighted residuals above which the thermal fit says
+# the model misses content between samples (filtered white noise stays near 0.3)
+CORRELATED_RESIDUALS = 0.5
+
+
 def thermal_fit(runs: list[ConditionedRun], spec, config: CalibrationConfig, progress=None):
     """Stage (c): `thermojax.fit` (output error) of the model's free thermal parameters
     and its bias channels jointly on the calibration runs (every run, plateaus and
@@ -659,14 +664,27 @@ def run_pipeline(config, *, observer_dir=None, progress=None) -> CalibrationResu
             "jointly, output error)")
         res.fit = thermal_fit(cal, spec, config, progress=say)
         f = res.fit
+        from ..fitting._correlated_noise import correlated_noise_stds
+
+        hac = correlated_noise_stds(f) if len(f.theta) else None
         res.stages.append({
             "stage": "thermal_fit",
             "did": (f"thermojax.fit (output error) of the model's free parameters and its "
-                    f"{len(config.channels)} bias channels jointly on {len(cal)} runs"),
+                    f"{len(config.channels)} bias channels jointly on {len(cal)} runs; "
+                    "std_hac: the stds with the residuals' correlation in time (Newey-West"
+                    + (f", {hac.lags} lags)" if hac else ")")),
             "converged": bool(f.converged), "message": f.message, "n_steps": int(f.n_steps),
             "nll": float(f.nll), "n_params": int(f.n_params), "rmse": dict(f.rmse),
-            "parameters": {k: {"value": v["value"], "std": v["std"], "free": v.get("free")}
+            "residual_autocorrelation": hac.autocorrelation if hac else None,
+            "parameters": {k: {"value": v["value"], "std": v["std"], "free": v.get("free"),
+                               **({"std_hac": hac.stds[k]} if hac and k in hac.stds else {})}
                            for k, v in f.parameters.items()}})
+        for c, rho in (hac.autocorrelation.items() if hac else ()):
+            if rho > CORRELATED_RESIDUALS:
+                say(f"thermal_fit: the {c} residuals are correlated from sample to sample "
+                    f"(lag-1 autocorrelation {rho:.2f}): the model misses content between "
+                    f"samples at dt_s = {config.dt_s:g} s (fast input steps, a lag); quote "
+                    "std_hac, and a smaller dt_s reduces the misfit")
     if "coupling" in config.stages:
         res.coupling = coupling(res.fit, config.channels,
                                 max((r.noise_factor for r in cal), default=1.0))

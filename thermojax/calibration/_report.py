@@ -105,12 +105,17 @@ def report_markdown(res: CalibrationResults) -> str:
                              f"Birge ratio {p['birge_ratio']:.3g}): {terms} "
                              f"(per K^k about 25 °C)")
         elif st["stage"] == "thermal_fit":
+            rho = st.get("residual_autocorrelation") or {}
             lines += [f"{st['message']}, {st['n_steps']} steps, −log L {st['nll']:.2f}, "
-                      f"{st['n_params']} parameters.", "", "| parameter | value | std |",
-                      "|---|---|---|"]
+                      f"{st['n_params']} parameters. The std assumes independent samples; "
+                      "std with correlation is the Newey-West std, which holds when the "
+                      "residuals are correlated in time (lag-1 autocorrelation: "
+                      + ", ".join(f"{c} {v:.2f}" for c, v in rho.items()) + ").", "",
+                      "| parameter | value | std | std with correlation |", "|---|---|---|---|"]
             for name, p in st["parameters"].items():
                 if p.get("free", True):
-                    lines.append(f"| {name} | {_fmt(p['value'])} | {_fmt(p['std'])} |")
+                    lines.append(f"| {name} | {_fmt(p['value'])} | {_fmt(p['std'])} | "
+                                 f"{_fmt(p.get('std_hac'))} |")
         elif st["stage"] == "coupling":
             lines += ["| channel | " + " | ".join(st["regressors"]) + " |",
                       "|---" * (len(st["regressors"]) + 1) + "|"]
