@@ -49,13 +49,36 @@ def process_share() -> tuple[int, int]:
 
 
 def initialize_distributed() -> None:
-    """`jax.distributed.initialize()` when `THERMOJAX_DISTRIBUTED=1` (its coordinator,
-    process count and index from the usual `JAX_COORDINATOR_ADDRESS`, ... or a
-    cluster's environment, as `jax.distributed.initialize` detects them)."""
-    if os.environ.get("THERMOJAX_DISTRIBUTED"):
-        import jax
+    """`jax.distributed.initialize(...)` when `THERMOJAX_DISTRIBUTED=1`: the coordinator
+    from `JAX_COORDINATOR_ADDRESS` (`host:port`), the process count and this process's
+    index from `JAX_NUM_PROCESSES` and `JAX_PROCESS_ID` (JAX itself reads only the
+    first); whatever is unset, JAX detects from a cluster's environment (SLURM, Open
+    MPI, ...)."""
+    if not os.environ.get("THERMOJAX_DISTRIBUTED"):
+        return
+    import jax
 
-        jax.distributed.initialize()
+    given = {}
+    for var, key in (("JAX_NUM_PROCESSES", "num_processes"), ("JAX_PROCESS_ID", "process_id")):
+        text = os.environ.get(var)
+        if text is None:
+            continue
+        try:
+            given[key] = int(text)
+        except ValueError:
+            raise InputError(f"{var} must be a whole number, got {text!r}.", field=var) from None
+    n, i = given.get("num_processes"), given.get("process_id")
+    if n is not None and n < 1 or n is not None and i is not None and not 0 <= i < n:
+        raise InputError(f"JAX_PROCESS_ID {i} of JAX_NUM_PROCESSES {n}: expected "
+                         "0 <= id < count.", field="JAX_PROCESS_ID")
+    try:
+        jax.distributed.initialize(**given)
+    except (ValueError, RuntimeError) as err:
+        raise InputError(f"THERMOJAX_DISTRIBUTED is set but jax.distributed could not start: "
+                         f"{err} Set JAX_COORDINATOR_ADDRESS (host:port of process 0), "
+                         "JAX_NUM_PROCESSES and JAX_PROCESS_ID on every host, or run "
+                         "under a cluster JAX detects (SLURM, Open MPI).",
+                         field="THERMOJAX_DISTRIBUTED") from None
 
 
 def chunks_of_process(n_chunks: int, index: int, count: int) -> list[int]:
