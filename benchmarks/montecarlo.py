@@ -8,10 +8,13 @@ or a short profile with `--quick`), add sensor and bias-column noise, then fit t
 unit's 12 log-deviations (every capacitance and link conductance) by MAP output error:
 the readings / 0.01 °C, the bias column / its noise, the population's prior. Fitters:
 
-- thermojax: one compiled program for a chunk of units (`jax.vmap` of
-  `Study.calibration_data` and `Study.fit`: 20 Levenberg-Marquardt + 3 Gauss-Newton
-  steps, exact Jacobians by `jax.jacfwd`), the units axis sharded over the local
-  devices. Timed after a warm-up call (compilation reported separately). Also timed:
+- thermojax: one compiled program for a chunk of units (`Study.fit_units`: each unit's
+  `Study.calibration_data` and `Study.fit`, one unit after another on each device: a
+  trust-region Gauss-Newton run to convergence, exact Jacobians by the fitting stage's
+  forward sensitivities at accepted points only), the units axis sharded over the
+  local devices (`shard_map`). With `--batched`, `jax.vmap` of the same fit instead
+  (each iteration for the whole chunk until its slowest unit converges: the layout
+  for a GPU). Timed after a warm-up call (compilation reported separately). Also timed:
   the whole study per unit (`Study.compute_chunk`: the fit plus the test-profile
   simulation and three observers), from which a 10,000-unit study is extrapolated.
 - SciPy straightforward: per unit, `scipy.optimize.least_squares` (TRF, 2-point
@@ -28,7 +31,7 @@ timing again in subprocesses with `XLA_FLAGS=--xla_force_host_platform_device_co
 BLAS threads: one, as in `benchmarks/fit.py` (its docstring says why).
 
 Usage:  python benchmarks/montecarlo.py [--quick] [--chunk 32] [--straightforward-units 2]
-                                        [--expert-units 4] [--devices 1,2,4]
+                                        [--expert-units 4] [--devices 1,2,4] [--batched]
 """
 
 from __future__ import annotations
@@ -57,6 +60,7 @@ import jax.numpy as jnp  # noqa: E402
 
 import thermojax as tj  # noqa: E402
 from thermojax.montecarlo import load_config, sample_units, shard_units, units_mesh  # noqa: E402
+from thermojax.montecarlo._study import POLISH_STEPS  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fit import NumpyModel  # noqa: E402  (the fitting benchmark's SciPy side, reused)
@@ -81,22 +85,27 @@ def make_study(quick: bool):
 # thermojax
 
 
-def thermojax_programs(study, seed):
-    """`fit_program(logdev, units)`: calibration data and MAP fit of every unit (vmapped);
-    the full study per unit is `study.compute_chunk`."""
+def thermojax_programs(study, seed, mesh, batched: bool = False):
+    """`fit_program(logdev, units)`: calibration data and MAP fit of every unit
+    (`(logdev, log_std, rms, trials, jacobians)` per unit), one unit after another on each
+    device (or vmapped, `batched`); the full study per unit is `study.compute_chunk`."""
+    from jax.sharding import PartitionSpec as P
 
-    def one(d, u):
-        y, b = study.calibration_data(d, u, seed)
-        return study.fit(y, b)
+    if batched:
+        def one(d, u):
+            return study.fit(*study.calibration_data(d, u, seed), steps=True)
 
-    return jax.jit(jax.vmap(one))
+        return jax.jit(jax.vmap(one))
+    return jax.jit(jax.shard_map(lambda d, u: study.fit_units(d, u, seed, steps=True),
+                                 mesh=mesh, in_specs=(P("units"), P("units")),
+                                 out_specs=P("units"), check_vma=False))
 
 
-def time_thermojax(study, logdev, units, seed, repeats: int):
+def time_thermojax(study, logdev, units, seed, repeats: int, batched: bool = False):
     """Seconds: (compile + first call, best call) of the fit program and of the full study
     chunk, on this process's devices."""
     mesh = units_mesh()
-    fit_program = thermojax_programs(study, seed)
+    fit_program = thermojax_programs(study, seed, mesh, batched)
     args = shard_units((jnp.asarray(logdev), jnp.asarray(units, dtype=jnp.uint32)), mesh)
     t = time.perf_counter()
     out = jax.block_until_ready(fit_program(*args))
@@ -116,7 +125,9 @@ def time_thermojax(study, logdev, units, seed, repeats: int):
         study_best = min(study_best, time.perf_counter() - t)
     return {"fit_first": first, "fit_best": best, "study_first": study_first,
             "study_best": study_best, "devices": int(mesh.devices.size),
-            "fitted": np.asarray(out[0]), "std": np.asarray(out[1])}
+            "fitted": np.asarray(out[0]), "std": np.asarray(out[1]),
+            "rms": np.asarray(out[2]), "trials": np.asarray(out[3]),
+            "jacobians": np.asarray(out[4])}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -197,9 +208,10 @@ def worker(args):
     config, study = make_study(args.quick)
     units = np.arange(args.chunk)
     params = sample_units(config.spec, config.population, units, seed=config.seed)
-    got = time_thermojax(study, params.log_deviation, units, config.seed, args.repeats)
-    got.pop("fitted")
-    got.pop("std")
+    got = time_thermojax(study, params.log_deviation, units, config.seed, args.repeats,
+                         args.batched)
+    for key in ("fitted", "std", "rms", "trials", "jacobians"):
+        got.pop(key)
     print("RESULT " + json.dumps(got))
 
 
@@ -212,6 +224,8 @@ def main():
     ap.add_argument("--straightforward-units", type=int, default=None)
     ap.add_argument("--expert-units", type=int, default=None)
     ap.add_argument("--devices", default="1,2,4", help="forced host device counts to time")
+    ap.add_argument("--batched", action="store_true",
+                    help="thermojax: vmap the fits over the chunk (not one unit after another)")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--default-blas-threads", action="store_true",
                     help="do not set OPENBLAS_NUM_THREADS=1")
@@ -227,8 +241,9 @@ def main():
     T = len(study.ts_cal)
     print(f"six-node IMU, {len(study.names)} varied log-parameters ({config.population.preset} "
           f"preset + voids), calibration run {T} samples at {study.dt_cal:g} s "
-          f"({'quick profile' if args.quick else CONFIG.name}), {study.iterations} LM + 3 GN "
-          f"steps per thermojax fit")
+          f"({'quick profile' if args.quick else CONFIG.name}); thermojax fits to convergence, "
+          f"at most {study.iterations + POLISH_STEPS} steps"
+          f"{', vmapped over the chunk' if args.batched else ', one unit after another'}")
     units = np.arange(args.chunk)
     params = sample_units(config.spec, config.population, units, seed=config.seed)
 
@@ -240,7 +255,8 @@ def main():
         rows[kind] = out
         print(f"  scipy {kind}: {n} unit(s), " + ", ".join(f"{w:.2f} s ({nf} evaluations)"
                                                           for w, _, nf in out))
-    tjr = time_thermojax(study, params.log_deviation, units, config.seed, args.repeats)
+    tjr = time_thermojax(study, params.log_deviation, units, config.seed, args.repeats,
+                         args.batched)
     fit_rate = args.chunk / tjr["fit_best"]
     study_rate = args.chunk / tjr["study_best"]
     print(f"  thermojax, {args.chunk} units on {tjr['devices']} device(s): simulation + fit "
@@ -253,7 +269,11 @@ def main():
     print("Estimates: max over parameters of |fitted - true| / thermojax posterior std")
     z_tj = np.abs(tjr["fitted"] - params.log_deviation) / tjr["std"]
     print(f"  thermojax, {args.chunk} units: median {np.median(z_tj.max(axis=1)):.2f}, "
-          f"max {z_tj.max():.2f}")
+          f"max {z_tj.max():.2f}; per unit " + ", ".join(f"{v:.2f}" for v in z_tj.max(axis=1)))
+    print(f"  thermojax trial points per unit: {tjr['trials'].tolist()}; Jacobians (steps "
+          f"taken + 1, cap {study.iterations + POLISH_STEPS} steps): "
+          f"{tjr['jacobians'].tolist()}, mean {tjr['jacobians'].mean():.1f}; residual RMS "
+          f"{tjr['rms'].min():.3f}-{tjr['rms'].max():.3f} noise stds")
     for kind, out in rows.items():
         z = [np.max(np.abs(x - params.log_deviation[i]) / tjr["std"][i])
              for i, (_, x, _) in enumerate(out)]
@@ -263,7 +283,11 @@ def main():
     print("Per unit (seconds) and ratios, same run:")
     per_tj = 1.0 / fit_rate
     result = {"thermojax_s_per_unit": per_tj, "thermojax_units_per_s": fit_rate,
-              "study_units_per_s": study_rate, "devices": tjr["devices"]}
+              "study_units_per_s": study_rate, "devices": tjr["devices"],
+              "fit_compile_s": tjr["fit_first"], "study_compile_s": tjr["study_first"],
+              "trials_mean": float(tjr["trials"].mean()),
+              "jacobians_mean": float(tjr["jacobians"].mean()),
+              "z_max": float(z_tj.max()), "load_average": os.getloadavg()}
     for kind, out in rows.items():
         med = float(np.median([w for w, _, _ in out]))
         result[f"{kind}_s_per_unit"] = med
@@ -285,7 +309,8 @@ def main():
     for n in [int(x) for x in args.devices.split(",") if x]:
         env = {**os.environ, "XLA_FLAGS": f"--xla_force_host_platform_device_count={n}"}
         cmd = [sys.executable, __file__, "--worker", "--chunk", str(args.chunk), "--repeats",
-               str(args.repeats)] + (["--quick"] if args.quick else [])
+               str(args.repeats)] + (["--quick"] if args.quick else []) + (
+                   ["--batched"] if args.batched else [])
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
         line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
         if proc.returncode != 0 or not line:

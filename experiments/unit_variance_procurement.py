@@ -67,7 +67,7 @@ preset = "{preset}"
 {profile}
 
 [fit]
-iterations = 20
+iterations = 50
 bias_column = true
 batch_units = {batch}
 

@@ -340,19 +340,116 @@ def test_four_host_devices_equal_one(reference, env):
             np.testing.assert_allclose(b[key], a[key], rtol=tol, atol=tol, err_msg=key)
 
 
-def test_two_processes_share_the_chunks_then_merge(reference, env):
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("launch", ["environment", "jax.distributed"])
+def test_two_processes_share_the_chunks_then_merge(reference, env, launch):
+    """Two processes on this machine, each computing its share of the chunks into one
+    folder: told their share by THERMOJAX_PROCESS_INDEX/COUNT, or through a real
+    `jax.distributed` cluster (a coordinator on localhost, as on two hosts)."""
     folder, cfg, ref = reference
-    out = folder / "two"
+    out = folder / f"two_{launch.replace('.', '_')}"
+    port = free_port()
+
+    def share(i):
+        if launch == "environment":
+            return {"THERMOJAX_PROCESS_INDEX": str(i), "THERMOJAX_PROCESS_COUNT": "2"}
+        return {"THERMOJAX_DISTRIBUTED": "1", "JAX_COORDINATOR_ADDRESS": f"127.0.0.1:{port}",
+                "JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": str(i)}
+
     procs = [subprocess.Popen([sys.executable, "-m", "thermojax", "montecarlo", str(cfg),
                                "--out", str(out), "--quiet", "--resume"], cwd=ROOT,
-                              env={**env, "THERMOJAX_PROCESS_INDEX": str(i),
-                                   "THERMOJAX_PROCESS_COUNT": "2"},
+                              env={**env, **share(i)},
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for i in range(2)]
-    for p in procs:
-        _, err = p.communicate(timeout=300)
+    outs = [p.communicate(timeout=300) for p in procs]
+    for p, (stdout, err) in zip(procs, outs):
         assert p.returncode == 0, err
+    # each process computed its own two chunks (c mod 2 = its index)
+    assert all("2 chunk(s)" in o for o, _ in outs), outs
     merged = cli([str(cfg), "--out", str(out), "--resume"], env)
     assert main_ok(merged) and "0 chunk(s) computed, 4 resumed" in merged.stdout
     assert chunk_bytes(out) == chunk_bytes(ref)
     assert (out / "report.json").is_file()
+
+
+@pytest.mark.parametrize("fit_bias", [False, True])
+def test_fit_jacobian_equals_jacfwd(spec, fit_bias):
+    """The fit's forward-sensitivity residuals and Jacobian (`Study._fit_evaluate`)
+    against `jax.jacfwd` of the study's own simulation residuals (`Study._residuals`:
+    `ExactHold`'s blocked hold and the bias channel on every node), at a unit away from
+    the nominal model, with and without the bias column; and the fit runs on both."""
+    import jax
+    import jax.numpy as jnp
+
+    from thermojax.montecarlo import Study, log_prior, varied_names
+
+    pop = preset_population(spec, "bare_die_custom")
+    profile = {"lo": 10.0, "hi": 40.0, "rate": 20.0, "dwell": 60.0, "dt": 2.0, "power": 0.05}
+    study = Study(spec, varied_names(pop), profile, prior=log_prior(pop), fit_bias=fit_bias)
+    assert study.fit_bias == fit_bias
+    k = len(study.names)
+    truth = jnp.asarray(np.linspace(-0.2, 0.25, k))
+    y, b = jax.jit(study.calibration_data)(truth, 3, 0)
+    d = truth + 0.05 * jnp.cos(jnp.arange(k))
+
+    def reference(d):
+        r, r_prior = study._residuals(d, y, b)
+        return jnp.concatenate([r, r_prior])
+
+    def ours(d):
+        r_y, r_b, r_prior, (J_y, J_b) = study._fit_evaluate(d, y[None], b[None])
+        bias = (r_b[0],) if fit_bias else ()
+        r = jnp.concatenate([r_y[0].ravel(), *bias, r_prior])
+        bias = (J_b,) if fit_bias else ()
+        J = jnp.concatenate([J_y.reshape(-1, k), *bias, jnp.asarray(study.prior[1])])
+        return r, J
+
+    J_ref = np.asarray(jax.jit(jax.jacfwd(reference))(d))
+    r_ref = np.asarray(reference(d))
+    r, J = map(np.asarray, jax.jit(ours)(d))
+    assert J.shape == J_ref.shape == (y.size + (b.size if fit_bias else 0) + k, k)
+    # float64 roundoff: residuals of ~10 noise stds from ~30 °C / 0.01 °C readings,
+    # Jacobian columns relative to each column's largest entry
+    np.testing.assert_allclose(r, r_ref, rtol=0, atol=1e-9)
+    scale = np.abs(J_ref).max(axis=0)
+    assert np.all(scale > 0)
+    err = np.abs(J - J_ref).max(axis=0) / scale
+    assert err.max() < 1e-10, err
+    got, std, rms = map(np.asarray, jax.jit(study.fit)(y, b))
+    assert np.all(np.isfinite(got)) and np.all(std > 0) and abs(float(rms) - 1.0) < 0.15
+
+
+def test_fit_converges_from_far_and_stops_early(spec):
+    """A unit many prior stds from the nominal model: the trust-region fit converges
+    (stops on its step tolerance well before the cap) to the same estimate from the
+    prior mean and from the truth, and that estimate lies within a few posterior stds
+    of the truth."""
+    import jax
+    import jax.numpy as jnp
+
+    from thermojax.montecarlo import Study, log_prior, varied_names
+
+    pop = preset_population(spec, "bare_die_custom")
+    profile = {"lo": 0.0, "hi": 40.0, "rate": 20.0, "dwell": 60.0, "dt": 2.0, "power": 0.05}
+    study = Study(spec, varied_names(pop), profile, prior=log_prior(pop), iterations=60)
+    k = len(study.names)
+    truth = jnp.asarray(0.4 * np.sin(np.arange(k) + 1.0))  # up to 2 population stds
+    y, b = jax.jit(study.calibration_data)(truth, 5, 0)
+    d, std, rms, trials, jacobians = map(np.asarray, jax.jit(
+        lambda y, b: study.fit(y, b, steps=True))(y, b))
+    # converged on its tolerance, far below the cap of 63 steps (9 Jacobians here)
+    assert 1 <= jacobians <= min(20, trials + 1)
+    np.testing.assert_allclose(rms, 1.0, atol=0.1)
+    ident = std < 0.05
+    assert ident.sum() >= 6
+    assert np.all(np.abs(d - np.asarray(truth))[ident] < 4 * std[ident])
+    # the minimum, not where the iterations happened to stop: from the truth, the same
+    d2 = np.asarray(jax.jit(lambda y, b: study.fit(y, b, start=truth))(y, b)[0])
+    assert np.abs((d2 - d) / std).max() < 3e-4  # the fit's tolerance: 1e-4 stds

@@ -18,9 +18,15 @@ from .._errors import InputError
 #: `THERMOJAX_MONTECARLO_PAUSE=S`: sleep S seconds after each chunk (tests interrupt runs).
 _PAUSE = os.environ.get("THERMOJAX_MONTECARLO_PAUSE")
 
-#: `[fit]` keys and defaults: Levenberg-Marquardt iterations per unit, fit the measured
-#: bias column too, units in the batch model's pooled fit (0: no batch method).
-FIT_KEYS = {"iterations": 20, "bias_column": True, "batch_units": 0}
+#: `[fit]` keys and defaults: the cap on each unit's trust-region Gauss-Newton steps
+#: (`iterations` + 3; a unit stops earlier when it converges), fit the measured bias
+#: column too, units in the batch model's pooled fit (0: no batch method).
+FIT_KEYS = {"iterations": 50, "bias_column": True, "batch_units": 0}
+
+#: The per-unit fit's method, hashed into the manifest so that a folder of chunks from
+#: another method is never resumed into: 1 = 20 Levenberg-Marquardt + 3 Gauss-Newton
+#: steps vmapped over a chunk; 2 = trust-region Gauss-Newton to convergence per unit.
+STUDY_VERSION = 2
 
 PROFILE_KEYS = {"lo": None, "hi": None, "rate": None, "dwell": None, "dt": None,
                 "power": 0.0, "start": 25.0}
@@ -50,7 +56,8 @@ class MonteCarloConfig:
                 "population": _jsonable(self.population.describe()),
                 "n_units": self.n_units, "chunk_size": self.chunk_size, "seed": self.seed,
                 "profile": self.profile, "bias": self.bias, "sensor_noise": self.sensor_noise,
-                "calibration": self.calibration, "fit": self.fit}
+                "calibration": self.calibration, "fit": self.fit,
+                "study_version": STUDY_VERSION}
 
 
 def _jsonable(x):

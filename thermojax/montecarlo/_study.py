@@ -21,12 +21,13 @@ the units of a chunk:
    the test profile again, with its own noise: sensor readings and, unless switched
    off, the measured bias column with the channel's `noise` std and its known
    coefficients) by a MAP output-error fit of its varied log-parameters, then
-   compensated with the observer of its fitted model. The fit is a damped Gauss-Newton
-   (Levenberg-Marquardt) with a fixed number of iterations from the nominal model,
-   exact Jacobians by `jax.jacfwd` through the simulation; the population is its
-   Gaussian prior on the log-deviations (mean, covariance), so directions the data do
-   not determine stay at the prior. Traceable, so it vmaps: one compiled program
-   fits every unit of a chunk;
+   compensated with the observer of its fitted model. The fit is a trust-region
+   Gauss-Newton from the nominal model, run per unit until it converges (`Study.fit`),
+   with exact Jacobians by the fitting stage's forward sensitivities through the blocked
+   simulation (`_sensitivity.run_tangents`; equal to `jax.jacfwd` to roundoff); the
+   population is its Gaussian prior on the log-deviations (mean, covariance), so
+   directions the data do not determine stay at the prior. Traceable: one compiled
+   program fits every unit of a chunk, one after another on each device;
 5. **batch** (when the study has a batch model, `fit.batch_units > 0`): one parameter
    set for every unit, the same MAP fit pooled over the calibration runs of a sample of
    units (batch-level default matrices fitted to a sample), compensated like nominal.
@@ -38,10 +39,11 @@ sensitivity ranking (least-squares regression of the nominal method's peak bias 
 on the standardized log-deviations of the varied parameters, with the correlations).
 
 The fitted method's per-unit extras: `fitted_log_deviation` and `fitted_log_std`
-(units, parameters: the MAP estimate and its posterior std from the last Gauss-Newton
-Hessian), `fit_param_rms` (RMS of fitted minus true log-deviation, over the varied
-parameters) and `fit_rms` (RMS of the calibration residuals in noise stds; about 1 when
-the fit converged).
+(units, parameters: the MAP estimate and its posterior std from the Gauss-Newton
+Hessian there), `fit_param_rms` (RMS of fitted minus true log-deviation, over the varied
+parameters), `fit_rms` (RMS of the calibration residuals in noise stds; about 1 when
+the fit converged) and `fit_steps` (the Gauss-Newton steps it took; above
+`iterations + POLISH_STEPS - 1` only when it stopped at that cap, not converged).
 """
 
 from __future__ import annotations
@@ -58,7 +60,11 @@ METHODS = {"nominal": "nominal model (batch-level default observer)",
            "fitted": "unit's own identified model (per-unit calibration)",
            "own": "unit's own true model (ideal per-unit calibration bound)"}
 METRICS = ("temp_rms", "temp_peak", "bias_rms", "bias_peak")
-POLISH_STEPS = 3  # undamped Gauss-Newton steps after the Levenberg-Marquardt iterations
+POLISH_STEPS = 3  # steps of a fit allowed beyond `iterations`
+INITIAL_RADIUS = 0.2  # the fit's first trust region, in log-deviation (20 %)
+RADIUS_GROWTH = 2.0  # the trust region's growth after a good step that reached it
+STEP_TOLERANCE = 1e-4  # posterior stds: a fit stops where its next step is shorter
+ROUNDOFF_STEP = 1e-3  # posterior stds: shorter steps are taken without a cost test
 _LEAVES = {"nodes": ("log_capacitance", "capacitance"), "links": ("log_conductance", "conductance"),
            "boundaries": ("log_boundary_conductance", "conductance"),
            "heat_inputs": ("log_heat_gain", "gain")}
@@ -109,13 +115,14 @@ class Study:
     - `prior`: `(mean, covariance)` of the log-deviations, shapes (k,) and (k, k)
       (`log_prior`); enables the `fitted` method. None: nominal and own only.
     - `calibration`: the calibration profile (default: `profile`, new noise).
-    - `iterations`: Levenberg-Marquardt iterations of each fit.
+    - `iterations`: each fit takes at most `iterations + POLISH_STEPS` steps (it stops
+      earlier on convergence, `fit`).
     - `fit_bias`: fit the measured bias column too (known coefficients).
     """
 
     def __init__(self, spec, names, profile: dict, bias: str | None = None,
                  sensor_noise: bool = True, file: str | None = None, prior=None,
-                 calibration: dict | None = None, iterations: int = 20,
+                 calibration: dict | None = None, iterations: int = 50,
                  fit_bias: bool = True):
         import jax.numpy as jnp
 
@@ -175,7 +182,7 @@ class Study:
 
         self.q = np.array([n.process_noise.value if n.process_noise is not None
                            else DEFAULT_PROCESS_NOISE for n in thermal.nodes])
-        # the fit: prior, iterations, which columns
+        # the fit: prior, step cap, which columns
         self.iterations = int(iterations)
         self.fit_bias = bool(fit_bias) and self.bias_noise > 0
         self.prior = None
@@ -292,19 +299,116 @@ class Study:
         mean, W = self.prior
         return jnp.concatenate(parts), jnp.asarray(W) @ (logdev - jnp.asarray(mean))
 
-    def _n_rows(self, y) -> int:
-        """Rows of the fit's residual vector for readings `y` (pooled: one prior)."""
-        bias_rows = int(np.prod(y.shape[:-1])) if self.fit_bias else 0
-        return int(np.prod(y.shape)) + bias_rows + len(self.names)
+    def _fit_maps(self, d):
+        """The small part of the fit's simulation at log-deviations `d` (k,): the blocked
+        maps `(DL, N, O)` of the calibration run (`_blocked.block_maps`) and the initial
+        `z0 = x0 - B1 u[0]` from the steady state at the first input sample. `O` reads the
+        sensors, then, when the bias column is fitted, the two readouts the bias needs:
+        the temperature node, and the sum of the channel's linear terms (its gradients
+        and rates, `xdot = A x + B u`), so that the bias is a polynomial in the first plus
+        the second (`_fit_bias`)."""
+        import jax.numpy as jnp
 
-    def fit(self, y, b):
+        from ..dynamics._blocked import block_maps
+        from ..dynamics._discretize import discretize
+        from ..dynamics._sensitivity import _steady_state_small
+
+        u0 = self.inputs_cal[0]
+        system = self.unit_network(d).linear_system()
+        disc = discretize(system, self.dt_cal)
+        C, D = disc.C, disc.D
+        if self.fit_bias:
+            bc = self.bias
+            n, m = disc.B0.shape
+            eye = jnp.eye(n, dtype=C.dtype)
+            c = bc.coefficients[bc.order + 1:]
+            lin_c = jnp.zeros(n, C.dtype)
+            lin_d = jnp.zeros(m, D.dtype)
+            for j, (p, q) in enumerate(bc.gradients):
+                lin_c = lin_c + c[j] * (eye[p] - eye[q])
+            for j, r in enumerate(bc.rates):
+                lin_c = lin_c + c[len(bc.gradients) + j] * system.A[r]
+                lin_d = lin_d + c[len(bc.gradients) + j] * system.B[r]
+            C = jnp.concatenate([C, eye[bc.temperature][None], lin_c[None]])
+            D = jnp.concatenate([D, jnp.zeros((1, m), D.dtype), lin_d[None]])
+        DL, N, (O,) = block_maps(disc.Phi, disc.B0, disc.B1, ((C, D),))
+        x0 = _steady_state_small(system, u0)
+        return (DL, N, O), x0 - disc.B1 @ u0
+
+    def _fit_bias(self, t, lin):
+        """The bias channel from `_fit_maps`' two bias readouts, and its derivative in the
+        first: `(bias, d bias / d t)`."""
+        c = self.bias.coefficients
+        dt = t - T_REF
+        value = sum(c[p] * dt ** p for p in range(self.bias.order + 1)) + lin
+        slope = sum(p * c[p] * dt ** (p - 1) for p in range(1, self.bias.order + 1))
+        return value, slope
+
+    def _fit_evaluate(self, d, y, b, jacobian: bool = True):
+        """The fit's residuals at `d` by the blocked simulation (`_sensitivity.run_primal`):
+        `(r_y (units, times, sensors), r_b (units, times) or None, r_prior (k,))` in noise
+        stds, `y` and `b` with a leading units axis (the units share `d`, so one
+        simulation). With `jacobian`, also their Jacobians in `d`, `(J_y (times, sensors,
+        k), J_b (times, k) or None)` (the same for every unit), by forward sensitivities
+        (`_sensitivity.run_tangents`; `jax.jvp` only on the small maps): equal to
+        `jax.jacfwd` of `_residuals` to float64 roundoff."""
+        import jax
+        import jax.numpy as jnp
+
+        from ..dynamics._sensitivity import run_primal, run_tangents
+
+        u = self.inputs_cal
+        T, p = y.shape[1:]
+        k = d.shape[0]
+        std = jnp.asarray(self.sensor_std)
+        if jacobian:
+            small = jax.vmap(lambda v: jax.jvp(self._fit_maps, (d,), (v,)),
+                             out_axes=(None, 0))(jnp.eye(k, dtype=d.dtype))
+            # materialized before use: not fused into (and recomputed by) the large passes
+            (maps, z0), (dmaps, dz0) = jax.lax.optimization_barrier(small)
+        else:
+            maps, z0 = self._fit_maps(d)
+        out, w = run_primal(maps, z0, u)
+        out = out[:T]
+        mean, W = self.prior
+        r_prior = jnp.asarray(W) @ (d - jnp.asarray(mean))
+        r_y = (y - out[None, :, :p]) / std[None, None, :]
+        if jacobian:
+            dout = run_tangents(maps, dmaps, dz0, w)[:T]  # (times, outputs, k)
+            J_y = dout[:, :p] / -std[None, :, None]
+        if not self.fit_bias:
+            return (r_y, None, r_prior) + (((J_y, None),) if jacobian else ())
+        bias, slope = self._fit_bias(out[:, p], out[:, p + 1])
+        r_b = (b - bias[None]) / self.bias_noise
+        if not jacobian:
+            return r_y, r_b, r_prior
+        J_b = (slope[:, None] * dout[:, p] + dout[:, p + 1]) / -self.bias_noise
+        return r_y, r_b, r_prior, (J_y, J_b)
+
+    def fit(self, y, b, steps: bool = False, start=None):
         """MAP fit of one unit's log-deviations to its calibration run (see the module
         docstring): `y` (times, sensors) °C, `b` (times,) bias units; pooled over units
         when both have a leading units axis `(units, times, ...)`.
 
+        A trust-region Gauss-Newton from the prior mean (or `start`, (k,)): the exact
+        step within a sphere of radius `Δ` in the log-deviations (`_trust_region_step`;
+        `Δ` starts at `INITIAL_RADIUS`, halves towards a step whose gain ratio is below
+        1/4 and doubles after one above 3/4 that reached it), each trial point by the
+        simulation alone, the Jacobian (forward sensitivities, `_fit_evaluate`) only at
+        accepted points. It stops, per unit, where the Gauss-Newton step is shorter than
+        `STEP_TOLERANCE` posterior stds (`sqrt(sᵀ H s)`, `H = JᵀJ`; it converges
+        linearly there, by a factor of 0.01 to 0.1 per step, so the estimate is then
+        about that close to the minimum), or after `iterations + POLISH_STEPS` steps
+        taken (or three times as many trials). Steps under `ROUNDOFF_STEP` posterior
+        stds are taken without a cost test (the cost comparison is at roundoff there).
+        A `lax.while_loop` with a `lax.cond`: unbatched (`lax.map`, as `compute_chunk`
+        runs it) each unit does its own work; under `jax.vmap` the loop runs until the
+        batch's last unit is done and both branches of the cond are evaluated.
+
         **Returns:** `(logdev, log_std, rms)`: the estimate (k,), its posterior std (k,)
         from the Gauss-Newton Hessian at the estimate, and the RMS of the data residuals
-        (noise stds).
+        (noise stds) there; with `steps`, also the number of trials and of Jacobians
+        (the steps taken, plus the first).
         """
         import jax
         import jax.numpy as jnp
@@ -312,62 +416,87 @@ class Study:
         if self.prior is None:
             raise ValueError("`Study.fit` needs a study with a prior (`Study(prior=...)`).")
         mean = jnp.asarray(self.prior[0])
-        pooled = y.ndim == 3
-
-        def residuals(d):
-            if pooled:
-                r_data, r_prior = jax.vmap(lambda yy, bb: self._residuals(d, yy, bb))(y, b)
-                r = jnp.concatenate([r_data.ravel(), r_prior[0]])
-            else:
-                r_data, r_prior = self._residuals(d, y, b)
-                r = jnp.concatenate([r_data, r_prior])
-            return r, r
-
-        def cost(d):
-            r = residuals(d)[0]
-            return r @ r
-
+        W = jnp.asarray(self.prior[1])
+        ys, bs = (y, b) if y.ndim == 3 else (y[None], b[None])
+        M = ys.shape[0]
         k = mean.shape[0]
 
-        n_lm = self.iterations
+        def costs(r_y, r_b, r_p):
+            c_data = jnp.sum(r_y ** 2) + (0.0 if r_b is None else jnp.sum(r_b ** 2))
+            return c_data + r_p @ r_p, c_data
 
-        def body(i, carry):
-            # Levenberg-Marquardt with Nielsen's damping update (gain ratio rho) for the
-            # first `iterations` steps. Then POLISH_STEPS undamped Gauss-Newton steps:
-            # the accept test compares costs, so it stops within about sqrt(eps)·std of
-            # the minimum along flat directions; Gauss-Newton steps solve the normal
-            # equations there (linear convergence, a factor of about 0.05 per step at
-            # noise-level residuals), locating it to roundoff. Each is taken when it is
-            # small against the posterior std (the quadratic region), as it is on
-            # convergence. One Jacobian site for both (compile time).
-            d, lam, nu, c, _, _ = carry
-            J, r = jax.jacfwd(residuals, has_aux=True)(d)
-            H = J.T @ J
-            g = J.T @ r
-            lm = i < n_lm
-            step = -jnp.linalg.solve(H + jnp.where(lm, lam, 0.0) * jnp.diag(jnp.diag(H)), g)
-            c_new = cost(d + step)
-            predicted = -(2.0 * g @ step + step @ H @ step)
+        def evaluate(d):
+            """`(cost, Jᵀr, JᵀJ, data cost)` at `d` (cost: the sum of squared residuals)."""
+            r_y, r_b, r_p, (J_y, J_b) = self._fit_evaluate(d, ys, bs)
+            # one (rows, k) matrix: a single Gram product (twice as fast as one per part)
+            Z, R = J_y, jnp.sum(r_y, axis=0)
+            if r_b is not None:
+                Z = jnp.concatenate([Z, J_b[:, None]], axis=1)
+                R = jnp.concatenate([R, jnp.sum(r_b, axis=0)[:, None]], axis=1)
+            Z = Z.reshape(-1, k)
+            H = M * (Z.T @ Z) + W.T @ W
+            g = Z.T @ R.reshape(-1) + W.T @ r_p
+            c, c_data = costs(r_y, r_b, r_p)
+            return c, g, H, c_data
+
+        max_steps = self.iterations + POLISH_STEPS
+
+        def converged(current):
+            """The Gauss-Newton step from here is under `STEP_TOLERANCE` posterior stds."""
+            _, g, H, _ = current
+            return g @ jnp.linalg.solve(H, g) < STEP_TOLERANCE ** 2
+
+        def cond(carry):
+            return ~carry[2]
+
+        def body(carry):
+            i, n_jac, _, d, radius, current = carry
+            c, g, H, _ = current
+            step, lam = _trust_region_step(H, g, radius)
+            c_new = costs(*self._fit_evaluate(d + step, ys, bs, jacobian=False))[0]
+            sHs = step @ H @ step
+            length = jnp.sqrt(step @ step)
+            predicted = -(2.0 * g @ step + sHs)
             rho = (c - c_new) / jnp.where(predicted > 0, predicted, 1.0)
-            std = jnp.sqrt(jnp.diag(jnp.linalg.inv(H)))
-            ok = jnp.where(lm, c_new < c, jnp.max(jnp.abs(step) / std) < 0.5)
-            shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-            return (jnp.where(ok, d + step, d), jnp.where(ok, lam * shrink, lam * nu),
-                    jnp.where(ok, 2.0, 2.0 * nu), jnp.where(ok, c_new, c), std, r)
+            tiny = jnp.sqrt(sHs) < ROUNDOFF_STEP
+            ok = jnp.isfinite(c_new) & ((c_new < c) | tiny)
+            grow = jnp.where((lam > 0) & (tiny | (rho > 0.75)), RADIUS_GROWTH * radius, radius)
+            radius = jnp.where(~tiny & ~(rho >= 0.25), 0.5 * length, grow)  # ~: NaN too
+            d_new = jnp.where(ok, d + step, d)
+            current = jax.lax.cond(ok, evaluate, lambda _: current, d_new)
+            n_jac = n_jac + ok.astype(n_jac.dtype)
+            done = converged(current) | (n_jac > max_steps) | (i + 1 >= 3 * max_steps)
+            return i + 1, n_jac, done, d_new, radius, current
 
-        d0 = mean
-        carry = (d0, jnp.asarray(1e-3, d0.dtype), jnp.asarray(2.0, d0.dtype), cost(d0),
-                 jnp.zeros(k, d0.dtype), jnp.zeros(self._n_rows(y), d0.dtype))
-        # std and r: at the last point where the Jacobian was taken (one polish step
-        # before the estimate, to roundoff the same point)
-        d, _, _, _, std, r = jax.lax.fori_loop(0, n_lm + POLISH_STEPS, body, carry)
-        n_data = r.shape[0] - k
-        rms = jnp.sqrt(jnp.sum(r[:n_data] ** 2) / n_data)
-        return d, std, rms
+        d0 = mean if start is None else jnp.asarray(start, mean.dtype)
+        first = evaluate(d0)
+        carry = (jnp.asarray(0), jnp.asarray(1), converged(first), d0,
+                 jnp.asarray(INITIAL_RADIUS, d0.dtype), first)
+        n, n_jac, _, d, _, (_, _, H, c_data) = jax.lax.while_loop(cond, body, carry)
+        std = jnp.sqrt(jnp.diag(jnp.linalg.inv(H)))
+        n_data = M * ys.shape[1] * (ys.shape[2] + (1 if self.fit_bias else 0))
+        rms = jnp.sqrt(c_data / n_data)
+        return (d, std, rms, n, n_jac) if steps else (d, std, rms)
 
-    def unit_metrics(self, logdev, unit, seed, nominal, batch=None):
+    def fit_units(self, logdev, units, seed, steps: bool = False):
+        """Each unit's calibration run (`calibration_data`) and fit (`fit`), for
+        log-deviations (units, k) and unit indices (units,): one unit after another
+        (`lax.map`), so that each fit stops at its own convergence and does the work of
+        its own trials (under `jax.vmap` the batch would iterate until its slowest unit
+        is done, evaluating every Jacobian branch)."""
+        import jax
+
+        def one(args):
+            d, u = args
+            return self.fit(*self.calibration_data(d, u, seed), steps=steps)
+
+        return jax.lax.map(one, (logdev, units))
+
+    def unit_metrics(self, logdev, unit, seed, nominal, batch=None, fitted=None):
         """Per-unit metrics (a dict of scalars) for one unit: `nominal` (and `batch`) are
-        `(system, disc, gain)` of the nominal (and batch) model."""
+        `(system, disc, gain)` of the nominal (and batch) model; `fitted`, the unit's
+        `fit_units` result `(logdev, log_std, rms, trials, jacobians)` (default: fitted
+        here)."""
         import jax
         import jax.numpy as jnp
 
@@ -385,13 +514,15 @@ class Study:
         if batch is not None:
             models.append(("batch", batch))
         if self.prior is not None:
-            y_cal, b_cal = self.calibration_data(logdev, unit, seed)
-            d_fit, d_std, rms = self.fit(y_cal, b_cal)
+            if fitted is None:
+                fitted = self.fit(*self.calibration_data(logdev, unit, seed), steps=True)
+            d_fit, d_std, rms, _, jacobians = fitted
             models.append(("fitted", self.observer_of(self.unit_network(d_fit))))
             out["fitted_log_deviation"] = d_fit
             out["fitted_log_std"] = d_std
             out["fit_param_rms"] = jnp.sqrt(jnp.mean((d_fit - logdev) ** 2))
             out["fit_rms"] = rms
+            out["fit_steps"] = jacobians - 1
         for label, (sys_o, disc_o, gain_o) in models:
             est = run_observer(Observer(disc_o, gain_o), u, y, sys_o.steady_state(u[0])).states
             dT = est[:, self.bias.temperature] - x[:, self.bias.temperature]
@@ -432,18 +563,25 @@ class Study:
         from ._sharding import padded_size, replicate, shard_units, units_mesh
 
         mesh = units_mesh() if mesh is None else mesh
-        if self._program is None:
+        if self._program is None or self._program[0] != mesh:
+            from jax.sharding import PartitionSpec as P
+
             nominal_net = self.network
             batch_d = self.batch_logdev
+            # the fits one unit after another on each device's slice of the units
+            fit_units = jax.shard_map(lambda d, u, s: self.fit_units(d, u, s, steps=True),
+                                      mesh=mesh, in_specs=(P("units"), P("units"), P()),
+                                      out_specs=P("units"), check_vma=False)
 
             def program(logdev, units, seed):
                 nominal = self.observer_of(nominal_net)
                 batch = (None if batch_d is None else
                          self.observer_of(self.unit_network(jnp.asarray(batch_d))))
-                return jax.vmap(lambda d, u: self.unit_metrics(d, u, seed, nominal, batch))(
-                    logdev, units)
+                fitted = None if self.prior is None else fit_units(logdev, units, seed)
+                return jax.vmap(lambda d, u, f: self.unit_metrics(d, u, seed, nominal, batch,
+                                                                  f))(logdev, units, fitted)
 
-            self._program = jax.jit(program)
+            self._program = (mesh, jax.jit(program))
         n = len(units)
         size = padded_size(n, mesh)
         logdev_p, units_p = logdev, units
@@ -453,8 +591,32 @@ class Study:
         args = shard_units((jnp.asarray(logdev_p), jnp.asarray(units_p, dtype=jnp.uint32)),
                            mesh)
         seed_arr = replicate(jnp.asarray(seed, dtype=jnp.uint32), mesh)
-        out = self._program(*args, seed_arr)
+        out = self._program[1](*args, seed_arr)
         return {k: np.asarray(v)[:n] for k, v in out.items()}
+
+
+def _trust_region_step(H, g, radius, newton_steps: int = 30):
+    """The minimizer `s` of `2 gᵀs + sᵀ H s` over `|s| <= radius` (`H` positive
+    definite), and its multiplier `λ >= 0` (`(H + λ I) s = -g`; 0 when the Gauss-Newton
+    step lies inside): by the eigendecomposition of `H` and Newton's method on
+    `1/|s(λ)| - 1/radius` from `λ = 0` (Moré and Sorensen; monotone from below, a fixed
+    number of steps so that it vmaps)."""
+    import jax
+    import jax.numpy as jnp
+
+    lam_h, V = jnp.linalg.eigh(H)
+    a2 = (V.T @ g) ** 2
+
+    def newton(_, lam):
+        norm2 = jnp.sum(a2 / (lam_h + lam) ** 2)
+        norm = jnp.sqrt(norm2)
+        return jnp.maximum(lam + (norm / radius - 1.0) * norm2 / jnp.sum(
+            a2 / (lam_h + lam) ** 3), 0.0)
+
+    inside = jnp.sum(a2 / lam_h ** 2) <= radius ** 2
+    lam = jnp.where(inside, 0.0, jax.lax.fori_loop(0, newton_steps, newton,
+                                                   jnp.zeros((), H.dtype)))
+    return -V @ ((V.T @ g) / (lam_h + lam)), lam
 
 
 def kalman_gain_doubling(Phi, C, Qd, R, iterations: int = 48):
