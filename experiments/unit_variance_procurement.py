@@ -168,7 +168,7 @@ def plot(rows: dict, folder: Path, path: Path) -> None:
         for m, label in r["methods"].items():
             v = np.sort(np.concatenate(data[m]))
             ax.step(v, np.arange(1, v.size + 1) / v.size, where="post",
-                    label=f"{m}: {100 * r['within_spec'][m]:.0f} % in spec")
+                    label=f"{m}: {100 * r['within_spec'][m]:.1f} % in spec")
         ax.axvline(r["bias_limit"], color="k", ls="--", lw=1)
         ax.set_xscale("log")
         ax.set_xlabel(f"peak bias error over the test run ({r['bias_units']})")

@@ -136,3 +136,25 @@ def test_allan_compensation_study(tmp_path):
         p["noise_only"]["bias_instability_dph"][0], rel=0.05)
     assert p["raw"]["adev_at_longest_tau_dph"] > 3 * p["observer"]["adev_at_longest_tau_dph"]
     assert p["static"]["thermal_residual_rms_dph"] > 10 * p["observer"]["thermal_residual_rms_dph"]
+
+
+@pytest.mark.slow
+def test_unit_variance_procurement_study(tmp_path):
+    """The procurement study (--quick: 16 units per preset, a short profile). Truths it
+    can be held to: a unit's own true model bounds every method; the nominal observer's
+    median error grows with the preset's spread (its only error is the unit's deviation,
+    5 → 32 % on every capacitance and conductance); a unit's own fit gets close to its
+    own model's bound, far below the nominal's."""
+    study = load_study("unit_variance_procurement")
+    folder = study.main(["--out", str(tmp_path / "procurement"), "--quick"])
+    for name in ("procurement.md", "results.json", "procurement.png"):
+        assert (folder / name).is_file(), name
+    res = json.loads((folder / "results.json").read_text())
+    assert list(res) == ["asic_integrated", "oem_module", "bare_die_custom",
+                         "thermistor_custom_housing"]
+    nominal = [res[p]["bias_peak"]["nominal"]["p50"] for p in res]
+    assert nominal == sorted(nominal) and nominal[-1] > 3 * nominal[0]
+    for p, r in res.items():
+        peak, within = r["bias_peak"], r["within_spec"]
+        assert within["fitted"] >= within["nominal"] and within["own"] == 1.0, p
+        assert peak["own"]["p50"] <= peak["fitted"]["p50"] < 0.2 * peak["nominal"]["p50"], p
