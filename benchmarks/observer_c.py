@@ -4,6 +4,10 @@ static RAM, and the fixed-point error figures, for the six-node IMU at 20 Hz.
     python benchmarks/observer_c.py            # ~1 min: callgrind + 24 h C playbacks
     python benchmarks/observer_c.py --numpy-24h   # also the 24 h NumPy fixed-point runs (~4 min)
 
+Float builds are counted in both layouts of `generate_c`: `rows` (straight-line, the
+default) and `columns` (column-at-a-time sums over rows padded to 32 bytes, AVX2; double
+also padded to 16 bytes, SSE2).
+
 Needs gcc, valgrind and the dev extras (scipy). The observer (3 sensors, 2 inputs) uses
 Kalman gains for every sensor subset, built as in `tests/test_reference_setup.py`.
 """
@@ -70,16 +74,19 @@ def main():
     print(f"imu6 at 20 Hz: n={n} states, m={m} inputs, p={p} sensors")
     print(f"MAC floor n^2+n*m+n*p = {floor}; dense MACs of the FOH equations "
           f"(Phi, B0, B1, C, D, L) = {dense}; structurally nonzero = {nz}")
-    builds = {"float (float32)": ref.FloatObserver(system, dtype=np.float32),
-              "double (float64)": ref.FloatObserver(system),
-              "Q16.16": ref.FixedObserver(system, "q16.16", IMU6_SCALING["q16.16"]),
-              "Q8.24": ref.FixedObserver(system, "q8.24", IMU6_SCALING["q8.24"]),
-              "Q15": ref.FixedObserver(system, "q15", IMU6_SCALING["q15"])}
+    f32, f64 = ref.FloatObserver(system, dtype=np.float32), ref.FloatObserver(system)
+    builds = {"float (float32)": (f32, "rows", 32), "double (float64)": (f64, "rows", 32),
+              "Q16.16": (ref.FixedObserver(system, "q16.16", IMU6_SCALING["q16.16"]), "rows", 32),
+              "Q8.24": (ref.FixedObserver(system, "q8.24", IMU6_SCALING["q8.24"]), "rows", 32),
+              "Q15": (ref.FixedObserver(system, "q15", IMU6_SCALING["q15"]), "rows", 32),
+              "float (float32), columns": (f32, "columns", 32),
+              "double (float64), columns": (f64, "columns", 32),
+              "double (float64), columns, 16-byte rows": (f64, "columns", 16)}
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for flags in (["-O2"], ["-O3", "-march=x86-64-v3"]):
-            for name, obs in builds.items():
-                src = ref.generate_c(obs, "obs")
+            for name, (obs, layout, vector_bytes) in builds.items():
+                src = ref.generate_c(obs, "obs", layout=layout, vector_bytes=vector_bytes)
                 if isinstance(obs, ref.FixedObserver):
                     data = (obs.encode_states(x0), obs.encode_inputs(u), obs.encode_outputs(y))
                 else:

@@ -3,7 +3,9 @@
 The generated code repeats the NumPy reference operation for operation:
 
 The step is straight-line code (no loops over matrices): each product is unrolled row by
-row with the coefficients as literals and exact zeros skipped.
+row with the coefficients as literals and exact zeros skipped. `layout="columns"` (float
+and double builds) writes the prediction and the correction as column-at-a-time loops over
+rows padded to a SIMD width instead (see `generate_c`).
 
 - fixed point: the same integer coefficients, exact int64 sums (so skipping zeros and
   the order of terms change nothing), the alignment `2**shift` folded into the literal
@@ -183,7 +185,8 @@ def _colmajor(M):
     return np.swapaxes(np.asarray(M), -1, -2)
 
 
-def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
+def generate_c(observer, prefix: str = "tj_observer", names=None,
+               layout: str = "rows", vector_bytes: int = 32) -> CSource:
     """C99 source for a `FloatObserver` (float or double) or a `FixedObserver`.
 
     **Arguments:**
@@ -193,6 +196,10 @@ def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
     - `prefix`: the name of the files and of every public symbol.
     - `names`: `(states, inputs, outputs)` names for the comments (default: the
       observer's `names` attribute if it has one, else `x0`, `u0`, `y0`, ...).
+    - `layout`: `"rows"` (default) or `"columns"` (float and double builds only), how the
+      products with one row per state (prediction and correction) are written; see below.
+    - `vector_bytes`: the columns layout's SIMD width in bytes (32: AVX2; 16: SSE2, NEON);
+      the rows are padded to a multiple of it.
 
     The step is straight-line code: every matrix-vector product is unrolled with the
     coefficients as literals (shortest exact decimals in float builds; integer codes with
@@ -202,10 +209,28 @@ def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
     coefficient tables remain as `static const` arrays, read through
     `prefix_table(P_TABLE_PHI)` etc. (for inspection and checksums only).
 
+    `layout="columns"` writes the prediction `[Phi B0 B1] [x; u[k-1]; u[k]]` and the
+    correction `L_S r` as column-at-a-time sums for SIMD: one loop over `P_W` lanes (the
+    `n` rows padded to `vector_bytes`: 8 floats or 4 doubles for AVX2) whose body is
+    `COLS[a][i] * v_a + COLS[b][i] * v_b + ...` over the product's nonzero columns, read
+    from the `static const` table `P_COLS[K][P_W]`. gcc -O3 vectorizes each loop (a
+    broadcast, a multiply and an add per column); without SIMD it runs as scalar code.
+    Every row then also adds its zero coefficients' products, `±0`: for finite values
+    this leaves each row's sum exactly the left-to-right sum over its nonzero terms (the
+    first product starting it), except that a result that is exactly zero may differ in
+    its sign; a zero of either sign gives the same values in every later sum, product and
+    comparison (again up to the sign of zeros). So the build agrees with `FloatObserver`
+    bit for bit up to the sign of an exact zero, and its flags agree exactly.
+    It needs finite inputs `u`: a zero coefficient times an infinity or NaN is NaN where
+    the rows layout skips it. Measurements may be anything: a channel whose value is not
+    plausible is not in use, and the correction reads only the columns of the channels
+    in use. The output product (`p` rows) and the supervision are as in `"rows"`.
+
     **Returns:** a `CSource`. API of the generated code (`P_` = upper-case prefix):
     `void prefix_reset(const prefix_word_t x0[P_N])`;
     `uint8_t prefix_step(const prefix_word_t u[P_M], const prefix_word_t y[P_P], uint8_t open_mask)`
-    (returns the mask of channels used); globals `prefix_x[P_N]` (the corrected state),
+    (returns the mask of channels used); globals `prefix_x[P_N]` (the corrected state;
+    `prefix_x[P_W]` in the columns layout, the states then zeros),
     `prefix_r[P_P]` (residuals), `prefix_healthy`, `prefix_wire_break` (masks).
 
     With bias channels (`observer.biases`): `P_Q` channels, `prefix_bias[P_Q]` (int32
@@ -224,6 +249,10 @@ def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
     n, m, p = s.n_states, s.n_inputs, s.n_outputs
     P = prefix.upper()
     fixed = isinstance(observer, FixedObserver)
+    if layout not in ("rows", "columns") or (fixed and layout == "columns"):
+        raise ValueError(f"`generate_c(layout={layout!r})`: expected 'rows', or 'columns' "
+                         f"for a FloatObserver.")
+    columns = layout == "columns"
     if fixed:
         word = "int32_t" if observer.fmt.word_bits == 32 else "int16_t"
         size = observer.fmt.word_bits // 8
@@ -234,6 +263,11 @@ def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
         raise TypeError(f"`generate_c` takes a `FloatObserver` or a `FixedObserver`, got "
                         f"{type(observer).__name__}.")
     fc = observer.faults
+    if columns and (vector_bytes < size or vector_bytes % size):
+        raise ValueError(f"`generate_c(vector_bytes={vector_bytes})`: expected a multiple of "
+                         f"the {size}-byte word.")
+    W = -(-n * size // vector_bytes) * vector_bytes // size if columns else n   # lanes
+    xdim = f"{P}_W" if columns else f"{P}_N"
     h = [f"/* Generated by thermojax.reference.generate_c: do not edit. */",
          f"#ifndef {P}_H", f"#define {P}_H", "#include <stdint.h>",
          f"#define {P}_N {n}", f"#define {P}_M {m}", f"#define {P}_P {p}",
@@ -241,7 +275,11 @@ def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
          f"void {prefix}_reset(const {prefix}_word_t x0[{P}_N]);",
          f"uint8_t {prefix}_step(const {prefix}_word_t u[{P}_M], const {prefix}_word_t "
          f"y[{P}_P], uint8_t open_mask);",
-         f"extern {prefix}_word_t {prefix}_x[{P}_N];",
+         *([f"#define {P}_W {W}   /* lanes of the column sums: n rows padded to "
+            f"{vector_bytes} bytes */"]
+           if columns else []),
+         f"extern {prefix}_word_t {prefix}_x[{xdim}];" +
+         ("   /* the n states, then zeros */" if columns else ""),
          f"extern {prefix}_word_t {prefix}_r[{P}_P];",
          f"extern uint8_t {prefix}_healthy, {prefix}_wire_break;",
          f"/* coefficient tables (column-major), for inspection: {prefix}_table({P}_TABLE_PHI) */",
@@ -260,8 +298,12 @@ def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
          f"   Observer in filter form with first-order-hold inputs:",
          f"     x-[k] = Phi x[k-1] + B0 u[k-1] + B1 u[k]   (skipped at the first step)",
          f"     x[k]  = x-[k] + L_S (y[k] - C x-[k] - D u[k]),  S = channels in use.",
-         f"   Straight-line code: each row's sum runs left to right over its nonzero",
-         f"   coefficients only (literals), exactly as thermojax.reference does it."]
+         *([f"   Column layout: the prediction and the correction are sums over the nonzero",
+            f"   columns ({P}_COLS), all rows at once (lanes, for SIMD); per row the same",
+            f"   left-to-right sum as thermojax.reference, up to the sign of an exact zero;",
+            f"   inputs must be finite (see thermojax.reference.generate_c)."] if columns else
+           [f"   Straight-line code: each row's sum runs left to right over its nonzero",
+            f"   coefficients only (literals), exactly as thermojax.reference does it."])]
     if fixed:
         F = observer.fmt
         c += [f"   Format {F.name}: values are codes of (value - offset) / {F.state_scale:g} "
@@ -303,7 +345,8 @@ def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
         gain_M = tables["GAIN"]
     c += ["/* The coefficient tables, column by column (M[j][i] is row i, column j), for",
           f"   inspection and checksums through {prefix}_table(); the step below does not",
-          "   read them: it has the same numbers as literals. */"]
+          f"   read them: it has the same numbers "
+          f"{f'in {P}_COLS' if columns else 'as literals'}. */"]
     for name, M in tables.items():
         c.append(_array(f"{P}_{name}", word, _colmajor(M), "int" if fixed else word))
     bias_tables = _bias_tables(biases, fixed) if q else {}
@@ -337,7 +380,7 @@ def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
                   "/* viscoelastic strain states */",
                   f"static {'int64_t' if fixed else 'double'} {prefix}_tprev[{P}_N];   "
                   "/* last step's temperatures of strain nodes */"]
-    c += [f"{word} {prefix}_x[{P}_N];", f"{word} {prefix}_r[{P}_P];",
+    c += [f"{word} {prefix}_x[{xdim}];", f"{word} {prefix}_r[{P}_P];",
           f"uint8_t {prefix}_healthy, {prefix}_wire_break;",
           f"static {word} {prefix}_u_prev[{P}_M];",
           f"static uint16_t {prefix}_good_run[{P}_P], {prefix}_bad_run[{P}_P];",
@@ -353,7 +396,7 @@ def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
     xv = [f"{prefix}_x[{j}]" for j in range(n)]
     upv = [f"{prefix}_u_prev[{j}]" for j in range(m)]
     uv = [f"u[{j}]" for j in range(m)]
-    xmv = [f"xm{i}" for i in range(n)]
+    xmv = [f"xm[{i}]" if columns else f"xm{i}" for i in range(n)]
     rv = [f"r{j}" for j in range(p)]
 
     def total(row, vals, unit=None):
@@ -375,24 +418,53 @@ def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
     def rounded(text, F_name, F_value):
         return f"{prefix}_rnd({text}, {P}_{F_name})" if F_value > 0 else f"({text})"
 
+    cols = []                                           # the columns layout's table
+
+    def column_sum(M, vals, what, indent):
+        """Lane `i`'s sum over the nonzero columns of `M`, left to right, three terms a
+        line (column `j` padded to `W` lanes is appended to `P_COLS`, `what(j)` names it
+        there), or None."""
+        terms = []
+        for j in np.flatnonzero(np.any(M != 0, axis=0)):
+            col = np.zeros(W, M.dtype)
+            col[:M.shape[0]] = M[:, j]
+            terms.append(f"{P}_COLS[{len(cols)}][i] * {vals[j]}")
+            cols.append((col, what(j)))
+        lines = [" + ".join(terms[k:k + 3]) for k in range(0, len(terms), 3)]
+        return f"\n{indent}+ ".join(lines) or None
+
+    at = len(c)                                         # P_COLS goes here, before the step
     c += [f"uint8_t {prefix}_step(const {word} u[{P}_M], const {word} y[{P}_P], "
           f"uint8_t open_mask) {{",
-          f"    {word} " + ", ".join(xmv) + ";   /* x-[k], then x[k] */",
+          (f"    {word} xm[{P}_W];   /* x-[k], then x[k], rows padded to {P}_W lanes */"
+           if columns else f"    {word} " + ", ".join(xmv) + ";   /* x-[k], then x[k] */"),
           f"    {word} " + ", ".join(rv) + ";   /* residuals */",
+          *([f"    int i;"] if columns else []),
           f"    uint8_t mask = 0;",
           f"    if ({prefix}_started) {{"]
-    for i in range(n):
-        c.append(f"        /* x-[{st[i]}] = Phi[{st[i]}, :] x + B0[{st[i]}, :] u[k-1] "
-                 f"+ B1[{st[i]}, :] u[k] */")
-        e = total(pred_M[i], xv + upv + uv)
-        if fixed:
-            e = "0" if e is None else f"{prefix}_sat({rounded(e, 'F_PRED', observer.f_pred)})"
-        else:
-            e = _zero(word) if e is None else e
-        c.append(f"        {xmv[i]} = {e};")
-    c += ["    } else {   /* first step: no prediction */"]
-    c += [f"        {xmv[i]} = {xv[i]};" for i in range(n)]
-    c += ["    }"]
+    if columns:
+        pred_cols = ([f"Phi[:, {v}]" for v in st] + [f"B0[:, {v}]" for v in inp] +
+                     [f"B1[:, {v}]" for v in inp])
+        e = column_sum(pred_M, xv + upv + uv, lambda j: pred_cols[j], " " * 18)
+        c += [f"        /* x-[k] = Phi x + B0 u[k-1] + B1 u[k], column by column, lane i = "
+              f"row i */", f"        for (i = 0; i < {P}_W; i++)",
+              f"            xm[i] = {_zero(word) if e is None else e};",
+              "    } else {   /* first step: no prediction */",
+              f"        for (i = 0; i < {P}_W; i++) xm[i] = {prefix}_x[i];",
+              "    }"]
+    else:
+        for i in range(n):
+            c.append(f"        /* x-[{st[i]}] = Phi[{st[i]}, :] x + B0[{st[i]}, :] u[k-1] "
+                     f"+ B1[{st[i]}, :] u[k] */")
+            e = total(pred_M[i], xv + upv + uv)
+            if fixed:
+                e = "0" if e is None else f"{prefix}_sat({rounded(e, 'F_PRED', observer.f_pred)})"
+            else:
+                e = _zero(word) if e is None else e
+            c.append(f"        {xmv[i]} = {e};")
+        c += ["    } else {   /* first step: no prediction */"]
+        c += [f"        {xmv[i]} = {xv[i]};" for i in range(n)]
+        c += ["    }"]
     for j in range(p):
         c.append(f"    /* r[{out[j]}] = y - C[{out[j]}, :] x- - D[{out[j]}, :] u[k] */")
         row = out_M[j]
@@ -456,7 +528,12 @@ def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
     for mask in range(1, 1 << p):
         used = [out[j] for j in range(p) if mask >> j & 1]
         c.append(f"    case {mask}:   /* {', '.join(used)} */")
-        for i in range(n):
+        if columns:
+            e = column_sum(gain_M[mask], rv, lambda j: f"L_{mask}[:, {out[j]}]", " " * 27)
+            if e is not None:
+                c += [f"        for (i = 0; i < {P}_W; i++)   /* L_S r, column by column */",
+                      f"            xm[i] = xm[i] + ({e});"]
+        for i in [] if columns else range(n):
             e = total(gain_M[mask][i], rv)
             if e is None:
                 continue
@@ -469,9 +546,17 @@ def generate_c(observer, prefix: str = "tj_observer", names=None) -> CSource:
     c += ["    default:   /* no channel in use: prediction only */", "        break;", "    }"]
     if q:
         c += (_fixed_bias_c if fixed else _float_bias_c)(biases, prefix, xmv, uv, st)
-    c += [f"    {xv[i]} = {xmv[i]};" for i in range(n)]
+    c += ([f"    for (i = 0; i < {P}_W; i++) {prefix}_x[i] = xm[i];"] if columns else
+          [f"    {xv[i]} = {xmv[i]};" for i in range(n)])
     c += [f"    {upv[j]} = u[{j}];" for j in range(m)]
     c += [f"    {prefix}_started = 1;", f"    return mask;", "}", ""]
+    if columns:
+        rows = ["    {" + ", ".join(_readable_lit(v, word) for v in col) + "}" +
+                ("," if k + 1 < len(cols) else "") + f"   /* {k}: {what} */"
+                for k, (col, what) in enumerate(cols)]
+        c[at:at] = [f"/* The nonzero columns of [Phi B0 B1] and of each L_S, rows padded to {P}_W",
+                    "   lanes: the step's column-at-a-time sums read them. */",
+                    f"static const {word} {P}_COLS[{len(cols)}][{P}_W] = {{", *rows, "};", ""]
     harness = "\n".join([
         f"/* Playback harness for {prefix}: see thermojax.reference.generate_c. */",
         "#include <stdio.h>", "#include <stdlib.h>", f'#include "{prefix}.h"',
