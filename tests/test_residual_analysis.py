@@ -72,6 +72,30 @@ def test_cross_correlation_finds_the_lag_of_a_leading_signal():
     assert np.mean(np.abs(ccf0) < band0) > 0.85
 
 
+def test_cross_correlation_equals_the_direct_lagged_sums():
+    """Pooled over runs of different lengths, with dropped samples and lags longer than
+    a run: the definition written out, sample by sample."""
+    rng = np.random.default_rng(8)
+    runs = [(rng.standard_normal(n), rng.standard_normal(n) + 3.0) for n in (50, 9, 31)]
+    runs[0][0][[3, 17]] = np.nan
+    runs[2][1][5] = np.nan
+    max_lag = 12
+    num = np.zeros(2 * max_lag + 1)
+    rr = ss = 0.0
+    for r, s in runs:
+        ok = np.isfinite(r)
+        rc = np.where(ok, r - r[ok].mean(), 0.0)
+        fin = np.isfinite(s)
+        sc = np.where(fin, s - s[fin].mean(), 0.0)
+        rr, ss = rr + np.sum(rc ** 2), ss + np.sum(sc ** 2)
+        for i, k in enumerate(range(-max_lag, max_lag + 1)):
+            num[i] += sum(rc[t] * sc[t - k] for t in range(len(r)) if 0 <= t - k < len(s))
+    lags, ccf, band = cross_correlation([r for r, _ in runs], [s for _, s in runs], max_lag)
+    np.testing.assert_array_equal(lags, np.arange(-max_lag, max_lag + 1))
+    np.testing.assert_allclose(ccf, num / np.sqrt(rr * ss), rtol=1e-10, atol=1e-14)
+    assert band == pytest.approx(1.96 / np.sqrt(50 + 9 + 31))
+
+
 def test_cumulated_periodogram_white_vs_lowpass():
     rng = np.random.default_rng(5)
     inside = []

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
-from scipy import stats
+from scipy import signal, stats
 
 
 def _finite_segments(r: np.ndarray) -> np.ndarray:
@@ -84,9 +84,10 @@ def cross_correlation(residuals: list[np.ndarray], signals: list[np.ndarray], ma
         rr += float(r @ r)
         ss += float(s @ s)
         n += len(r)
-        for i, k in enumerate(lags):
-            if abs(k) < len(r):
-                num[i] += float(r[k:] @ s[:len(s) - k]) if k >= 0 else float(r[:k] @ s[-k:])
+        # full[j] = Σ_t r[t] s[t - k] at k = j - (len(s) - 1), by FFT
+        full = signal.correlate(r, s, mode="full", method="fft")
+        within = np.abs(lags) < len(r)
+        num[within] += full[lags[within] + len(s) - 1]
     denom = np.sqrt(rr * ss)
     return lags, (num / denom if denom > 0 else np.zeros(len(lags))), 1.96 / np.sqrt(max(n, 1))
 
