@@ -48,6 +48,7 @@ the fit converged) and `fit_steps` (the Gauss-Newton steps it took; above
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,6 +66,8 @@ INITIAL_RADIUS = 0.2  # the fit's first trust region, in log-deviation (20 %)
 RADIUS_GROWTH = 2.0  # the trust region's growth after a good step that reached it
 STEP_TOLERANCE = 1e-4  # posterior stds: a fit stops where its next step is shorter
 ROUNDOFF_STEP = 1e-3  # posterior stds: shorter steps are taken without a cost test
+_PROGRAMS: dict = {}  # compiled programs, shared by the studies of one structure (`_shared`)
+_MAX_PROGRAMS = 8
 _LEAVES = {"nodes": ("log_capacitance", "capacitance"), "links": ("log_conductance", "conductance"),
            "boundaries": ("log_boundary_conductance", "conductance"),
            "heat_inputs": ("log_heat_gain", "gain")}
@@ -196,7 +199,6 @@ class Study:
             # whitening: r_prior = W (d - mean), W = chol(cov)^-1
             self.prior = (mean, np.linalg.inv(np.linalg.cholesky(cov)))
         self.batch_logdev = None  # set by `set_batch_model`
-        self._program = None
 
     @property
     def methods(self) -> dict[str, str]:
@@ -543,15 +545,53 @@ class Study:
         import jax
         import jax.numpy as jnp
 
-        def program(logdev, units, seed):
-            y, b = jax.vmap(lambda d, u: self.calibration_data(d, u, seed))(logdev, units)
-            return self.fit(y, b)[0]
+        def program(prior, logdev, units, seed):
+            study = self._with_arrays(prior, None)
+            y, b = jax.vmap(lambda d, u: study.calibration_data(d, u, seed))(logdev, units)
+            return study.fit(y, b)[0]
 
-        d = jax.jit(program)(jnp.asarray(logdev), jnp.asarray(units, dtype=jnp.uint32),
-                             jnp.asarray(seed, dtype=jnp.uint32))
+        d = self._shared("batch", program)(
+            self._prior_arrays(), jnp.asarray(logdev), jnp.asarray(units, dtype=jnp.uint32),
+            jnp.asarray(seed, dtype=jnp.uint32))
         self.batch_logdev = np.asarray(d)
-        self._program = None
         return self.batch_logdev
+
+    # -- compiled programs shared between studies -----------------------------------
+
+    def _structure(self) -> str:
+        """Everything a study's programs depend on except the prior's and the batch
+        model's values (passed as arguments): studies with equal structures (the presets
+        of a procurement study, say) share one compiled program."""
+        return repr((self.spec, self.names, sorted(self.profile.items()),
+                     sorted(self.calibration.items()), self.bias, self.bias_noise,
+                     self.noise.tolist(), self.iterations, self.fit_bias,
+                     self.prior is None, self.batch_logdev is None))
+
+    def _shared(self, kind: str, program, mesh=None):
+        """`jax.jit(program)`, or the one compiled before for a study of this structure
+        (`program` must take the prior's and the batch model's arrays as arguments, and
+        use `self` only for its structure)."""
+        import jax
+
+        key = (kind, self._structure(), mesh)
+        if key not in _PROGRAMS:
+            if len(_PROGRAMS) >= _MAX_PROGRAMS:
+                _PROGRAMS.pop(next(iter(_PROGRAMS)))
+            _PROGRAMS[key] = jax.jit(program)
+        return _PROGRAMS[key]
+
+    def _prior_arrays(self):
+        """The prior's `(mean, W)` as arrays, or None."""
+        import jax.numpy as jnp
+
+        return None if self.prior is None else tuple(jnp.asarray(a) for a in self.prior)
+
+    def _with_arrays(self, prior, batch_logdev):
+        """A copy of the study with the prior's `(mean, W)` and the batch model's
+        log-deviations replaced (by tracers, inside a shared program)."""
+        study = copy.copy(self)
+        study.prior, study.batch_logdev = prior, batch_logdev
+        return study
 
     def compute_chunk(self, logdev: np.ndarray, units: np.ndarray, seed: int, mesh=None
                       ) -> dict[str, np.ndarray]:
@@ -560,28 +600,24 @@ class Study:
         import jax
         import jax.numpy as jnp
 
+        from jax.sharding import PartitionSpec as P
+
         from ._sharding import padded_size, replicate, shard_units, units_mesh
 
         mesh = units_mesh() if mesh is None else mesh
-        if self._program is None or self._program[0] != mesh:
-            from jax.sharding import PartitionSpec as P
 
-            nominal_net = self.network
-            batch_d = self.batch_logdev
+        def program(prior, batch_d, logdev, units, seed):
+            study = self._with_arrays(prior, batch_d)
             # the fits one unit after another on each device's slice of the units
-            fit_units = jax.shard_map(lambda d, u, s: self.fit_units(d, u, s, steps=True),
+            fit_units = jax.shard_map(lambda d, u, s: study.fit_units(d, u, s, steps=True),
                                       mesh=mesh, in_specs=(P("units"), P("units"), P()),
                                       out_specs=P("units"), check_vma=False)
+            nominal = study.observer_of(study.network)
+            batch = None if batch_d is None else study.observer_of(study.unit_network(batch_d))
+            fitted = None if prior is None else fit_units(logdev, units, seed)
+            return jax.vmap(lambda d, u, f: study.unit_metrics(d, u, seed, nominal, batch,
+                                                               f))(logdev, units, fitted)
 
-            def program(logdev, units, seed):
-                nominal = self.observer_of(nominal_net)
-                batch = (None if batch_d is None else
-                         self.observer_of(self.unit_network(jnp.asarray(batch_d))))
-                fitted = None if self.prior is None else fit_units(logdev, units, seed)
-                return jax.vmap(lambda d, u, f: self.unit_metrics(d, u, seed, nominal, batch,
-                                                                  f))(logdev, units, fitted)
-
-            self._program = (mesh, jax.jit(program))
         n = len(units)
         size = padded_size(n, mesh)
         logdev_p, units_p = logdev, units
@@ -591,7 +627,9 @@ class Study:
         args = shard_units((jnp.asarray(logdev_p), jnp.asarray(units_p, dtype=jnp.uint32)),
                            mesh)
         seed_arr = replicate(jnp.asarray(seed, dtype=jnp.uint32), mesh)
-        out = self._program[1](*args, seed_arr)
+        batch_d = None if self.batch_logdev is None else jnp.asarray(self.batch_logdev)
+        prior, batch_d = replicate((self._prior_arrays(), batch_d), mesh)
+        out = self._shared("chunk", program, mesh)(prior, batch_d, *args, seed_arr)
         return {k: np.asarray(v)[:n] for k, v in out.items()}
 
 
