@@ -6,7 +6,11 @@ static RAM, and the fixed-point error figures, for the six-node IMU at 20 Hz.
 
 Float builds are counted in both layouts of `generate_c`: `rows` (straight-line, the
 default) and `columns` (column-at-a-time sums over rows padded to 32 bytes, AVX2; double
-also padded to 16 bytes, SSE2).
+also padded to 16 bytes, SSE2; the channel supervision lane-parallel, `supervision="lanes"`,
+unless marked "in branches"). The observer's supervision is the default `FaultConfig`
+(plausibility, open circuit, recovery); the builds marked "full supervision" add a
+residual threshold of 0.5 K (wire-break test, bad-run counter) and ADC rails inside the
+plausible range on one channel.
 
 Needs gcc, valgrind and the dev extras (scipy). The observer (3 sensors, 2 inputs) uses
 Kalman gains for every sensor subset, built as in `tests/test_reference_setup.py`.
@@ -82,11 +86,20 @@ def main():
               "float (float32), columns": (f32, "columns", 32),
               "double (float64), columns": (f64, "columns", 32),
               "double (float64), columns, 16-byte rows": (f64, "columns", 16)}
+    full = ref.FaultConfig(rails=[(-np.inf, np.inf)] * (p - 1) + [(-40.0, 100.0)],
+                           residual_threshold=0.5)
+    for dtype, name in ((np.float32, "float (float32)"), (np.float64, "double (float64)")):
+        obs = ref.FloatObserver(system, full, dtype=dtype)
+        builds[f"{name}, full supervision"] = (obs, "rows", 32)
+        builds[f"{name}, columns, full supervision"] = (obs, "columns", 32)
+        builds[f"{name}, columns, full supervision in branches"] = (obs, "columns", 32,
+                                                                    "branches")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for flags in (["-O2"], ["-O3", "-march=x86-64-v3"]):
-            for name, (obs, layout, vector_bytes) in builds.items():
-                src = ref.generate_c(obs, "obs", layout=layout, vector_bytes=vector_bytes)
+            for name, (obs, layout, vector_bytes, *supervision) in builds.items():
+                src = ref.generate_c(obs, "obs", layout=layout, vector_bytes=vector_bytes,
+                                     supervision=(supervision or [None])[0])
                 if isinstance(obs, ref.FixedObserver):
                     data = (obs.encode_states(x0), obs.encode_inputs(u), obs.encode_outputs(y))
                 else:

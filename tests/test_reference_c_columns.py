@@ -1,8 +1,11 @@
-"""The generated C in the column layout (`generate_c(layout="columns")`, SIMD across rows)
-against the NumPy float reference: bit for bit up to the sign of an exact zero, compiled
-without vectorization (-O0, -O2 -fno-tree-vectorize) and vectorized (-O3 -march=x86-64-v3,
-AVX2), over a long playback with fault injections."""
+"""The generated C in the column layout (`generate_c(layout="columns")`, SIMD across rows
+and across channels) against the NumPy float reference: bit for bit up to the sign of an
+exact zero, compiled without vectorization (-O0, -O2 -fno-tree-vectorize) and vectorized
+(-O3 -march=x86-64-v3, AVX2), over a long playback with fault injections, random fault
+scenarios under several supervision settings, and counters run into saturation; the
+branch-free channel rules against `ChannelMonitor` for every state and input."""
 
+import itertools
 import subprocess
 
 import numpy as np
@@ -138,9 +141,10 @@ def test_columns_source():
         assert f"#define OBS_W {W}" in src.header and f"obs_x[OBS_W]" in src.header
         assert f"OBS_COLS[{K}][OBS_W]" in src.source
         step = src.source[src.source.index("uint8_t obs_step("):]
-        supervision = rows.source[rows.source.index("/* channel 0"):
-                                  rows.source.index("    switch (mask)")]
-        assert supervision in step
+        # the supervision: one branch-free loop over the channels (4 lanes for 3)
+        assert "/* channel 0" in rows.source and "/* channel 0" not in step
+        assert "for (i = 0; i < 4; i++) {" in step and "OBS_SUP_BITS[3][4]" in src.source
+        assert "_good_run" not in src.source and "obs_sup_g[4]" in src.source
     fx = ref.FixedObserver(system, "q16.16", IMU6_SCALING["q16.16"])
     with pytest.raises(ValueError, match="layout"):
         ref.generate_c(fx, "obs", layout="columns")
@@ -148,6 +152,16 @@ def test_columns_source():
         ref.generate_c(obs, "obs", layout="diagonal")
     with pytest.raises(ValueError, match="vector_bytes"):
         ref.generate_c(obs, "obs", layout="columns", vector_bytes=12)
+    with pytest.raises(ValueError, match="supervision"):
+        ref.generate_c(fx, "obs", supervision="lanes")
+    with pytest.raises(ValueError, match="supervision"):
+        ref.generate_c(obs, "obs", supervision="vector")
+    # either supervision in either layout: the branches are the rows layout's blocks
+    branches = ref.generate_c(obs, "obs", layout="columns", supervision="branches")
+    supervision = rows.source[rows.source.index("/* channel 0"):
+                              rows.source.index("    switch (mask)")]
+    assert supervision in branches.source and "OBS_SUP_" not in branches.source
+    assert "OBS_SUP_BITS" in ref.generate_c(obs, "obs", supervision="lanes").source
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
@@ -163,3 +177,144 @@ def test_columns_c_with_bias_channels(artifact, dtype, tmp_path):
     assert same_up_to_zero_sign(got.states, want.states)
     assert same_up_to_zero_sign(got.bias, want.bias)
     assert np.array_equal(got.in_use, want.in_use)
+
+
+# -- the channel supervision of the columns layout ---------------------------------------
+
+def test_channel_rules_equal_channel_monitor():
+    """`channel_rules` (the branch-free rules the columns layout writes in C) against
+    `ChannelMonitor.update` for every flag state and input and counters around N, M and
+    the saturation, also with `railed` and `large` known false at generation time (no
+    rails within the plausible range, no finite residual threshold: `bad` stays 0)."""
+    from thermojax.reference._faults import COUNTER_MAX, ChannelMonitor, _Lane, _var, \
+        channel_rules
+
+    for N, M in ((1, 1), (3, 2), (10, 20), (COUNTER_MAX, COUNTER_MAX)):
+        counts = sorted({0, 1, 2, N - 1, N, N + 1, M - 1, M, M + 1, COUNTER_MAX - 1,
+                         COUNTER_MAX} - {-1, COUNTER_MAX + 1})
+        for known_railed, known_large in itertools.product((False, True), repeat=2):
+            v = {name: _var(name, flag=name not in ("good", "bad"))
+                 for name in ("healthy", "wire_break", "good", "bad", "plausible", "railed",
+                              "large")}
+            if known_railed:
+                v["railed"] = _Lane.known(False)
+            if known_large:
+                v["large"], v["bad"] = _Lane.known(False), _Lane.known(0, False)
+                v["wire_break"] = _Lane.known(False)
+            steps = []
+            bind = lambda name, e: (e if e.const is not None else
+                                    (steps.append((name, e)), _var(name, flag=e.flag))[1])
+            rules = channel_rules(v, N, M, bind)
+            for h, w, pl, ra, lg, g, b in itertools.product(
+                    (False, True), (False, True), (False, True), (False, True),
+                    (False, True), counts, counts):
+                if (known_railed and ra) or (known_large and (lg or b or w)):
+                    continue
+                mon = ChannelMonitor(1, N, M)
+                mon.healthy, mon.wire_break, mon.good_run, mon.bad_run = [h], [w], [g], [b]
+                mask = mon.update([pl], [pl and ra], [pl and lg])
+                env = {"healthy": h, "wire_break": w, "good": g, "bad": b, "plausible": pl,
+                       "railed": pl and ra, "large": pl and lg}
+                for name, e in steps:
+                    env[name] = e.f(env)
+                got = {k: e.f(env) for k, e in rules.items()}
+                assert (bool(got["healthy"]), bool(got["wire_break"]), got["good"],
+                        got["bad"], bool(got["in_use"])) == \
+                    (mon.healthy[0], mon.wire_break[0], mon.good_run[0], mon.bad_run[0],
+                     bool(mask)), (N, M, known_railed, known_large, h, w, pl, ra, lg, g, b)
+
+
+SUPERVISION = {
+    # rails inside the plausible range on channel 0 (both sides) and channel 2 (at the
+    # lower limit exactly), residual thresholds on channels 0 and 2 only, short runs
+    "rails+thresholds": ref.FaultConfig(rails=[(-40.0, 100.0), (-np.inf, np.inf),
+                                               (-55.0, 1e9)],
+                                        residual_threshold=[0.3, np.inf, 1.0],
+                                        wire_break_after=3, recover_after=2),
+    "thresholds,N=M=1": ref.FaultConfig(residual_threshold=0.2, wire_break_after=1,
+                                        recover_after=1),
+    "rails only": ref.FaultConfig(rails=(-20.0, 60.0), recover_after=1),
+    "default": ref.FaultConfig(recover_after=5),
+}
+
+
+def random_faults(T=4000, seed=11):
+    """A playback with random faults on every channel, often several at once: implausible
+    values, NaN, ±inf, values at and beyond rails and at the plausible limits exactly,
+    stuck readings (large residuals), open circuits; the open-circuit byte has bits above
+    the channels set too (ignored)."""
+    system, u, y, _, x0 = playback(T, seed=seed)
+    rng = np.random.default_rng(seed)
+    y = y.copy()
+    specials = np.array([200.0, -100.0, np.nan, np.inf, -np.inf, -55.0, 125.0, -40.0, 100.0,
+                         110.0, -50.0, -20.0, 60.0, 70.0, np.nextafter(125.0, 200.0)])
+    k = 0
+    while k < T:                        # bursts of one kind of fault on a random channel
+        length, j, kind = rng.integers(1, 40), rng.integers(3), rng.integers(4)
+        sl = slice(k, min(k + length, T))
+        if kind == 0:
+            y[sl, j] = rng.choice(specials, size=len(y[sl, j]))
+        elif kind == 1:
+            y[sl, j] = y[k, j] + rng.choice([-3.0, 2.0, 0.5])      # stuck, offset
+        k += length + rng.integers(0, 60)
+    oc = rng.random((T, 3)) < 0.02
+    byte = (oc * np.array([1, 2, 4])).sum(1).astype(np.uint8) | \
+        (rng.integers(0, 32, T).astype(np.uint8) << 3)
+    return system, u, y, x0, oc, byte
+
+
+@pytest.mark.parametrize("config", SUPERVISION)
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("flags", FLAGS, ids=lambda f: "".join(f))
+def test_columns_supervision_random_faults(config, dtype, flags, tmp_path):
+    """The lane-parallel supervision under random faults and four settings (rails within
+    the limits or not, thresholds on some channels, all or none, N = M = 1): flags,
+    states and residuals as the NumPy reference; flags the same with the branches
+    (rows layout, columns layout) and with the lanes in the rows layout (bit for bit
+    there)."""
+    if flags == AVX2 and not cpu_has_x86_64_v3(tmp_path):
+        pytest.skip("this CPU does not run -march=x86-64-v3 code (AVX2)")
+    system, u, y, x0, oc, byte = random_faults()
+    obs = ref.FloatObserver(system, SUPERVISION[config], dtype=dtype)
+    want = obs.run(x0, u, y, oc)
+    seen = {(h, w) for h, w in zip(want.healthy, want.wire_break)}
+    assert len(seen) >= 4 and len(set(want.in_use.tolist())) >= 6
+    src = ref.generate_c(obs, "obs", layout="columns")
+    got = gcc_run(src, gcc_build(src, tmp_path, *flags), tmp_path, x0, u, y, byte)
+    assert same_up_to_zero_sign(got.states, want.states)
+    assert same_up_to_zero_sign(got.residuals, want.residuals)
+    for f in ("in_use", "healthy", "wire_break"):
+        assert np.array_equal(getattr(got, f), getattr(want, f)), f
+    for layout, supervision in (("rows", "branches"), ("rows", "lanes"),
+                                ("columns", "branches")):
+        other = ref.generate_c(obs, "obs", layout=layout, supervision=supervision)
+        folder = tmp_path / f"{layout}_{supervision}"
+        folder.mkdir()
+        by_other = gcc_run(other, gcc_build(other, folder, *flags), folder, x0, u, y, byte)
+        for f in ("in_use", "healthy", "wire_break"):
+            assert np.array_equal(getattr(by_other, f), getattr(got, f)), (layout, f)
+        if layout == "rows":
+            assert np.array_equal(by_other.states, want.states)
+
+
+def test_columns_supervision_saturation(tmp_path):
+    """Run counters into saturation (65,535): N = M = 65,535, a channel implausible at the
+    first step and good for 70,000 steps after (it comes back at the 65,535th), one with
+    a large residual on every step (wire break at the 65,535th, then held), vectorized."""
+    flags = AVX2 if cpu_has_x86_64_v3(tmp_path) else FLAGS[1]
+    T = 70_000
+    system, u, y, _, x0 = playback(T, seed=3)
+    y = y.copy()
+    y[0, 0] = np.nan
+    y[:, 2] = y[:, 2] + np.where(np.arange(T) % 2, 20.0, -20.0)     # residuals all large
+    cfg = ref.FaultConfig(residual_threshold=[np.inf, np.inf, 0.5], wire_break_after=65535,
+                          recover_after=65535)
+    obs = ref.FloatObserver(system, cfg, dtype=np.float32)
+    want = obs.run(x0, u, y)
+    assert want.healthy[65534] & 1 == 0 and want.healthy[65535] & 1
+    assert not want.wire_break[65533] and want.wire_break[65534] == 4
+    src = ref.generate_c(obs, "obs", layout="columns")
+    got = gcc_run(src, gcc_build(src, tmp_path, *flags), tmp_path, x0, u, y)
+    assert same_up_to_zero_sign(got.states, want.states)
+    for f in ("in_use", "healthy", "wire_break"):
+        assert np.array_equal(getattr(got, f), getattr(want, f)), f

@@ -1,7 +1,10 @@
 """Firmware channel supervision: plausibility, open circuit, ADC rails, wire break, recovery.
 
 One state machine per sensor channel, shared by the float and fixed-point observers and
-mirrored line for line by the generated C. At each step, for channel `j`:
+mirrored line for line by the generated C (`supervision="branches"`); `channel_rules`
+states the same rules branch free, for the generated C's lane-parallel form
+(`supervision="lanes"`), and a test checks it against `ChannelMonitor` for every state
+and input. At each step, for channel `j`:
 
 1. *readable*: the front end reports no open circuit (and, in float builds, the value is
    not NaN). *plausible*: readable and `limits[0] <= y <= limits[1]`.
@@ -126,3 +129,110 @@ class ChannelMonitor:
         h = sum(1 << j for j in range(self.p) if self.healthy[j])
         w = sum(1 << j for j in range(self.p) if self.wire_break[j])
         return h, w
+
+
+class _Lane:
+    """One per-channel quantity of the supervision as an expression: its C text for the
+    lane-parallel form (`layout="columns"`) and a Python function of the channel's
+    variables, so that one description of the rules (`channel_rules`) gives the C and
+    can be checked against `ChannelMonitor` (a test does it for every state and input).
+    A flag is a lane mask in C (all ones or zero) and a bool in Python; a counter is an
+    integer. `const` is the value when known at generation time (folded away)."""
+
+    def __init__(self, c, f, const=None, flag=True):
+        self.c, self.f, self.const, self.flag = c, f, const, flag
+
+    @staticmethod
+    def known(v, flag=True):
+        return _Lane(("-1" if v else "0") if flag else str(int(v)), lambda env: v, v, flag)
+
+    def __and__(self, o):
+        if self.const is not None:
+            return o if self.const else self
+        if o.const is not None:
+            return self if o.const else o
+        return _Lane(f"({self.c} & {o.c})", lambda env: self.f(env) and o.f(env))
+
+    def __or__(self, o):
+        if self.const is not None:
+            return self if self.const else o
+        if o.const is not None:
+            return o if o.const else self
+        return _Lane(f"({self.c} | {o.c})", lambda env: self.f(env) or o.f(env))
+
+    def __invert__(self):
+        if self.const is not None:
+            return _Lane.known(not self.const)
+        return _Lane(f"~{self.c}", lambda env: not self.f(env))
+
+
+def _var(name, c=None, flag=True):
+    """The variable `name` (`env[name]` in Python), C text `c` (default: the name)."""
+    return _Lane(name if c is None else c, lambda env: env[name], None, flag)
+
+
+def _select(c, a, b):
+    """`c ? a : b` for counters (`c & a` or `~c & b` when the other is a known 0)."""
+    if c.const is not None:
+        return a if c.const else b
+    if a.const is not None and a.const == b.const:
+        return a
+    if getattr(b, "cond", None) is not None and b.cond[0].c == c.c:
+        b = b.cond[2]                                   # c ? a : (c ? x : y) = c ? a : y
+    if b.const == 0:
+        out = _Lane(f"({c.c} & {a.c})", lambda env: a.f(env) if c.f(env) else 0, None, False)
+    elif a.const == 0:
+        out = _Lane(f"(~{c.c} & {b.c})", lambda env: 0 if c.f(env) else b.f(env), None, False)
+    else:
+        out = _Lane(f"({c.c} ? {a.c} : {b.c})", lambda env: a.f(env) if c.f(env) else b.f(env),
+                    None, False)
+    out.cond = (c, a, b)
+    return out
+
+
+def _increment(x, cap, cap_c=None):
+    """`min(x + 1, cap)`; `cap_c`: the C text of `cap` (default the number)."""
+    if x.const is not None:
+        return _Lane.known(min(x.const + 1, cap), False)
+    cap_c = str(cap) if cap_c is None else cap_c
+    return _Lane(f"({x.c} - ({x.c} < {cap_c} ? -1 : 0))", lambda env: min(x.f(env) + 1, cap),
+                 None, False)
+
+
+def _at_least(x, k, below_c=None):
+    """`x >= k` for a counter, as a flag, written `x > k - 1`; `below_c`: the C text of
+    `k - 1` (default the number)."""
+    if x.const is not None:
+        return _Lane.known(x.const >= k)
+    below_c = str(k - 1) if below_c is None else below_c
+    return _Lane(f"({x.c} > {below_c} ? -1 : 0)", lambda env: x.f(env) >= k)
+
+
+def channel_rules(v, N, M, bind, const_c=None):
+    """The rules of `FaultConfig` (`ChannelMonitor.update`) for one channel, branch free,
+    as `_Lane` expressions: from the state `v["healthy"], v["wire_break"], v["good"],
+    v["bad"]` and the step's `v["plausible"], v["railed"], v["large"]`, the new state
+    and `in_use` (a dict). `bind(name, expr)` names an intermediate result (a C local)
+    and returns it as a variable; `const_c` may give the C text of `COUNTER_MAX`, `N - 1`
+    and `M - 1` (keys `"max"`, `"N-1"`, `"M-1"`)."""
+    k = const_c or {}
+    zero = _Lane.known(0, False)
+    act = bind("act", v["plausible"] & ~v["railed"])   # neither dropped nor at a rail
+    # a large residual counts bad samples, a small one good samples (saturating); an
+    # implausible reading clears both, a railed one leaves them
+    good = bind("gn", _select(act, _select(v["large"], zero,
+                                           _increment(v["good"], COUNTER_MAX, k.get("max"))),
+                              _select(v["plausible"], v["good"], zero)))
+    bad = bind("bn", _select(act, _select(v["large"],
+                                          _increment(v["bad"], COUNTER_MAX, k.get("max")), zero),
+                             _select(v["plausible"], v["bad"], zero)))
+    # N large residuals in a row: wire break, flag up and channel dropped
+    broken = bind("brk", act & v["large"] & _at_least(bad, N, k.get("N-1")))
+    # M good samples in a row bring a dropped channel back, flag down
+    back = bind("rec", act & ~v["large"] & ~v["healthy"] & _at_least(good, M, k.get("M-1")))
+    healthy = bind("hn", (v["healthy"] & v["plausible"] & ~broken) | back)
+    # in use: act & healthy, which is healthy where act is plausible (no rails)
+    in_use = healthy if act.c == v["plausible"].c else act & healthy
+    wire_break = bind("wn", (v["wire_break"] & ~back) | broken)
+    return {"healthy": healthy, "wire_break": wire_break, "good": good, "bad": bad,
+            "in_use": in_use}
