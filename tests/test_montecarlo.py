@@ -453,3 +453,33 @@ def test_fit_converges_from_far_and_stops_early(spec):
     # the minimum, not where the iterations happened to stop: from the truth, the same
     d2 = np.asarray(jax.jit(lambda y, b: study.fit(y, b, start=truth))(y, b)[0])
     assert np.abs((d2 - d) / std).max() < 3e-4  # the fit's tolerance: 1e-4 stds
+
+
+def test_studies_of_one_structure_share_a_program_and_keep_their_own_prior(spec):
+    """Two presets (other priors) of one structure: the second study's chunk, computed by
+    the program compiled for the first, equals the chunk computed by a program compiled
+    for itself alone; a study of another profile gets its own program."""
+    from thermojax.montecarlo import Study, log_prior, varied_names
+    from thermojax.montecarlo import _study
+
+    profile = {"lo": 0.0, "hi": 40.0, "rate": 20.0, "dwell": 30.0, "dt": 4.0, "power": 0.05}
+    pops = [preset_population(spec, p) for p in ("oem_module", "bare_die_custom")]
+    studies = [Study(spec, varied_names(p), profile, prior=log_prior(p), iterations=8)
+               for p in pops]
+    sample = sample_units(spec, pops[1], np.arange(3), seed=1)
+    _study._PROGRAMS.clear()
+    studies[0].compute_chunk(sample.log_deviation[:2], sample.indices[:2], 1)
+    shared = studies[1].compute_chunk(sample.log_deviation, sample.indices, 1)
+    assert len(_study._PROGRAMS) == 1  # the second study reused the first's program
+    _study._PROGRAMS.clear()
+    alone = studies[1].compute_chunk(sample.log_deviation, sample.indices, 1)
+    for k in alone:
+        np.testing.assert_array_equal(shared[k], alone[k], err_msg=k)
+    # the priors differ, so the fits do: the shared program did not keep the first's
+    first = studies[0].compute_chunk(sample.log_deviation, sample.indices, 1)
+    assert not np.array_equal(first["fitted_log_deviation"], alone["fitted_log_deviation"])
+    other = Study(spec, varied_names(pops[1]), dict(profile, rate=10.0),
+                  prior=log_prior(pops[1]), iterations=8)
+    other.compute_chunk(sample.log_deviation[:1], sample.indices[:1], 1)
+    assert len(_study._PROGRAMS) == 2
+    _study._PROGRAMS.clear()
