@@ -14,6 +14,7 @@ simulated by thermojax from the truth (the hidden-effect generator is the check 
 that simulation, in tests/test_effects.py).
 
 Usage:  python benchmarks/investigate.py [--cases a,b,...] [--horizon SECONDS] [--imu6]
+                                         [--cache-dir DIR]
 """
 
 from __future__ import annotations
@@ -103,7 +104,15 @@ def main() -> None:
     ap.add_argument("--horizon", type=float, default=None,
                     help="cut every run to this many seconds (default: full runs)")
     ap.add_argument("--imu6", action="store_true", help="the six-node IMU scenario instead")
+    ap.add_argument("--cache-dir", default=None,
+                    help="keep compiled programs in this folder, as the command line does "
+                    "(run twice: the first run is cold, the second warm); default: no "
+                    "persistent cache")
     args = ap.parse_args()
+    if args.cache_dir:
+        from thermojax._cache import enable_compilation_cache
+
+        enable_compilation_cache(args.cache_dir)
     if args.imu6:
         bench_imu6()
         return
