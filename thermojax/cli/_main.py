@@ -531,7 +531,10 @@ def main(argv: list[str] | None = None) -> int:
         enable_compilation_cache()
     try:
         with args.progress.running():
-            return args.func(args)
+            status = args.func(args)
+            if args.progress.interrupted:  # swallowed where Python ignores exceptions
+                raise KeyboardInterrupt
+            return status
     except InputError as err:
         print(f"thermojax {args.command}: error: {err}", file=sys.stderr)
         return 2

@@ -1,12 +1,16 @@
 """Progress on the command line: every message the library reports, and on a terminal a
 live status line with the time spent since the last one (so a long compilation or a
 Kalman fit never looks hung). Plain lines when the output is not a terminal; nothing
-under `--quiet`."""
+under `--quiet`. While a command runs, Ctrl-C is remembered as well as raised, so that an
+interrupt Python swallows (one that lands in a garbage-collection callback or a `__del__`
+is printed as "Exception ignored" and dropped) is raised again at the next message."""
 
 from __future__ import annotations
 
 import contextlib
+import signal
 import sys
+import threading
 import time
 
 
@@ -25,8 +29,11 @@ class Progress:
         self._status = None
         self._last = "starting"
         self._since = time.perf_counter()
+        self.interrupted = False  # Ctrl-C was pressed while `running`
 
     def __call__(self, msg: str) -> None:
+        if self.interrupted:
+            raise KeyboardInterrupt
         if self.quiet:
             return
         self._last, self._since = msg, time.perf_counter()
@@ -47,10 +54,43 @@ class Progress:
     @contextlib.contextmanager
     def running(self):
         """While open, a terminal shows a spinner with the task, the last message and the
-        seconds since it (rich's status line, refreshed by its own thread)."""
-        if not self.live:
-            yield self
+        seconds since it (rich's status line, refreshed by its own thread), and Ctrl-C
+        sets `interrupted` (`_catching_interrupts`)."""
+        with self._catching_interrupts():
+            if not self.live:
+                yield self
+                return
+            with self._status_line():
+                yield self
+
+    @contextlib.contextmanager
+    def _catching_interrupts(self):
+        """SIGINT raises `KeyboardInterrupt`, as Python's own handler does, and sets
+        `interrupted`; where Python swallows it (`sys.unraisablehook`) nothing is printed.
+        The previous handler and hook come back on exit. Only in the main thread (where
+        Python delivers signals)."""
+        if threading.current_thread() is not threading.main_thread():
+            yield
             return
+
+        def on_sigint(signum, frame):
+            self.interrupted = True
+            raise KeyboardInterrupt
+
+        def on_unraisable(unraisable):  # the interrupt comes again at the next message
+            if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+                previous_hook(unraisable)
+
+        previous = signal.signal(signal.SIGINT, on_sigint)
+        previous_hook, sys.unraisablehook = sys.unraisablehook, on_unraisable
+        try:
+            yield
+        finally:
+            signal.signal(signal.SIGINT, previous)
+            sys.unraisablehook = previous_hook
+
+    @contextlib.contextmanager
+    def _status_line(self):
         from rich.console import Console
 
         self._console = Console(file=self.stream)
