@@ -220,8 +220,10 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
     correction `L_S r` as column-at-a-time sums for SIMD: one loop over `P_W` lanes (the
     `n` rows padded to `vector_bytes`: 8 floats or 4 doubles for AVX2) whose body is
     `COLS[a][i] * v_a + COLS[b][i] * v_b + ...` over the product's nonzero columns, read
-    from the `static const` table `P_COLS[K][P_W]`. gcc -O3 vectorizes each loop (a
-    broadcast, a multiply and an add per column); without SIMD it runs as scalar code.
+    from the `static const` table `P_COLS[K][P_W]`; the prediction reads `x`, `u[k-1]`
+    and `u[k]` into locals first and writes `P_x` in place, the correction adds to it
+    (no stack copy). gcc -O3 vectorizes each loop (a broadcast, a multiply and an add per
+    column); without SIMD it runs as scalar code.
     Every row then also adds its zero coefficients' products, `±0`: for finite values
     this leaves each row's sum exactly the left-to-right sum over its nonzero terms (the
     first product starting it), except that a result that is exactly zero may differ in
@@ -444,7 +446,8 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
     xv = [f"{prefix}_x[{j}]" for j in range(n)]
     upv = [f"{prefix}_u_prev[{j}]" for j in range(m)]
     uv = [f"u[{j}]" for j in range(m)]
-    xmv = [f"xm[{i}]" if columns else f"xm{i}" for i in range(n)]
+    # columns: the prediction and correction update `P_x` in place (no stack copy)
+    xmv = xv if columns else [f"xm{i}" for i in range(n)]
     rv = [f"r{j}" for j in range(p)]
 
     def total(row, vals, unit=None):
@@ -484,8 +487,7 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
     at = len(c)                                         # P_COLS goes here, before the step
     c += [f"uint8_t {prefix}_step(const {word} u[{P}_M], const {word} y[{P}_P], "
           f"uint8_t open_mask) {{",
-          (f"    {word} xm[{P}_W];   /* x-[k], then x[k], rows padded to {P}_W lanes */"
-           if columns else f"    {word} " + ", ".join(xmv) + ";   /* x-[k], then x[k] */"),
+          *([] if columns else [f"    {word} " + ", ".join(xmv) + ";   /* x-[k], then x[k] */"]),
           f"    {word} " + ", ".join(rv) + ";   /* residuals */",
           *([f"    int i;"] if columns or lanes_sup else []),
           f"    uint8_t mask = 0;",
@@ -493,13 +495,18 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
     if columns:
         pred_cols = ([f"Phi[:, {v}]" for v in st] + [f"B0[:, {v}]" for v in inp] +
                      [f"B1[:, {v}]" for v in inp])
-        e = column_sum(pred_M, xv + upv + uv, lambda j: pred_cols[j], " " * 18)
+        # read x, u[k-1] and u[k] into locals first: the loop then overwrites P_x
+        locals_ = [f"x{j}" for j in range(n)] + [f"up{j}" for j in range(m)] + \
+            [f"u{j}" for j in range(m)]
+        e = column_sum(pred_M, locals_, lambda j: pred_cols[j], " " * 18)
+        read = [f"{locals_[j]} = {(xv + upv + uv)[j]}"
+                for j in np.flatnonzero(np.any(pred_M != 0, axis=0))]
+        c += [f"        const {word} " + ", ".join(read[k:k + 6]) + ";"
+              for k in range(0, len(read), 6)]
         c += [f"        /* x-[k] = Phi x + B0 u[k-1] + B1 u[k], column by column, lane i = "
               f"row i */", f"        for (i = 0; i < {P}_W; i++)",
-              f"            xm[i] = {_zero(word) if e is None else e};",
-              "    } else {   /* first step: no prediction */",
-              f"        for (i = 0; i < {P}_W; i++) xm[i] = {prefix}_x[i];",
-              "    }"]
+              f"            {prefix}_x[i] = {_zero(word) if e is None else e};",
+              "    }   /* first step: no prediction */"]
     else:
         for i in range(n):
             c.append(f"        /* x-[{st[i]}] = Phi[{st[i]}, :] x + B0[{st[i]}, :] u[k-1] "
@@ -574,7 +581,10 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
             c += ["        }"]
         c += [f"        if ({prefix}_healthy & {bit}u) mask |= {bit}u;", "    }"]
     # correction, one case per set of channels in use
-    c += ["    switch (mask) {   /* x[k] = x-[k] + L_S r, S = the channels in use */"]
+    # columns: `& (2^p - 1)` with every case written tells gcc the jump table needs no
+    # range check (mask < 2^p already)
+    c += [f"    switch (mask{f' & {(1 << p) - 1}u' if columns else ''}) {{   "
+          "/* x[k] = x-[k] + L_S r, S = the channels in use */"]
     for mask in range(1, 1 << p):
         used = [out[j] for j in range(p) if mask >> j & 1]
         c.append(f"    case {mask}:   /* {', '.join(used)} */")
@@ -582,7 +592,7 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
             e = column_sum(gain_M[mask], rv, lambda j: f"L_{mask}[:, {out[j]}]", " " * 27)
             if e is not None:
                 c += [f"        for (i = 0; i < {P}_W; i++)   /* L_S r, column by column */",
-                      f"            xm[i] = xm[i] + ({e});"]
+                      f"            {prefix}_x[i] = {prefix}_x[i] + ({e});"]
         for i in [] if columns else range(n):
             e = total(gain_M[mask][i], rv)
             if e is None:
@@ -593,11 +603,11 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
             else:
                 c.append(f"        {xmv[i]} = {xmv[i]} + ({e});   /* L[{st[i]}, :] */")
         c.append("        break;")
-    c += ["    default:   /* no channel in use: prediction only */", "        break;", "    }"]
+    c += [f"    {'case 0: ' if columns else ''}default:   /* no channel in use: prediction only */",
+          "        break;", "    }"]
     if q:
         c += (_fixed_bias_c if fixed else _float_bias_c)(biases, prefix, xmv, uv, st)
-    c += ([f"    for (i = 0; i < {P}_W; i++) {prefix}_x[i] = xm[i];"] if columns else
-          [f"    {xv[i]} = {xmv[i]};" for i in range(n)])
+    c += [] if columns else [f"    {xv[i]} = {xmv[i]};" for i in range(n)]
     c += [f"    {upv[j]} = u[{j}];" for j in range(m)]
     c += [f"    {prefix}_started = 1;", f"    return mask;", "}", ""]
     if columns:
