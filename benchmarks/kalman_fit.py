@@ -15,9 +15,10 @@ every fitter starts from the same perturbed start.
 
 Fitters, all on the same data, in one process:
 
-- thermojax: `fit(spec, [Experiment(...)], likelihood="kalman")` (an output-error fit,
-  then the Kalman stage: truncated Newton with the Fisher information and exact
-  gradients). The first call is timed in a fresh process with the persistent compilation
+- thermojax: `fit(spec, [Experiment(...)], likelihood="kalman")` (the Kalman stage
+  from the file's values: truncated Newton with the Fisher information and exact
+  gradients, the boundary check and the polish; an output-error fit first only when that
+  does not converge). The first call is timed in a fresh process with the persistent compilation
   cache off (the library turns it on only from the command line; THERMOJAX_CACHE_DIR and
   JAX_COMPILATION_CACHE_DIR are removed from the environment): compilation included.
   Then fits on new noise seeds, the same structure and shapes (warm: the compiled

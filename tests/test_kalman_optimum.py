@@ -124,19 +124,25 @@ def make_data(seed=0):
     return t, U, Y
 
 
-@pytest.mark.slow
-def test_kalman_fit_reaches_the_optimum_with_zero_process_noise():
+START = dict(c_wall=1.5e6, c_air=6e5, c_floor=3e6, g_wa=120.0, g_af=60.0, g_out=40.0,
+             noise=0.1, q0=0.002, q1=0.005, q2=0.002)
+
+
+def fit_start(**kwargs):
     t, U, Y = make_data()
-    start = dict(c_wall=1.5e6, c_air=6e5, c_floor=3e6, g_wa=120.0, g_af=60.0, g_out=40.0,
-                 noise=0.1, q0=0.002, q1=0.005, q2=0.002)
     with pytest.warns(UserWarning, match="shorter than the slowest time constant"):
         # the floor's ~2-day mode outlasts the 42 h record, as in building data
-        result = fit(parse_model(MODEL.format(**start), "building.toml"),
-                     [Experiment(t, U, Y[:, None], "building")], likelihood="kalman")
-    # the reference: SciPy on the NumPy filter, from the same start, q >= 0 allowed
-    x0 = np.array([np.log(start[k]) for k in ("c_wall", "c_air", "c_floor", "g_wa", "g_af",
+        return fit(parse_model(MODEL.format(**START), "building.toml"),
+                   [Experiment(t, U, Y[:, None], "building")], likelihood="kalman", **kwargs)
+
+
+@pytest.fixture(scope="module")
+def reference():
+    """SciPy on the NumPy filter, from the same start, q >= 0 allowed."""
+    t, U, Y = make_data()
+    x0 = np.array([np.log(START[k]) for k in ("c_wall", "c_air", "c_floor", "g_wa", "g_af",
                                                 "g_out", "noise")]
-                  + [start["q0"], start["q1"], start["q2"]])
+                  + [START["q0"], START["q1"], START["q2"]])
 
     def f(x):
         return numpy_nll([*np.exp(x[:7]), *x[7:]], U, Y)
@@ -144,9 +150,19 @@ def test_kalman_fit_reaches_the_optimum_with_zero_process_noise():
     bounds = [(None, None)] * 7 + [(0.0, None)] * 3
     ref = scipy.optimize.minimize(f, x0, method="L-BFGS-B", bounds=bounds,
                                   options=dict(maxiter=500))
-    ref = scipy.optimize.minimize(f, ref.x, method="Nelder-Mead", bounds=bounds,
-                                  options=dict(maxiter=4000, xatol=1e-8, fatol=1e-9))
+    return scipy.optimize.minimize(f, ref.x, method="Nelder-Mead", bounds=bounds,
+                                   options=dict(maxiter=4000, xatol=1e-8, fatol=1e-9))
+
+
+@pytest.mark.slow
+def test_kalman_fit_reaches_the_optimum_with_zero_process_noise(reference):
+    t, U, Y = make_data()
+    said = []
+    result = fit_start(progress=said.append)
+    ref = reference
     assert result.nll <= ref.fun + 0.05, (result.nll, ref.fun)
+    assert "started from the file's values" in said[0] and not any("output-error" in m
+                                                                     for m in said)
     # the same likelihood: the fit's optimum evaluated by the NumPy filter
     p = result.parameters
     mine = [p[k]["value"] for k in ("nodes.wall.capacitance", "nodes.air.capacitance",
@@ -165,3 +181,33 @@ def test_kalman_fit_reaches_the_optimum_with_zero_process_noise():
         if p[name].get("at_bound"):
             assert p[name]["value"] == 0.0 and p[name]["std"] is None
     assert result.converged
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("direct", ["diverges", "stops short"])
+def test_kalman_fit_falls_back_to_the_output_error_start(reference, monkeypatch, direct):
+    """When the Kalman stage from the file's values runs away or does not converge, it
+    starts again from the output-error fit and keeps the better likelihood."""
+    import thermojax.fitting._fit as fit_module
+    from thermojax._errors import InputError
+
+    real = fit_module.fit_kalman
+    calls = []
+
+    def failing_from_the_file(prep, start, *args):
+        calls.append(start is None)
+        if start is None and direct == "diverges":
+            raise InputError("the fit diverged: nodes.wall.capacitance ran away")
+        sol = real(prep, start, *args)
+        if start is None:  # as if it had stopped at max_steps, at a poor point
+            sol.converged, sol.nll = False, sol.nll + 10.0
+        return sol
+
+    monkeypatch.setattr(fit_module, "fit_kalman", failing_from_the_file)
+    said = []
+    result = fit_start(progress=said.append)
+    assert calls == [True, False]
+    assert any("trying again from the output-error fit" in m for m in said)
+    assert any("started from the output-error fit" in m for m in said)
+    assert result.converged and result.nll <= reference.fun + 0.05, (result.nll,
+                                                                      reference.fun)

@@ -1,4 +1,5 @@
-"""The Kalman stage of a fit: the prediction-error likelihood, started from output error.
+"""The Kalman stage of a fit: the prediction-error likelihood, started from the file's
+values or from an output-error fit (`_fit._kalman_stages` chooses).
 
 The default `TruncatedNewton` leaves undetermined directions where they start; an
 optimistix minimiser gets a weak Gaussian prior on `theta` around the file's values
@@ -90,18 +91,21 @@ _value = eqx.filter_jit(_kalman_loss)
 _simulate_jit = eqx.filter_jit(simulate_dataset)
 
 
-def fit_kalman(prep: Prepared, start: Solution, solver, max_steps: int, prior_log_std: float,
-               say) -> Solution:
-    """The Kalman stage, warm-started from the output-error `start`."""
+def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
+               prior_log_std: float, say) -> Solution:
+    """The Kalman stage, started from the output-error `start` or, with `start` None,
+    from the file's values."""
     index, names = prep.free("kalman")
-    template = start.state
+    template = prep.template if start is None else start.state
     theta0 = free_parameters(template, index)
     prior_mean = free_parameters(prep.template, index)  # the file's values
     solver = solver or TruncatedNewton()
     weight = 0.0 if isinstance(solver, TruncatedNewton) else 1.0 / prior_log_std
-    sigma = start.problem.sigma[:len(prep.spec.sensors)]  # the filter's own noise is in theta
+    p = len(prep.spec.sensors)  # the filter's own noise is in theta; sigma rides along
+    sigma = prep.sigma[:p] if start is None else start.problem.sigma[:p]
     problem = make_problem(template, index, prep.data, sigma, prior_mean, weight)
-    say(f"Kalman likelihood: {len(names)} parameters, started from the output-error fit")
+    say(f"Kalman likelihood: {len(names)} parameters, started from "
+        + ("the file's values" if start is None else "the output-error fit"))
     theta, n_steps, converged = _solve_kalman(theta0, problem, solver, max_steps)
     _check_finite(theta, theta0, names)
     at_zero = []
