@@ -193,6 +193,31 @@ def test_cli_export_and_check(tmp_path, capsys):
     assert "--force" in capsys.readouterr().err
 
 
+def test_cli_export_float32_columns_build_equals_the_reference(tmp_path):
+    """`--c-float float32 --c-layout columns`: the vectorizable float32 build (the one
+    benchmarks/observer_c.py counts), compiled with warnings as errors, plays back equal
+    to the artifact's float32 reference (up to the sign of an exact zero), flags exactly."""
+    from test_reference_c_columns import same_up_to_zero_sign
+
+    out = tmp_path / "obs"
+    assert main(["export", "--model", "imu6", "--rate", "20", "--out", str(out), "--quiet",
+                 "--no-cache", "--c-float", "float32", "--c-layout", "columns"]) == 0
+    art = ref.load_observer(out)
+    assert art.metadata["c_build"] == {"float": "float32", "layout": "columns"}
+    text = (out / "tj_observer.c").read_text()
+    assert "typedef float tj_observer_word_t;" in (out / "tj_observer.h").read_text()
+    assert "TJ_OBSERVER_COLS" in text
+    _, u, y, _, x0 = playback(6_000, seed=5)
+    y = y.copy()
+    y[2000:2400, 1] = 300.0   # a channel out of its plausible range for 20 s
+    want = art.float_observer(np.float32).run(x0, u, y)
+    src = ref.generate_c(art.float_observer(np.float32), "tj_observer", layout="columns")
+    assert src.source == text
+    got = run_c(src, compile_artifact(out, "tj_observer"), out, x0, u, y)
+    assert same_up_to_zero_sign(got.states, want.states)
+    assert np.array_equal(got.in_use, want.in_use) and got.in_use[2100] == 0b101
+
+
 @pytest.mark.parametrize("argv, match", [
     (["--sensor", "T_housing"], r"imu6.toml, field '--sensor'.*unobservable.*involving asic"
                                 r".*A sensor on pcb"),

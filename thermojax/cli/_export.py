@@ -45,7 +45,8 @@ def cmd_export(args) -> int:
         with staged_folder(out) as tmp:
             result = export_observer(model, args.rate, tmp, fixed=args.fixed,
                                      method=args.method, sensors=args.sensor,
-                                     operating_point=args.operating_point)
+                                     operating_point=args.operating_point,
+                                     c_float=args.c_float, c_layout=args.c_layout)
             load_observer(tmp)  # what was written reads back
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
@@ -55,6 +56,7 @@ def cmd_export(args) -> int:
           f"{len(m['states'])} states, {len(m['inputs'])} inputs, sensors "
           f"{', '.join(o['name'] for o in m['outputs'])}; {len(m['subsets'])} sensor subsets, "
           f"slowest error pole |z| = {worst:.6f}")
+    print(f"float C build: {m['c_build']['float']}, {m['c_build']['layout']} layout")
     if m["fixed"]:
         print(f"fixed point {m['fixed']['format']}: LSB {m['fixed']['lsb_K']:.3g} K around "
               f"{m['fixed']['reference_C']:g} °C")
@@ -70,7 +72,7 @@ def add_export(sub):
                        description="Design the observer of a model at a rate and write it as a "
                        "versioned artifact: DIR/observer.json (metadata, schema 1), "
                        "DIR/observer.npz (matrices, a gain for every sensor subset, offsets) "
-                       "and C99 source and header (float64 build; with --fixed also the "
+                       "and C99 source and header (float64 build by default; with --fixed also the "
                        "fixed-point build). With --check DIR, check an existing artifact.")
     p.add_argument("--model", help="model TOML file or built-in model name")
     p.add_argument("--rate", type=_positive_float, help="observer rate, Hz (e.g. 20)")
@@ -85,6 +87,12 @@ def add_export(sub):
     p.add_argument("--operating-point", type=float, default=25.0, metavar="T_C",
                    help="uniform temperature (°C) at which a model with nonlinear effects "
                    "is linearized (default 25)")
+    p.add_argument("--c-float", choices=["float64", "float32"], default="float64",
+                   help="the word of the float C build (default float64)")
+    p.add_argument("--c-layout", choices=["rows", "columns"], default="rows",
+                   help="the float C build's layout: rows (straight-line, any core; default) "
+                   "or columns (vectorized sums and supervision for SIMD cores: gcc -O3 "
+                   "with AVX2 or NEON)")
     p.add_argument("--check", metavar="DIR", default=None,
                    help="only check an existing artifact folder (schema and arrays)")
     _add_force(p, "an existing --out folder")

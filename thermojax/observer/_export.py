@@ -115,7 +115,8 @@ def _gain(discrete_full, system_c, rows, dt, method, noise, q, names, speedup):
 
 def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: str = "kalman",
                     sensors=None, operating_point: float = 25.0, speedup: float = 4.0,
-                    faults=None, power_scale: float = 1.0) -> ExportResult:
+                    faults=None, power_scale: float = 1.0, c_float: str = "float64",
+                    c_layout: str = "rows") -> ExportResult:
     """Write the reference-observer artifact of a model (see the module docstring).
 
     The full sensor set must observe every state (else `InputError` naming the lost
@@ -137,6 +138,10 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     - `speedup`: observer poles × open-loop poles for `method="poles"`.
     - `faults`: a `thermojax.reference.FaultConfig` (default: limits −55…+125 °C).
     - `power_scale`: W per format unit of a power input in the fixed build.
+    - `c_float`: `"float64"` (default) or `"float32"`, the word of the float C build.
+    - `c_layout`: `"rows"` (default, straight-line, any core) or `"columns"`
+      (column-at-a-time sums and lane-parallel supervision for SIMD cores), the float C
+      build's layout (`thermojax.reference.generate_c`).
 
     **Returns:** an `ExportResult`. Warnings (a nonlinear effect linearized, a coefficient
     that rounds to zero in the fixed format) are issued with `warnings.warn` and listed.
@@ -318,12 +323,14 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
         "linearization": linearization,
         "warnings": caught,
     }
+    meta["c_build"] = {"float": c_float, "layout": c_layout}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     meta["files"] = {}
     c_names = (list(names), list(inputs), list(sensor_names))
-    sources = [ref.generate_c(ref.FloatObserver(obs_system, faults, biases=bias_eval),
-                              FLOAT_PREFIX, c_names)]
+    sources = [ref.generate_c(ref.FloatObserver(obs_system, faults, dtype=np.dtype(c_float),
+                                                biases=bias_eval),
+                              FLOAT_PREFIX, c_names, layout=c_layout)]
     if fixed_obs is not None:
         sources.append(ref.generate_c(fixed_obs, fixed_prefix(fmt.name), c_names))
     for src in sources:
