@@ -238,9 +238,10 @@ def plot(imu, rtd, model, folder: Path) -> None:
     FigureCanvasAgg(fig)
     ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
     ax1.plot([r["noise_amplification"] for r in rtd], [r["t90_estimate"] for r in rtd], "o-")
-    for r in rtd:
+    for k, r in enumerate(rtd):  # labels alternate above and below: the tail is crowded
         ax1.annotate(f"{r['input_noise']:.2g}", (r["noise_amplification"], r["t90_estimate"]),
-                     fontsize=7, xytext=(3, 3), textcoords="offset points")
+                     fontsize=7, xytext=(3, 4 if k % 2 == 0 else -10),
+                     textcoords="offset points")
     ax1.set_xscale("log")
     ax1.set_xlabel("noise amplification (std of estimate / std of sensor noise)")
     ax1.set_ylabel("90 % time of the estimate (s)")
