@@ -140,7 +140,7 @@ def load_config(path) -> CalibrationConfig:
 
     **Raises:** `InputError` naming the config file and field.
     """
-    from ..io import load_model
+    from ..model._model_file import load_model
 
     path = Path(path)
     if not path.is_file():

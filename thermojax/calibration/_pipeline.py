@@ -90,7 +90,7 @@ def load_runs(config: CalibrationConfig, spec) -> list[RawRun]:
     sensor columns in the temperature log, each calibrated channel (not all NaN) in the
     inertial log, timestamps strictly increasing (read_telemetry), streams overlapping in
     time. Raises `InputError` naming the data file and field (or line)."""
-    from ..io import read_telemetry
+    from ..measurements._telemetry import read_telemetry
 
     runs = []
     for r in config.runs:
@@ -572,7 +572,7 @@ def prepare(config) -> tuple[CalibrationConfig, object, list[RawRun]]:
     """Load and check the config, the model and every data file (no work yet); also the
     polynomial orders against the plateaus the calibration runs' temperature logs show.
     Returns `(config, spec restricted to the channels, raw runs)`."""
-    from ..io import load_model
+    from ..model._model_file import load_model
 
     if not isinstance(config, CalibrationConfig):
         config = load_config(config)

@@ -211,7 +211,7 @@ def write_results(res: CalibrationResults, folder) -> dict[str, Path]:
     `allan_<channel>.png` per gyro channel verified) into `folder`
     (the observer folder is already there when `run_pipeline` was given
     `observer_dir=folder / "observer"`). Returns name -> path."""
-    from ..io import save_model
+    from ..model._model_file import save_model
 
     folder = Path(folder)
     out = {}

@@ -186,7 +186,8 @@ def synthetic_imu_logs(out_dir, *, model=None, runs=None, temperature_dt_s: floa
 
     **Returns:** run name -> `SyntheticRun`.
     """
-    from ..io import load_model, write_telemetry
+    from ..measurements._telemetry import write_telemetry
+    from ..model._model_file import load_model
 
     if model is None:
         model = Path(__file__).resolve().parents[2] / "configs" / "imu6_bias.toml"

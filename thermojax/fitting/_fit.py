@@ -92,13 +92,12 @@ def _kalman_stages(prep, solver, max_steps, prior_log_std, n_starts, seed, say) 
         try:
             direct = fit_kalman(prep, None, solver, max_steps, prior_log_std, say)
         except InputError as err:  # diverged from the file's values
-            say(f"Kalman fit from the file's values failed ({err}); trying again from the "
-                "output-error fit")
+            why = f"failed ({err})"
         else:
             if direct.converged:
                 return direct
-            say("Kalman fit from the file's values did not converge; trying again from the "
-                "output-error fit")
+            why = "did not converge"
+        say(f"Kalman fit from the file's values {why}; trying again from the output-error fit")
     start = fit_output_error(prep, None, max_steps, n_starts, seed, say)
     try:
         sol = fit_kalman(prep, start, solver, max_steps, prior_log_std, say)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .._metrics import fit_metrics, fit_percent, rmse
+from ._metrics import fit_metrics, fit_percent, rmse
 from ..model._model import ThermalModel, model_to_spec
 from ..model._spec import ModelSpec, Parameter
 from ..model.effects import Lowered, raise_effects

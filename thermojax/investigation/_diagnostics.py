@@ -9,7 +9,7 @@ Pure NumPy/SciPy (no JAX). A run trace is a plain dict
 holding the model's free-run (or one-step) prediction next to the measurement. The
 statistics come from `_residual_analysis` (runs pooled by summing per-run lagged
 products, each run about its own mean, so a lag never straddles two runs) and the
-fit figures from `_metrics`.
+fit figures from `fitting._metrics`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 from scipy import stats
 
 from .._json import json_safe
-from .._metrics import fit_percent, rmse
+from ..fitting._metrics import fit_percent, rmse
 from .._residual_analysis import (PHASES, PhaseLabels, cross_correlation, cumulated_periodogram,
                                  label_phases, ljung_box, pooled_autocorrelation,
                                  residuals_by_phase)

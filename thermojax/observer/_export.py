@@ -322,8 +322,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
         "biases": biases,
         "linearization": linearization,
         "warnings": caught,
+        "c_build": {"float": c_float, "layout": c_layout},
     }
-    meta["c_build"] = {"float": c_float, "layout": c_layout}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     meta["files"] = {}

@@ -499,8 +499,8 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
         locals_ = [f"x{j}" for j in range(n)] + [f"up{j}" for j in range(m)] + \
             [f"u{j}" for j in range(m)]
         e = column_sum(pred_M, locals_, lambda j: pred_cols[j], " " * 18)
-        read = [f"{locals_[j]} = {(xv + upv + uv)[j]}"
-                for j in np.flatnonzero(np.any(pred_M != 0, axis=0))]
+        read = [f"{locals_[j]} = {v}" for j, v in enumerate(xv + upv + uv)
+                if np.any(pred_M[:, j] != 0)]
         c += [f"        const {word} " + ", ".join(read[k:k + 6]) + ";"
               for k in range(0, len(read), 6)]
         c += [f"        /* x-[k] = Phi x + B0 u[k-1] + B1 u[k], column by column, lane i = "
