@@ -58,15 +58,19 @@ def initial_state_nonlinear(model, system, u0, run_initial=None):
 SUBSTEPS = 4  # ETD2 steps per sample period: fast nodes react within a sample to switched power
 
 
-def etd2_step(model, system: LinearSystem, dt, substeps: int = SUBSTEPS):
-    """`step(x_k, u_k, u_k1) -> x_k+1` over one sample period `dt` (s), in `substeps`
-    ETD2 steps with the inputs held as their `hold` says inside the period."""
+def etd2_matrices(system: LinearSystem, dt, substeps: int = SUBSTEPS):
+    """`(Phi, B0, B1, G0, G1)` of one ETD2 step of `dt / substeps` (s): the exact-hold
+    maps of the inputs (`B0`, `B1`) and of the nonlinear rate (`G0`, `G1`)."""
     m = system.B.shape[1]
-    h = dt / substeps
-    disc = discretize(_augmented(system), h)
-    Phi = disc.Phi
-    B0, G0 = disc.B0[:, :m], disc.B0[:, m:]
-    B1, G1 = disc.B1[:, :m], disc.B1[:, m:]
+    disc = discretize(_augmented(system), dt / substeps)
+    return (disc.Phi, disc.B0[:, :m], disc.B1[:, :m], disc.B0[:, m:], disc.B1[:, m:])
+
+
+def etd2_step(model, system: LinearSystem, dt, substeps: int = SUBSTEPS, matrices=None):
+    """`step(x_k, u_k, u_k1) -> x_k+1` over one sample period `dt` (s), in `substeps`
+    ETD2 steps with the inputs held as their `hold` says inside the period;
+    `matrices`: `etd2_matrices(system, dt, substeps)` when already computed."""
+    Phi, B0, B1, G0, G1 = etd2_matrices(system, dt, substeps) if matrices is None else matrices
     zoh = np.array([hold == "zoh" for hold in system.holds], dtype=bool)
 
     def one(x, u_a, u_b):

@@ -129,14 +129,11 @@ def output_sensitivity_parts(params_to_model, theta, data):
     part of the Jacobian when the returned function is called.
     """
 
-    if params_to_model(theta)[0].is_nonlinear:  # ETD2 scan, differentiated forward
-        from ._nonlinear import dataset_outputs_nonlinear
+    if params_to_model(theta)[0].is_nonlinear:  # ETD2 scan, linearized per sample
+        from ._nonlinear_sensitivity import dataset_outputs_and_jacobian
 
-        def outputs(t):
-            model, run_initial = params_to_model(t)
-            return pad_to_blocks(dataset_outputs_nonlinear(model, data, run_initial))
-
-        return outputs(theta), lambda: jax.jacfwd(outputs)(theta)
+        y, J = dataset_outputs_and_jacobian(params_to_model, theta, data)
+        return pad_to_blocks(y), lambda: pad_to_blocks(J)
 
     def maps_of(t):
         model, run_initial = params_to_model(t)
