@@ -66,10 +66,13 @@ def etd2_matrices(system: LinearSystem, dt, substeps: int = SUBSTEPS):
     return (disc.Phi, disc.B0[:, :m], disc.B1[:, :m], disc.B0[:, m:], disc.B1[:, m:])
 
 
-def etd2_step(model, system: LinearSystem, dt, substeps: int = SUBSTEPS, matrices=None):
+def etd2_step(model, system: LinearSystem, dt, substeps: int = SUBSTEPS, matrices=None,
+              unroll: bool = True):
     """`step(x_k, u_k, u_k1) -> x_k+1` over one sample period `dt` (s), in `substeps`
     ETD2 steps with the inputs held as their `hold` says inside the period;
-    `matrices`: `etd2_matrices(system, dt, substeps)` when already computed."""
+    `matrices`: `etd2_matrices(system, dt, substeps)` when already computed. `unroll`:
+    the substeps written out (fastest in a sequential scan) or as a loop (a quarter of the
+    program to compile, for steps evaluated in bulk)."""
     Phi, B0, B1, G0, G1 = etd2_matrices(system, dt, substeps) if matrices is None else matrices
     zoh = np.array([hold == "zoh" for hold in system.holds], dtype=bool)
 
@@ -82,11 +85,17 @@ def etd2_step(model, system: LinearSystem, dt, substeps: int = SUBSTEPS, matrice
 
     def step(x, u_k, u_k1):
         u_k1 = jnp.where(zoh, u_k, u_k1)  # a zero-order-hold input keeps u_k all period
-        for j in range(substeps):
+
+        def substep(j, x):
             u_a = u_k + (j / substeps) * (u_k1 - u_k)
             u_b = u_k + ((j + 1) / substeps) * (u_k1 - u_k)
-            x = one(x, u_a, u_b)
-        return x
+            return one(x, u_a, u_b)
+
+        if unroll:
+            for j in range(substeps):
+                x = substep(j, x)
+            return x
+        return jax.lax.fori_loop(0, substeps, substep, x)
 
     return step
 

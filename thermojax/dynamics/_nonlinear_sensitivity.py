@@ -27,6 +27,7 @@ from ._discretize import sample_period
 from ._nonlinear import (etd2_matrices, etd2_step, initial_state_nonlinear,
                          simulate_run_nonlinear)
 
+UNROLL = False
 _CHUNK = 64  # samples differentiated in one vectorized pass
 
 
@@ -59,7 +60,7 @@ def run_outputs_and_jacobian(params_to_model, theta, ts, u, run: int | jax.Array
 
     def step(t, matrices, x, u_k, u_k1):
         model, system, _ = parts(t)
-        return etd2_step(model, system, dt, matrices=matrices)(x, u_k, u_k1)
+        return etd2_step(model, system, dt, matrices=matrices, unroll=UNROLL)(x, u_k, u_k1)
 
     model, system, _ = parts(theta)
     x = simulate_run_nonlinear(model, system, ts, u, initial(theta))  # (T, n)
