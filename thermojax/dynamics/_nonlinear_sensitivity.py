@@ -27,7 +27,6 @@ from ._discretize import sample_period
 from ._nonlinear import (etd2_matrices, etd2_step, initial_state_nonlinear,
                          simulate_run_nonlinear)
 
-UNROLL = False
 _CHUNK = 64  # samples differentiated in one vectorized pass
 
 
@@ -60,7 +59,9 @@ def run_outputs_and_jacobian(params_to_model, theta, ts, u, run: int | jax.Array
 
     def step(t, matrices, x, u_k, u_k1):
         model, system, _ = parts(t)
-        return etd2_step(model, system, dt, matrices=matrices, unroll=UNROLL)(x, u_k, u_k1)
+        # substeps as a loop: this step is evaluated in bulk, and an unrolled one would
+        # make the fit's program half as large again to compile
+        return etd2_step(model, system, dt, matrices=matrices, unroll=False)(x, u_k, u_k1)
 
     model, system, _ = parts(theta)
     x = simulate_run_nonlinear(model, system, ts, u, initial(theta))  # (T, n)
@@ -69,8 +70,8 @@ def run_outputs_and_jacobian(params_to_model, theta, ts, u, run: int | jax.Array
     def step_jacobians(xk, uk, uk1):  # dF/dx (n, n) and dF/dθ (n, P) at one sample
         along_x = jax.vmap(lambda d: jax.jvp(lambda x_: step(theta, mats, x_, uk, uk1),
                                              (xk,), (d,))[1])
-        along_t = jax.vmap(lambda dt_, dm: jax.jvp(lambda t, m: step(t, m, xk, uk, uk1),
-                                                    (theta, mats), (dt_, dm))[1])
+        along_t = jax.vmap(lambda dtheta, dm: jax.jvp(lambda t, m: step(t, m, xk, uk, uk1),
+                                                       (theta, mats), (dtheta, dm))[1])
         return along_x(jnp.eye(xk.shape[0], dtype=xk.dtype)).T, along_t(eye, dmats).T
 
     def chunk(S, inp):
