@@ -76,11 +76,23 @@ def test_kalman_zero_process_noise_finds_the_effect_and_reaches_zero_noise(tmp_p
 
 
 @pytest.mark.slow
-def test_foh_power_and_mass_finds_both_effects(tmp_path):
+def test_foh_power_and_mass_finds_both_effects(tmp_path, monkeypatch):
     """Issue 10, item 6: an unused power column whose truth hold is foh and a series mass
     that the unmeasured pcb can partly absorb: both are added within three steps (in either
-    order), the power column held as foh, and no fake near-duplicate node is added."""
+    order), the power column held as foh, and no fake near-duplicate node is added.
+    Step 1's base model is step 0's choice, held out on the same runs: fitted once."""
+    from thermojax.investigation import _investigate as inv
+
+    asked, made = [], []
+    real_ask, real_fit = inv.HeldOutFits.__call__, inv._fit_without
+    monkeypatch.setattr(inv.HeldOutFits, "__call__", lambda self, s, e, f, lk: (
+        asked.append((s, f)), real_ask(self, s, e, f, lk))[1])
+    monkeypatch.setattr(inv, "_fit_without", lambda s, e, f, lk: (
+        made.append((s, f)), real_fit(s, e, f, lk))[1])
     info, report, _ = _run("foh_power_and_mass", tmp_path, max_steps=3)
+    assert len(asked) > len(made), "no held-out fit was asked for twice"
+    for i, (s, f) in enumerate(made):
+        assert not any(t == s and h == f for t, h in made[:i]), f"held out {f} twice"
     _check_report_keys(report)
     added = [s["added"] for s in report["steps"][1:]]
     power = [a for a in added

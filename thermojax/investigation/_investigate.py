@@ -272,6 +272,8 @@ def _refit(c: Candidate, step: Step, runs, likelihood, new_columns, initial, say
             c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
             starts = []
         for start in starts:
+            if hold in by_hold:  # the noise stds start where the first start's ended
+                start = with_spec_parameters(start, _noise_stds(by_hold[hold].spec))
             try:
                 got = evaluate(start, runs, likelihood)
             except Exception as err:  # one candidate's failure must not end the loop
@@ -312,6 +314,14 @@ def _refit(c: Candidate, step: Step, runs, likelihood, new_columns, initial, say
     if c.duplicate:
         say(c.duplicate)
     return True
+
+
+def _noise_stds(spec: ModelSpec) -> dict:
+    """The sensors' noise stds of `spec` by dotted name (`spec_parameters` names): where a
+    second refit start begins its noise re-weighting. The stds are re-estimated to the
+    same maximum, so the start only saves re-weighting passes."""
+    return {k: p for k, p in spec_parameters(spec).items()
+            if k.startswith("sensors.") and k.endswith(".noise")}
 
 
 FAST_FRACTION = 0.2  # a mass or lag faster than this share of a sample period is unseen
@@ -561,14 +571,32 @@ def held_out_nll(res, experiments, fold, rows, sigma, likelihood) -> float:
     return 0.5 * float(np.nansum(e ** 2))
 
 
+class HeldOutFits:
+    """`_fit_without` of one loop's runs, kept: the model a step adds is the next step's
+    base, held out on the same folds, so its fits are made once."""
+
+    def __init__(self):
+        self._done: list[tuple] = []  # (spec, fold, likelihood, FitResult)
+
+    def __call__(self, spec, experiments, fold, likelihood):
+        for s, f, lk, res in self._done:
+            if f == fold and lk == likelihood and s == spec:
+                return res
+        res = _fit_without(spec, experiments, fold, likelihood)
+        self._done.append((spec, fold, likelihood, res))
+        return res
+
+
 def _thermal_fold_gains(spec_base, spec_ext, runs, sigma, folds, say,
-                        likelihood="output_error") -> list[float]:
+                        likelihood="output_error", fits: HeldOutFits | None = None
+                        ) -> list[float]:
+    fits = fits or HeldOutFits()
     experiments = {id(s): _experiments(s, runs) for s in (spec_base, spec_ext)}
     gains = []
     for fold in folds:
         r = fold[0]
         rows = _held_rows(fold, len(runs[r].ts))
-        held = [held_out_nll(_fit_without(s, experiments[id(s)], fold, likelihood),
+        held = [held_out_nll(fits(s, experiments[id(s)], fold, likelihood),
                              experiments[id(s)], fold, rows, sigma, likelihood)
                 for s in (spec_base, spec_ext)]
         gains.append(held[0] - held[1])
@@ -629,11 +657,11 @@ def holdout_verdict(gains) -> tuple[bool, float, float, str]:
 
 
 def _choose(cands: list[Candidate], current: Step, runs, likelihood, holdout_check: bool,
-            say) -> Candidate | None:
+            say, fits: HeldOutFits | None = None) -> Candidate | None:
     """The first supported candidate that (with `holdout_check`) also predicts held-out
     data better (`holdout_verdict`) and whose extended model could be built; the others
     it tries are marked unsupported, with the reason. On return `chosen.result` holds the
-    extended step."""
+    extended step. `fits`: the loop's held-out fits so far."""
     folds = holdout_folds(runs)
     for c in cands:
         if not c.supported:
@@ -647,7 +675,7 @@ def _choose(cands: list[Candidate], current: Step, runs, likelihood, holdout_che
                         f"sensors.{s}.noise", {"value": 0.01})["value"]
                         for s in current.spec.sensor_columns])
                     gains = _thermal_fold_gains(current.spec, c.result.spec, runs, sigma,
-                                                folds, say, likelihood)
+                                                folds, say, likelihood, fits)
                 ok, c.holdout_gain, c.holdout_spread, why = holdout_verdict(gains)
                 if not ok:
                     c.supported = False
@@ -736,6 +764,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
     else:
         records.append(current.record)
     steps_traces = [None] * (len(records) - 1) + [current.traces]
+    held_out = HeldOutFits()
     stopped = "max_steps"
     while True:
         i = len(records) - 1
@@ -754,7 +783,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
         steps_traces[-1] = current.traces
         cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say,
                               white_p=white_p, initial=spec)
-        chosen = _choose(cands, current, runs, likelihood, holdout_check, say)
+        chosen = _choose(cands, current, runs, likelihood, holdout_check, say, held_out)
         rec["candidates"] = [c.as_json() for c in cands]
         rec["wall_time_s"] = time.perf_counter() - t_step
         if chosen is not None and chosen.tied_with:

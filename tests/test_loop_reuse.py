@@ -1,0 +1,60 @@
+"""Work the missing-physics loop does once, not twice (issue 10, item 3): held-out fits
+of a model are kept for the next step, and a refit's second start begins its noise
+re-weighting where the first ended (which must not change the optimum it reaches)."""
+
+from __future__ import annotations
+
+from hidden import generator as g
+
+
+def _one_run(case, tmp_path, horizon_s):
+    from thermojax import load_model
+    from thermojax.measurements import read_telemetry
+
+    files = g.write_case(case, tmp_path / "data", seed=0, horizon_s=horizon_s)
+    return load_model(files["model"]), [read_telemetry(files["data"][0])]
+
+
+def test_held_out_fits_are_made_once_per_model_and_fold(tmp_path, monkeypatch):
+    from thermojax import parse_model
+    from thermojax.investigation import _investigate as inv
+
+    calls = []
+    monkeypatch.setattr(inv, "_fit_without",
+                        lambda spec, exps, fold, lk: calls.append((spec, fold, lk)) or len(calls))
+    text = (g.HERE / "models" / "chain3.toml").read_text()
+    a, a_again = parse_model(text), parse_model(text)  # equal, distinct objects
+    b = parse_model(text.replace("noise = 0.01", "noise = 0.02", 1))
+    fits = inv.HeldOutFits()
+    assert fits(a, [], (0, None), "output_error") == 1
+    assert fits(a_again, [], (0, None), "output_error") == 1  # kept
+    assert fits(a, [], (1, None), "output_error") == 2  # another fold
+    assert fits(b, [], (0, None), "output_error") == 3  # another model
+    assert fits(a, [], (0, None), "kalman") == 4  # another likelihood
+    assert len(calls) == 4
+
+
+def test_the_noise_start_does_not_move_the_optimum(tmp_path):
+    # The re-weighting of estimated noise stds converges to one maximum from any start,
+    # which is what lets a second refit start begin at the first start's stds.
+    from thermojax.investigation._investigate import evaluate
+    from thermojax.model._parameters_by_name import with_spec_parameters
+    from thermojax.model._spec import Parameter
+
+    spec, runs = _one_run("one_run", tmp_path, 900.0)
+    got = {}
+    for std in (0.5, 0.0105):  # either side of the ML stds (0.11 °C here)
+        start = with_spec_parameters(spec, {f"sensors.{c}.noise": Parameter(std)
+                                            for c in spec.sensor_columns})
+        got[std] = evaluate(start, runs, "output_error").record
+    a, b = got[0.5], got[0.0105]
+    assert abs(a["nll"] - b["nll"]) < 1e-3
+    for name, p in a["parameters"].items():
+        if p.get("free"):
+            q = b["parameters"][name]
+            assert abs(p["value"] - q["value"]) <= 1e-3 * abs(p["value"]) + 0.05 * (
+                p.get("std") or 0.0), name
+    for c in spec.sensor_columns:  # and the stds themselves reach the same values
+        sa = a["parameters"][f"sensors.{c}.noise"]["value"]
+        sb = b["parameters"][f"sensors.{c}.noise"]["value"]
+        assert abs(sa - sb) < 1e-4 * sa
