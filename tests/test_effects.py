@@ -121,3 +121,32 @@ def test_nonlinear_effect_under_the_kalman_likelihood():
     p = res.parameters["effects.radiation.housing-T_chamber.coefficient"]
     assert res.converged
     assert abs(p["value"] - 3e-10) < 2 * p["std"]
+
+
+def test_capacitance_factors_on_one_node_multiply():
+    """Two `capacitance_temperature` terms on one node (and radiation into it): the node's
+    whole rate is divided by the product of the factors, `C0 (1 + β1 ΔT)(1 + β2 ΔT)`,
+    written here directly in NumPy from the network's matrices."""
+    import jax.numpy as jnp
+
+    text = (g.REPO / "configs" / "imu6.toml").read_text()
+    cap = '\n[[effects]]\nkind = "capacitance_temperature"\nwhere = ["housing"]\nbeta = {}\n'
+    rad = ('\n[[effects]]\nkind = "radiation"\nwhere = ["housing", "T_chamber"]\n'
+           'coefficient = 5e-10\n')
+    spec = parse_model(text + cap.format(0.004) + cap.format(-0.0015) + rad)
+    model = ThermalModel.from_spec(spec)
+    system = model.linear_system()
+    A, B, C0 = (np.asarray(a) for a in (system.A, system.B, system.capacitance))
+    rng = np.random.default_rng(3)
+    h = spec.node_names.index("housing")
+    j = spec.input_columns.index("T_chamber")
+    for _ in range(5):
+        x = rng.uniform(10.0, 90.0, A.shape[0])
+        u = np.array([rng.uniform(10.0, 90.0) if c == "T_chamber" else rng.uniform(0, 0.3)
+                      for c in spec.input_columns])
+        q = 5e-10 * ((u[j] + 273.15) ** 4 - (x[h] + 273.15) ** 4)  # W into the housing
+        f = A @ x + B @ u
+        f[h] += q / C0[h]
+        f[h] /= (1 + 0.004 * (x[h] - 25.0)) * (1 - 0.0015 * (x[h] - 25.0))
+        got = np.asarray(model.nonlinear_rate(system, jnp.asarray(x), jnp.asarray(u)))
+        np.testing.assert_allclose(got, f - A @ x - B @ u, rtol=1e-12, atol=1e-15)
