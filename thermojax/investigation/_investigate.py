@@ -587,10 +587,8 @@ class HeldOutFits:
         return res
 
 
-def _thermal_fold_gains(spec_base, spec_ext, runs, sigma, folds, say,
-                        likelihood="output_error", fits: HeldOutFits | None = None
-                        ) -> list[float]:
-    fits = fits or HeldOutFits()
+def _thermal_fold_gains(spec_base, spec_ext, runs, sigma, folds, say, likelihood,
+                        fits: HeldOutFits) -> list[float]:
     experiments = {id(s): _experiments(s, runs) for s in (spec_base, spec_ext)}
     gains = []
     for fold in folds:
@@ -657,7 +655,7 @@ def holdout_verdict(gains) -> tuple[bool, float, float, str]:
 
 
 def _choose(cands: list[Candidate], current: Step, runs, likelihood, holdout_check: bool,
-            say, fits: HeldOutFits | None = None) -> Candidate | None:
+            say, fits: HeldOutFits) -> Candidate | None:
     """The first supported candidate that (with `holdout_check`) also predicts held-out
     data better (`holdout_verdict`) and whose extended model could be built; the others
     it tries are marked unsupported, with the reason. On return `chosen.result` holds the
