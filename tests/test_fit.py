@@ -412,8 +412,11 @@ def test_diverging_fit_is_an_input_error(monkeypatch):
     """An optimizer that ends with a non-finite core capacitance (forced by a stand-in
     solver: the real one rejects non-finite steps, so no honest data set makes it diverge)
     surfaces as an InputError naming that parameter, not as NaN results."""
-    def runaway(theta, problem, solver, max_steps):
-        return theta.at[1].set(jnp.inf), jnp.asarray(3), jnp.asarray(False)
+    real = output_error_module._solve_oe
+
+    def runaway(theta, problem, solver, max_steps, estimated=None):
+        out = real(theta, problem, solver, 1, estimated)
+        return (theta.at[1].set(jnp.inf), *out[1:])
 
     monkeypatch.setattr(output_error_module, "_solve_oe", runaway)
     with pytest.raises(InputError, match=r"diverged: nodes\.core\.capacitance"):

@@ -1,6 +1,6 @@
 """Work the missing-physics loop does once, not twice (issue 10, item 3): held-out fits
-of a model are kept for the next step, and a refit's second start begins its noise
-re-weighting where the first ended (which must not change the optimum it reaches)."""
+of a model are kept for the next step, and estimated noise stds are profiled out inside
+the solve, so where they start does not matter (no re-weighting passes to redo)."""
 
 from __future__ import annotations
 
@@ -35,8 +35,8 @@ def test_held_out_fits_are_made_once_per_model_and_fold(tmp_path, monkeypatch):
 
 
 def test_the_noise_start_does_not_move_the_optimum(tmp_path):
-    # The re-weighting of estimated noise stds converges to one maximum from any start,
-    # which is what lets a second refit start begin at the first start's stds.
+    # Estimated noise stds are held at their ML values inside the solve: the stds a fit
+    # starts from do not change the optimum it reaches, nor the stds it ends with.
     from thermojax.investigation._investigate import evaluate
     from thermojax.model._parameters_by_name import with_spec_parameters
     from thermojax.model._spec import Parameter

@@ -93,3 +93,46 @@ def test_undetermined_direction_stays_where_it_started():
                                atol=1e-10)
     np.testing.assert_allclose(float(sol.value[0] - sol.value[1]), 0.4 - (-0.9), rtol=0,
                                atol=1e-12)
+
+
+def test_reweight_maximizes_the_likelihood_profiled_over_each_leafs_noise():
+    """With `reweight` giving each residual leaf the weight `sqrt(N_k / Σ r_k²)` at the
+    current point, one solve maximizes the Gaussian likelihood with each leaf's noise
+    std at its ML value, `-Σ_k (N_k/2) log Σ r_k²` (up to constants). Truth: SciPy's
+    BFGS on that profiled objective written in NumPy. The data's two noise levels differ
+    five-fold, and the solve starts with both weighted alike (unit weights)."""
+    rng = np.random.default_rng(2)
+    truth = np.array([np.log(2.0), np.log(0.7), 0.3])
+    y1 = np.asarray(_decay(truth, T1)) + 0.01 * rng.standard_normal(T1.shape)
+    y2 = np.asarray(_decay(truth, T2)) + 0.05 * rng.standard_normal(T2.shape)
+    data = (jnp.asarray(y1), jnp.asarray(y2))
+
+    def residuals(theta, data):
+        return (data[0] - _decay(theta, T1), data[1] - _decay(theta, T2))
+
+    def reweight(r):
+        return tuple(jnp.sqrt(x.size / jnp.sum(x ** 2)) for x in r)
+
+    sol = jax.jit(lambda t0, d: gauss_newton(residuals, t0, d, TruncatedGaussNewton(
+        min_singular_value=1e-6, tol=1e-14), reweight=reweight))(jnp.zeros(3), data)
+    assert bool(sol.converged)
+
+    def profiled(theta):
+        la, lb, c = theta
+        s1 = np.sum((y1 - (np.exp(la) * np.exp(-np.exp(lb) * T1) + c)) ** 2)
+        s2 = np.sum((y2 - (np.exp(la) * np.exp(-np.exp(lb) * T2) + c)) ** 2)
+        return 0.5 * T1.size * np.log(s1) + 0.5 * T2.size * np.log(s2)
+
+    ref = scipy.optimize.minimize(profiled, np.zeros(3), method="BFGS",
+                                  options={"gtol": 1e-10, "xrtol": 1e-14})
+    np.testing.assert_allclose(sol.value, ref.x, rtol=0, atol=1e-6)
+    assert profiled(np.asarray(sol.value)) <= ref.fun + 1e-9
+    # The last weights are the ML noise stds' inverses at the solution.
+    r1, r2 = (np.asarray(x) for x in residuals(sol.value, data))
+    np.testing.assert_allclose([float(w) for w in sol.weights],
+                               [np.sqrt(r1.size / np.sum(r1 ** 2)),
+                                np.sqrt(r2.size / np.sum(r2 ** 2))], rtol=1e-12)
+    np.testing.assert_allclose(1.0 / np.asarray(sol.weights), [0.01, 0.05], rtol=0.3)
+    # Residuals and grams come back weighted: each leaf's Σ (w r)² is its sample count.
+    np.testing.assert_allclose([float(np.sum(np.asarray(x) ** 2)) for x in sol.residuals],
+                               [T1.size, T2.size], rtol=1e-12)

@@ -7,7 +7,7 @@ and is a pipeline of three stages, each in the file that owns its concept:
    flat vector `theta` the optimizer sees (logs of positive parameters, initial
    temperatures in °C);
 2. solve: `_output_error.fit_output_error` (truncated Gauss-Newton on weighted
-   free-run residuals, noise stds re-weighted to their ML values); for the Kalman
+   free-run residuals, estimated noise stds at their ML values throughout); for the Kalman
    likelihood `_kalman_fit.fit_kalman`, from the file's values and, when that does not
    converge, again from the output-error fit (`_kalman_stages`);
 3. `_summary.summarize`: a `FitResult` with values by name, stds, metrics,
@@ -48,8 +48,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     - `experiments`: one `Experiment` per run; parameters are shared, each run
       has its own initial state.
     - `likelihood`: `"output_error"` (truncated Gauss-Newton on free-run residuals
-      weighted by each sensor's noise; estimated noise stds take their ML
-      values, iterated to convergence) or `"kalman"` (truncated Newton steps with the
+      weighted by each sensor's noise; estimated noise stds held at their ML
+      values throughout the solve: the likelihood profiled over them) or `"kalman"` (truncated Newton steps with the
       Fisher information, i.e. scoring, on the Kalman prediction-error likelihood,
       started from the output-error fit).
     - `solver`: default `TruncatedGaussNewton()` for output error and

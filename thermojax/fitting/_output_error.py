@@ -5,7 +5,8 @@ One simulator serves every use: the blocked exact-hold recurrence
 where nothing was measured. The default solver takes their Jacobian from forward
 sensitivities (`output_sensitivity_parts`, equal to `jax.jacfwd` to roundoff);
 optimistix solvers, the profile likelihood and the diagnosis use the same functions.
-Estimated noise stds are re-weighted to their ML values between warm-started passes.
+Estimated noise stds are held at their ML values inside the solve (the likelihood
+profiled over them).
 """
 
 from __future__ import annotations
@@ -151,25 +152,58 @@ def _oe_evaluate(theta, problem: _Problem, full_jacobian: bool = False):
     return _OEEvaluation(jnp.stack(r, axis=-1)[:, :T], jnp.stack(_grams(_flat_rows(J))), y)
 
 
-def _solve_oe(theta0, problem: _Problem, solver, max_steps: int):
-    """`(theta, steps, converged, _OEEvaluation at theta)` from `gauss_newton` or an
-    optimistix least-squares solver, in at most `max_steps` iterations."""
-    return _solve_oe_jit(theta0, problem, *traced_settings(solver, max_steps))
+def _solve_oe(theta0, problem: _Problem, solver, max_steps: int, estimated=None):
+    """`(theta, steps, converged, _OEEvaluation at theta, stds)` from `gauss_newton` or an
+    optimistix least-squares solver, in at most `max_steps` iterations.
+
+    `estimated` (outputs,) bool: the outputs whose noise std is estimated. `gauss_newton`
+    then maximises the likelihood profiled over them (`_ml_weights`) and `stds` are their
+    ML values at `theta` (the others `problem.sigma`), the evaluation weighted by them;
+    else `stds` is `problem.sigma`."""
+    if estimated is None or not isinstance(solver, TruncatedGaussNewton):
+        estimated = np.zeros(problem.sigma.shape[0], bool)
+    return _solve_oe_jit(theta0, problem, *traced_settings(solver, max_steps),
+                         jax.device_put(np.asarray(estimated, bool)))
+
+
+def _ml_weights(r, problem: _Problem, estimated):
+    """`gauss_newton`'s `reweight` for the output-error blocks `(per_output, prior)`: each
+    estimated output's residuals scaled to its ML noise std at this point, `sqrt(N_k /
+    Σ r_k²)` (N_k its measured samples; the std floored at 1e-12), the others and the
+    prior rows unscaled."""
+    per_output, _ = r
+    counts = jnp.maximum(_measured_counts(problem), 1.0)
+    floor = counts * (1e-12 / problem.sigma) ** 2
+    w = tuple(jnp.where(estimated[k], jnp.sqrt(counts[k] / jnp.maximum(jnp.sum(x ** 2),
+                                                                       floor[k])), 1.0)
+              for k, x in enumerate(per_output))
+    return w, jnp.ones((), r[1].dtype)
+
+
+def _measured_counts(problem: _Problem):
+    """Measured samples of each output (sensors, then bias columns), (outputs,)."""
+    counts = jnp.sum(problem.data.mask, axis=(0, 1), dtype=problem.sigma.dtype)
+    if problem.bias is None:
+        return counts
+    T = problem.data.outputs.shape[1]
+    return jnp.concatenate([counts, jnp.sum(problem.bias.mask[:, :T], axis=(0, 1),
+                                            dtype=problem.sigma.dtype)])
 
 
 @eqx.filter_jit
-def _solve_oe_jit(theta0, problem, solver, max_steps):
+def _solve_oe_jit(theta0, problem, solver, max_steps, estimated):
     if isinstance(solver, TruncatedGaussNewton):
         sol = gauss_newton(_oe_blocks, theta0, problem, solver, jac=_oe_blocks_jacobian,
-                           max_steps=max_steps)
+                           max_steps=max_steps,
+                           reweight=lambda r: _ml_weights(r, problem, estimated))
         T = problem.data.outputs.shape[1]
         return sol.value, sol.num_steps, sol.converged, _OEEvaluation(
             jnp.stack(sol.residuals[0], axis=-1)[:, :T], jnp.stack(sol.grams[0]), sol.aux,
-            sol.num_evaluations)
+            sol.num_evaluations), problem.sigma / jnp.stack(sol.weights[0])
     sol = optx.least_squares(_oe_flat, solver, theta0, problem, max_steps=max_steps,
                              throw=False)
     return (sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
-            _oe_evaluate(sol.value, problem))
+            _oe_evaluate(sol.value, problem), problem.sigma)
 
 
 def _chi_square(theta, problem: _Problem) -> float:
@@ -179,19 +213,14 @@ def _chi_square(theta, problem: _Problem) -> float:
     return float(np.sum(np.asarray(residuals) ** 2))
 
 
-# Damping of the first step of a warm-started pass (relative to the largest squared
-# singular value): the start is the previous pass's optimum, moved only by re-weighting.
-_WARM_DAMPING = 1e-9
-
-
 @dataclass
 class _Pass:
-    """The last of a start's re-weighting passes."""
+    """The last of a start's passes."""
 
     theta: jax.Array  # (free,)
     n_steps: int  # over all passes
     converged: bool
-    sigma: np.ndarray  # (outputs,) °C, ML update of `used`
+    sigma: np.ndarray  # (outputs,) °C, ML update of `used` where estimated
     used: np.ndarray  # (outputs,) °C, the weights of the last pass
     evaluation: _OEEvaluation  # at theta, weighted by `used`
     n_evaluations: int
@@ -200,33 +229,31 @@ class _Pass:
 
 def _reweighted(start, prep: Prepared, theta0, solver, max_steps: int, say, outer: int = 4
                 ) -> _Pass:
-    """Solve from `start`, re-weighting estimated noise stds to their ML values until they
-    settle (up to `outer` passes, each warm-started from the last)."""
+    """Solve from `start` with the estimated noise stds at their ML values: `gauss_newton`
+    holds them there inside its solve (one pass, `_ml_weights`); an optimistix solver
+    takes them as fixed weights, re-estimated between warm-started passes until they
+    settle (up to `outer` passes)."""
     theta, total, evals = start, 0, 0
-    sig, mask = prep.sigma, prep.mask()
+    sig, mask, estimated = prep.sigma, prep.mask(), ~prep.fixed_sigma
     for it in range(outer):
         problem = make_problem(prep.template, prep.index, prep.data, sig, theta0, bias=prep.bias)
         if theta.shape[0]:
-            theta, steps, ok, *evaluation = _solve_oe(theta, problem, solver, max_steps)
+            theta, steps, ok, sol, used = _solve_oe(theta, problem, solver, max_steps,
+                                                    estimated)
         else:  # nothing physical to move (a Kalman fit of the noise alone)
-            steps, ok, evaluation = 0, True, []
-        sol = evaluation[0] if evaluation else _oe_evaluate(theta, problem)
+            steps, ok, sol, used = 0, True, _oe_evaluate(theta, problem), sig
+        used = np.asarray(used)
         total += int(steps)
         if sol.num_evaluations is not None:
             evals += int(sol.num_evaluations)
-        used = sig
-        if prep.fixed_sigma.all():
-            break
-        new = np.where(prep.fixed_sigma, sig,
-                       np.maximum(ml_sigma(np.asarray(sol.residuals) * sig, mask), 1e-12))
-        say(f"output error pass {it + 1}: noise std {np.array2string(new, precision=4)}")
-        settled = np.all(np.abs(np.log(new / sig)) < 1e-3)
+        new = np.where(estimated, np.maximum(ml_sigma(np.asarray(sol.residuals) * used, mask),
+                                             1e-12), used)
+        if estimated.any():
+            say(f"output error pass {it + 1}: noise std {np.array2string(new, precision=4)}")
+        settled = np.all(np.abs(np.log(new / used)) < 1e-3)
         sig = new
         if settled:
             break
-        if isinstance(solver, TruncatedGaussNewton):
-            solver = eqx.tree_at(lambda t: t.initial_damping, solver,
-                                 min(float(solver.initial_damping), _WARM_DAMPING))
     nll = output_error_nll(np.asarray(sol.residuals) * used, mask, sig)
     return _Pass(theta, total, bool(ok), sig, used, sol, evals, nll)
 

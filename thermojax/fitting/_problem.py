@@ -192,8 +192,8 @@ def _log_taus(spec: ModelSpec) -> np.ndarray:
 
 
 def _bias_sigma_start(bias, j: int, experiments) -> float:
-    """A bias column's starting noise std: its file value, else the column's spread (the
-    first re-weighting pass replaces it with the ML value)."""
+    """A bias column's starting noise std: its file value, else the column's spread (an
+    estimated one is replaced by its ML value from the solve's first step on)."""
     if bias.noise is not None:
         return float(bias.noise.value)
     values = np.concatenate([e.biases[:, j] for e in experiments])

@@ -56,6 +56,7 @@ class GaussNewtonSolution(eqx.Module):
     grams: object  # JᵀJ of each leaf of the residuals (the same pytree, leaves (params, params))
     aux: object = None  # what `jac` returned besides residuals and Jacobian, at `value`
     num_evaluations: Int[Array, ""] = None  # residual evaluations (trial points)
+    weights: object = None  # `reweight`'s last weights (residuals and grams carry them)
 
 
 class TruncatedGaussNewton(eqx.Module):
@@ -227,9 +228,15 @@ def _damping_after(lam, rho, accel: bool):
                              1 - (2 * jnp.minimum(rho, 1.0) - 1) ** 3)
 
 
+def _weighted(w, r):
+    """Each leaf of `r` times its weight in `w` (a pytree prefix of `r`); `w` None: `r`."""
+    return r if w is None else jax.tree.map(lambda wi, x: wi * x, w, r)
+
+
 def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
                  solver: TruncatedGaussNewton = TruncatedGaussNewton(),
-                 jac: Callable | None = None, max_steps=100) -> GaussNewtonSolution:
+                 jac: Callable | None = None, max_steps=100,
+                 reweight: Callable | None = None) -> GaussNewtonSolution:
     """Minimise `½‖fn(theta, args)‖²`: truncated Gauss-Newton steps with geodesic
     acceleration, damped Levenberg-Marquardt style (Nielsen's update of `λ`) and capped.
 
@@ -244,8 +251,17 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
       the solution (`aux`, e.g. predictions); default `jax.jacfwd(fn)`, `aux = None`.
     - `max_steps`: Jacobian evaluations at most (an int or an integer array: a traced
       limit does not recompile); the last one only evaluates.
+    - `reweight`: `reweight(r) -> w`, weights (a pytree prefix of the residuals: one
+      scalar per block) computed from the residuals at the start of every iteration and
+      held through its trial steps, which then minimise `½‖w r‖²`. With `w_k =
+      sqrt(N_k / ‖r_k‖²)` this maximises the likelihood profiled over each block's noise
+      std, `-Σ_k (N_k/2) log ‖r_k‖²`: since `log` is concave, a step that lowers the
+      weighted cost lowers the profiled one (a majorize-minimize step), and a point where
+      the weighted step predicts no decrease is a stationary point of the profiled
+      likelihood. One solve replaces fit / re-estimate the stds / refit passes.
 
-    **Returns:** a `GaussNewtonSolution`, ending on an evaluation at its `value`.
+    **Returns:** a `GaussNewtonSolution`, ending on an evaluation at its `value`
+    (with `reweight`, its residuals, grams and cost weighted by the last `weights`).
 
     Each iteration takes one Jacobian and the eigendecomposition of `JᵀJ`; trial steps
     reuse them, each costing one or two residual evaluations. `fn` and `jac` each appear
@@ -261,12 +277,15 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
     def body(c):
         theta, k = c["theta"], c["k"]
         r, J, aux = jac(theta, args)
+        w = None if reweight is None else reweight(r)
+        r, J = _weighted(w, r), _weighted(w, J)
         lin = _linearize(r, J, solver)
         done = (0.5 * jnp.sum(lin.Ur ** 2) < solver.tol) & jnp.isfinite(lin.cost)
         # The last allowed iteration only evaluates (the solution ends on an evaluation).
         stop = done | (k + 1 >= max_steps) | ~jnp.isfinite(lin.cost)
         lam = jnp.where(k == 0, solver.initial_damping * jnp.max(lin.s) ** 2, c["lam"])
-        t = _trial_steps(fn, theta, args, lin, lam, stop, c["n_eval"], solver)
+        t = _trial_steps(lambda x, a: _weighted(w, fn(x, a)), theta, args, lin, lam, stop,
+                         c["n_eval"], solver)
         better = ~stop & (t["rho"] > 0)
         return {
             "theta": jnp.where(better, theta + t["dx"], theta), "k": k + 1,
@@ -274,6 +293,7 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
                              t["lam"]),
             "finished": ~better, "converged": done, "n_out": jnp.sum(~lin.keep),
             "cost": lin.cost, "r": r, "grams": lin.grams, "aux": aux, "n_eval": t["n_eval"],
+            "w": w,
         }
 
     def zeros(x):
@@ -285,10 +305,12 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
             "r": jax.tree.map(zeros, r_like),
             "grams": jax.tree.map(lambda _: jnp.zeros((theta0.shape[0],) * 2, theta0.dtype),
                                   r_like),
-            "aux": jax.tree.map(zeros, aux_like), "n_eval": jnp.zeros((), int)}
+            "aux": jax.tree.map(zeros, aux_like), "n_eval": jnp.zeros((), int),
+            "w": None if reweight is None else jax.tree.map(zeros, jax.eval_shape(reweight,
+                                                                                  r_like))}
     c = jax.lax.while_loop(lambda c: ~c["finished"], body, init)
     return GaussNewtonSolution(c["theta"], c["cost"], c["k"], c["converged"], c["n_out"],
-                               c["r"], c["grams"], c["aux"], c["n_eval"])
+                               c["r"], c["grams"], c["aux"], c["n_eval"], c["w"])
 
 
 def traced_settings(solver, max_steps: int):

@@ -272,8 +272,6 @@ def _refit(c: Candidate, step: Step, runs, likelihood, new_columns, initial, say
             c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
             starts = []
         for start in starts:
-            if hold in by_hold:  # the noise stds start where the first start's ended
-                start = with_spec_parameters(start, _noise_stds(by_hold[hold].spec))
             try:
                 got = evaluate(start, runs, likelihood)
             except Exception as err:  # one candidate's failure must not end the loop
@@ -314,14 +312,6 @@ def _refit(c: Candidate, step: Step, runs, likelihood, new_columns, initial, say
     if c.duplicate:
         say(c.duplicate)
     return True
-
-
-def _noise_stds(spec: ModelSpec) -> dict:
-    """The sensors' noise stds of `spec` by dotted name (`spec_parameters` names): where a
-    second refit start begins its noise re-weighting. The stds are re-estimated to the
-    same maximum, so the start only saves re-weighting passes."""
-    return {k: p for k, p in spec_parameters(spec).items()
-            if k.startswith("sensors.") and k.endswith(".noise")}
 
 
 FAST_FRACTION = 0.2  # a mass or lag faster than this share of a sample period is unseen
