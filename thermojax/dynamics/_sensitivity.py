@@ -111,28 +111,39 @@ def dataset_outputs(model, data, run_initial=None):
 
 def dataset_block_outputs(model, data, run_initial=None):
     """`dataset_outputs` padded to whole blocks: (runs, blocks L, p)."""
-    if model.is_nonlinear:
-        from ._nonlinear import dataset_outputs_nonlinear
+    return block_outputs_and_states(model, data, run_initial)[0]
 
-        return pad_to_blocks(dataset_outputs_nonlinear(model, data, run_initial))
+
+def block_outputs_and_states(model, data, run_initial=None):
+    """`(dataset_block_outputs, states)`: a nonlinear model's node temperatures (runs, T,
+    n), which `output_sensitivity_parts` can reuse at the same parameters; None for a
+    linear model (its blocked recurrence keeps no per-sample states)."""
+    if model.is_nonlinear:
+        from ._nonlinear import dataset_states_nonlinear
+
+        x = dataset_states_nonlinear(model, data, run_initial)
+        y = x @ model.linear_system().C.T + model.output_offset()[None, None, :]
+        return pad_to_blocks(y), x
     maps, z0 = dataset_maps(model, data, run_initial)
     y = jax.vmap(lambda m, z, u: run_primal(m, z, u)[0])(maps, z0, data.inputs.astype(z0.dtype))
-    return y + model.output_offset()[None, None, :]
+    return y + model.output_offset()[None, None, :], None
 
 
-def output_sensitivity_parts(params_to_model, theta, data):
+def output_sensitivity_parts(params_to_model, theta, data, states=None):
     """Free-run outputs of every run padded to whole blocks (runs, blocks L, p), and a
     function computing their Jacobian in `theta`: (runs, blocks L, p, P).
 
     `params_to_model(theta) -> (model, run_initial)`. The small part (discretization and
     block maps, with their tangents along every parameter) is computed here; the large
-    part of the Jacobian when the returned function is called.
+    part of the Jacobian when the returned function is called. `states`: a nonlinear
+    model's node temperatures at `theta` (`block_outputs_and_states`), when already
+    simulated.
     """
 
     if params_to_model(theta)[0].is_nonlinear:  # ETD2 scan, linearized per sample
         from ._nonlinear_sensitivity import dataset_outputs_and_jacobian
 
-        y, J = dataset_outputs_and_jacobian(params_to_model, theta, data)
+        y, J = dataset_outputs_and_jacobian(params_to_model, theta, data, states)
         return pad_to_blocks(y), lambda: pad_to_blocks(J)
 
     def maps_of(t):

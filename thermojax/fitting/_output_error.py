@@ -20,7 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ..dynamics._sensitivity import dataset_block_outputs, output_sensitivity_parts, pad_to_blocks
+from ..dynamics._sensitivity import (block_outputs_and_states, dataset_block_outputs,
+                                     output_sensitivity_parts, pad_to_blocks)
 from ._likelihood import ml_sigma, output_error_nll
 from ._bias_residuals import bias_residuals, pushed_forward
 from ._problem import (FitState, Prepared, Solution, _check_finite, _model_of, _perturbed_starts,
@@ -74,13 +75,20 @@ def _oe_blocks(theta, problem: _Problem):
     each bias column's, weighted data residuals (runs, blocks L), zero in the padding and
     where nothing was measured, so that `gauss_newton` returns each output's `JᵀJ`;
     `prior` (free,)."""
+    return _oe_blocks_and_states(theta, problem)[0]
+
+
+def _oe_blocks_and_states(theta, problem: _Problem):
+    """`(_oe_blocks, states)`: a nonlinear model's simulated node temperatures (runs, T,
+    n), which `_oe_blocks_jacobian` at the same `theta` reuses, else None."""
     model, run_initial = _model_of(theta, problem)
-    y, x = _split(dataset_block_outputs(model, problem.data, run_initial), problem)
+    y, states = block_outputs_and_states(model, problem.data, run_initial)
+    y, x = _split(y, problem)
     r = _by_output(_data_residuals(y, problem))
     if x is not None:
         inputs, dt, sigma = _bias_inputs(problem)
         r = r + bias_residuals(*_bias_of(theta, problem), x, inputs, dt, problem.bias, sigma)
-    return r, _prior(theta, problem)
+    return (r, _prior(theta, problem)), states
 
 
 def _oe_flat(theta, problem: _Problem):
@@ -90,14 +98,16 @@ def _oe_flat(theta, problem: _Problem):
     return jnp.concatenate([jnp.stack(r, axis=-1)[:, :T].reshape(-1), prior])
 
 
-def _oe_blocks_jacobian(theta, problem: _Problem):
+def _oe_blocks_jacobian(theta, problem: _Problem, states=None):
     """`(_oe_blocks(theta, problem), its Jacobian, the sensor predictions)` by forward
     sensitivities. The Jacobian has the residuals' structure, each output's leaf (runs,
     blocks L, free), the prior's (free, free); predictions (runs, times, sensors) °C.
-    Bias columns take theirs from the node temperatures' sensitivities."""
+    Bias columns take theirs from the node temperatures' sensitivities. `states`: from
+    `_oe_blocks_and_states` at `theta`, when at hand."""
     data = problem.data
     p = data.outputs.shape[2]
-    y_all, jacobian = output_sensitivity_parts(lambda t: _model_of(t, problem), theta, data)
+    y_all, jacobian = output_sensitivity_parts(lambda t: _model_of(t, problem), theta, data,
+                                               states)
     J_all = jacobian()
     y, x = _split(y_all, problem)
     J = jnp.where(pad_to_blocks(data.mask)[..., None],
@@ -193,9 +203,9 @@ def _measured_counts(problem: _Problem):
 @eqx.filter_jit
 def _solve_oe_jit(theta0, problem, solver, max_steps, estimated):
     if isinstance(solver, TruncatedGaussNewton):
-        sol = gauss_newton(_oe_blocks, theta0, problem, solver, jac=_oe_blocks_jacobian,
-                           max_steps=max_steps,
-                           reweight=lambda r: _ml_weights(r, problem, estimated))
+        sol = gauss_newton(_oe_blocks_and_states, theta0, problem, solver,
+                           jac=_oe_blocks_jacobian, max_steps=max_steps,
+                           reweight=lambda r: _ml_weights(r, problem, estimated), hinted=True)
         T = problem.data.outputs.shape[1]
         return sol.value, sol.num_steps, sol.converged, _OEEvaluation(
             jnp.stack(sol.residuals[0], axis=-1)[:, :T], jnp.stack(sol.grams[0]), sol.aux,

@@ -180,19 +180,20 @@ def _acceleration(lin: _Linearization, v, f, r_probe, solver: TruncatedGaussNewt
     return _capped(v + 0.5 * a, solver.max_step), curved
 
 
-def _trial_steps(fn, theta, args, lin: _Linearization, lam, stop, n_eval,
+def _trial_steps(fn, theta, args, lin: _Linearization, lam, stop, n_eval, hint,
                  solver: TruncatedGaussNewton):
     """Trial steps from `theta` until one lowers the cost, one residual evaluation per
-    pass. With acceleration a trial takes two passes: a probe at `theta + h v` (for the
-    directional second derivative), then the cost at `theta + v + a/2`. A failed trial
-    raises `λ` (Nielsen: `λ ν`, `ν 2ν`). Returns the loop's final carry."""
+    pass (`fn(point, args) -> (residuals, its hint)`). With acceleration a trial takes two
+    passes: a probe at `theta + h v` (for the directional second derivative), then the
+    cost at `theta + v + a/2`. A failed trial raises `λ` (Nielsen: `λ ν`, `ν 2ν`). Returns
+    the loop's final carry; its `hint` is the accepted point's (else `hint`)."""
     accel = solver.acceleration
 
     def body(t):
         v, f, predicted = lin.velocity(t["lam"], solver.max_step)
         probe = t["probe"]
         point = theta + jnp.where(probe, _ACCEL_H * v, t["dx"] if accel else v)
-        r_pt = fn(point, args)
+        r_pt, h_pt = fn(point, args)
         if accel:
             dx, curved = jax.lax.cond(probe, lambda _: _acceleration(lin, v, f, r_pt, solver),
                                       lambda _: (t["dx"], jnp.zeros((), bool)), None)
@@ -213,12 +214,13 @@ def _trial_steps(fn, theta, args, lin: _Linearization, lam, stop, n_eval,
             "dx": dx, "rho": rho,
             "over": success | (j > solver.max_backtracks),
             "n_eval": t["n_eval"] + 1,
+            "hint": jax.tree.map(lambda a, b: jnp.where(success, a, b), h_pt, t["hint"]),
         }
 
     t0 = {"lam": lam, "nu": 2.0 * jnp.ones(()), "j": jnp.zeros((), int),
           "probe": jnp.ones((), bool) if accel else jnp.zeros((), bool),
           "dx": jnp.zeros_like(theta), "rho": -jnp.inf * jnp.ones(()), "over": stop,
-          "n_eval": n_eval}
+          "n_eval": n_eval, "hint": hint}
     return jax.lax.while_loop(lambda t: ~t["over"], body, t0)
 
 
@@ -236,7 +238,8 @@ def _weighted(w, r):
 def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
                  solver: TruncatedGaussNewton = TruncatedGaussNewton(),
                  jac: Callable | None = None, max_steps=100,
-                 reweight: Callable | None = None) -> GaussNewtonSolution:
+                 reweight: Callable | None = None, hinted: bool = False
+                 ) -> GaussNewtonSolution:
     """Minimise `½‖fn(theta, args)‖²`: truncated Gauss-Newton steps with geodesic
     acceleration, damped Levenberg-Marquardt style (Nielsen's update of `λ`) and capped.
 
@@ -260,6 +263,10 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
       the weighted step predicts no decrease is a stationary point of the profiled
       likelihood. One solve replaces fit / re-estimate the stds / refit passes.
 
+    - `hinted`: `fn` returns `(residuals, hint)` and `jac` takes the hint at the same
+      point as a third argument: what the residuals computed that the Jacobian reuses
+      (simulated states); the hint of each accepted point is kept for its Jacobian.
+
     **Returns:** a `GaussNewtonSolution`, ending on an evaluation at its `value`
     (with `reweight`, its residuals, grams and cost weighted by the last `weights`).
 
@@ -272,11 +279,21 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
             J, r = jax.jacfwd(lambda t: (fn(t, args),) * 2, has_aux=True)(theta)
             return r, J, None
 
-    r_like, _, aux_like = jax.eval_shape(jac, theta0, args)
+    if hinted:
+        fn_hint, jac_hint = fn, jac
+    else:
+        def fn_hint(theta, args):
+            return fn(theta, args), None
+
+        def jac_hint(theta, args, _hint):
+            return jac(theta, args)
+
+    hint0 = fn_hint(theta0, args)[1] if hinted else None
+    r_like, _, aux_like = jax.eval_shape(jac_hint, theta0, args, hint0)
 
     def body(c):
         theta, k = c["theta"], c["k"]
-        r, J, aux = jac(theta, args)
+        r, J, aux = jac_hint(theta, args, c["hint"])
         w = None if reweight is None else reweight(r)
         r, J = _weighted(w, r), _weighted(w, J)
         lin = _linearize(r, J, solver)
@@ -284,8 +301,12 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
         # The last allowed iteration only evaluates (the solution ends on an evaluation).
         stop = done | (k + 1 >= max_steps) | ~jnp.isfinite(lin.cost)
         lam = jnp.where(k == 0, solver.initial_damping * jnp.max(lin.s) ** 2, c["lam"])
-        t = _trial_steps(lambda x, a: _weighted(w, fn(x, a)), theta, args, lin, lam, stop,
-                         c["n_eval"], solver)
+        def weighted_fn(x, a):
+            r_x, h_x = fn_hint(x, a)
+            return _weighted(w, r_x), h_x
+
+        t = _trial_steps(weighted_fn, theta, args, lin, lam, stop, c["n_eval"], c["hint"],
+                         solver)
         better = ~stop & (t["rho"] > 0)
         return {
             "theta": jnp.where(better, theta + t["dx"], theta), "k": k + 1,
@@ -293,7 +314,7 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
                              t["lam"]),
             "finished": ~better, "converged": done, "n_out": jnp.sum(~lin.keep),
             "cost": lin.cost, "r": r, "grams": lin.grams, "aux": aux, "n_eval": t["n_eval"],
-            "w": w,
+            "w": w, "hint": t["hint"],
         }
 
     def zeros(x):
@@ -305,7 +326,7 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
             "r": jax.tree.map(zeros, r_like),
             "grams": jax.tree.map(lambda _: jnp.zeros((theta0.shape[0],) * 2, theta0.dtype),
                                   r_like),
-            "aux": jax.tree.map(zeros, aux_like), "n_eval": jnp.zeros((), int),
+            "aux": jax.tree.map(zeros, aux_like), "n_eval": jnp.zeros((), int), "hint": hint0,
             "w": None if reweight is None else jax.tree.map(zeros, jax.eval_shape(reweight,
                                                                                   r_like))}
     c = jax.lax.while_loop(lambda c: ~c["finished"], body, init)
