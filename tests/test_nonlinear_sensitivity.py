@@ -141,3 +141,18 @@ def test_nonlinear_jacobian_against_finite_differences(problem):
         fd = np.asarray((f(theta + h * v, prob) - f(theta - h * v, prob)) / (2 * h))
         Jv = J @ np.asarray(v)
         assert np.linalg.norm(fd - Jv) / np.linalg.norm(Jv) < 1e-6
+
+
+def test_jacobian_from_the_residuals_states_is_the_same(problem):
+    """The Gauss-Newton solve hands the Jacobian the node temperatures its residual
+    evaluation simulated at the same point (`_oe_blocks_and_states`): the result is the
+    Jacobian it computes from its own simulation, to roundoff."""
+    theta, prob, _ = problem
+    (r, _), states = jax.jit(_output_error._oe_blocks_and_states)(theta, prob)
+    assert states.shape[:2] == prob.data.ts.shape
+    own = _flat(jax.jit(_output_error._oe_blocks_jacobian)(theta, prob), prob)
+    given = _flat(jax.jit(_output_error._oe_blocks_jacobian)(theta, prob, states), prob)
+    for a, b in zip(given, own):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(b).max())
+    r = np.stack(r, axis=-1)[:, :prob.data.outputs.shape[1]].ravel()
+    np.testing.assert_allclose(r, own[0][:r.size], rtol=0, atol=1e-12 * np.abs(r).max())

@@ -51,6 +51,17 @@ def _numpy_jacobian(theta):
     return one(T1, 0.01), one(T2, 0.02)
 
 
+def _scipy_reference(data):
+    """`scipy.optimize.least_squares` (MINPACK LM, the Jacobian by hand) on `_residuals`."""
+    def flat(theta):
+        r1, r2 = _residuals(jnp.asarray(theta), data)
+        return np.concatenate([np.asarray(r1), np.asarray(r2).ravel()])
+
+    return scipy.optimize.least_squares(flat, np.zeros(3), method="lm",
+                                        jac=lambda th: np.concatenate(_numpy_jacobian(th)),
+                                        xtol=1e-15, ftol=1e-15, gtol=1e-15)
+
+
 def test_pytree_residuals_match_scipy_least_squares():
     data = _data()
     theta0 = jnp.array([0.0, 0.0, 0.0])
@@ -58,13 +69,7 @@ def test_pytree_residuals_match_scipy_least_squares():
         min_singular_value=1e-6, tol=1e-20)))(theta0, data)
     assert bool(sol.converged) and int(sol.num_truncated) == 0
 
-    def flat(theta):
-        r1, r2 = _residuals(jnp.asarray(theta), data)
-        return np.concatenate([np.asarray(r1), np.asarray(r2).ravel()])
-
-    ref = scipy.optimize.least_squares(flat, np.zeros(3), method="lm",
-                                       jac=lambda th: np.concatenate(_numpy_jacobian(th)),
-                                       xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    ref = _scipy_reference(data)
     np.testing.assert_allclose(sol.value, ref.x, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(float(sol.cost), 0.5 * np.sum(ref.fun ** 2), rtol=1e-12)
     # One Gram matrix per residual leaf, at the solution.
@@ -136,3 +141,29 @@ def test_reweight_maximizes_the_likelihood_profiled_over_each_leafs_noise():
     # Residuals and grams come back weighted: each leaf's Σ (w r)² is its sample count.
     np.testing.assert_allclose([float(np.sum(np.asarray(x) ** 2)) for x in sol.residuals],
                                [T1.size, T2.size], rtol=1e-12)
+
+
+def test_hinted_jacobian_gets_the_hint_of_its_own_point():
+    """With `hinted`, `fn` returns `(residuals, hint)` and `jac` gets the hint of the
+    point it linearizes at. Here the hint is the point itself and `jac` linearizes at
+    the hint, not at its `theta`: a stale hint (another trial's, or the previous
+    iterate's) would linearize in the wrong place and land elsewhere than SciPy."""
+    data = _data()
+
+    def fn(theta, data):
+        return _residuals(theta, data), theta
+
+    def jac(theta, data, hint):
+        J, r = jax.jacfwd(lambda t: (_residuals(t, data),) * 2, has_aux=True)(hint)
+        return r, J, None
+
+    sol = jax.jit(lambda t0, d: gauss_newton(fn, t0, d, TruncatedGaussNewton(
+        min_singular_value=1e-6, tol=1e-20), jac=jac, hinted=True))(jnp.zeros(3), data)
+    plain = jax.jit(lambda t0, d: gauss_newton(_residuals, t0, d, TruncatedGaussNewton(
+        min_singular_value=1e-6, tol=1e-20)))(jnp.zeros(3), data)
+    assert bool(sol.converged)
+    np.testing.assert_array_equal(np.asarray(sol.value), np.asarray(plain.value))
+    assert int(sol.num_steps) == int(plain.num_steps)
+
+    ref = _scipy_reference(data)
+    np.testing.assert_allclose(sol.value, ref.x, rtol=1e-10, atol=1e-12)

@@ -262,7 +262,6 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
       weighted cost lowers the profiled one (a majorize-minimize step), and a point where
       the weighted step predicts no decrease is a stationary point of the profiled
       likelihood. One solve replaces fit / re-estimate the stds / refit passes.
-
     - `hinted`: `fn` returns `(residuals, hint)` and `jac` takes the hint at the same
       point as a third argument: what the residuals computed that the Jacobian reuses
       (simulated states); the hint of each accepted point is kept for its Jacobian.
@@ -272,7 +271,8 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
 
     Each iteration takes one Jacobian and the eigendecomposition of `JᵀJ`; trial steps
     reuse them, each costing one or two residual evaluations. `fn` and `jac` each appear
-    once in the traced program (compile time grows with every copy). Pure and jittable.
+    once in the traced program (compile time grows with every copy; with `hinted`, `fn`
+    twice: the start's hint). Pure and jittable.
     """
     if jac is None:
         def jac(theta, args):
@@ -301,6 +301,7 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
         # The last allowed iteration only evaluates (the solution ends on an evaluation).
         stop = done | (k + 1 >= max_steps) | ~jnp.isfinite(lin.cost)
         lam = jnp.where(k == 0, solver.initial_damping * jnp.max(lin.s) ** 2, c["lam"])
+
         def weighted_fn(x, a):
             r_x, h_x = fn_hint(x, a)
             return _weighted(w, r_x), h_x
