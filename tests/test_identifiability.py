@@ -14,6 +14,7 @@ Two kinds of truth:
 """
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -160,6 +161,10 @@ def test_unsensed_fast_node_message():
     assert "'proof_mass']" in d["message"] and "no sensor sees" in d["message"]
     assert "sample faster" in d["message"] and "proof_mass ~0.1 s" in d["message"]
     assert ident.condition_number > 1e12
+    # The advised rate puts two samples in the proof mass's time constant, C / G =
+    # 0.003 J/K / 0.03 W/K = 0.1 s (configs/imu6.toml): 20 Hz, above the 1 Hz sampled.
+    rate = float(re.search(r"sample faster than ([0-9.e+]+) Hz", d["message"]).group(1))
+    assert rate == pytest.approx(2 / (0.003 / 0.03), rel=0.03)
 
 
 def test_directions_sharing_parameters_are_merged():

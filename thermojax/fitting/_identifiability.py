@@ -355,7 +355,8 @@ def _explain(members: dict[str, float], spec: ModelSpec, std: float,
         text += (f" It involves node(s) {unsensed} that no sensor sees. Local time constant(s) "
                  f"{listing} are shorter than twice the sample period ({sample_period:g} s): "
                  f"these dynamics fall between samples; sample faster than "
-                 f"{1 / min(fast.values()):.2g} Hz to see them, or {fix[0].lower() + fix[1:]} "
+                 f"{2 / min(fast.values()):.2g} Hz (two samples per time constant) to see "
+                 f"them, or {fix[0].lower() + fix[1:]} "
                  "from design data.")
     else:
         if unsensed:
