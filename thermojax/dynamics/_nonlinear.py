@@ -5,7 +5,7 @@ linear model: stiff node time constants cost nothing), the small nonlinear rate 
 (radiation, temperature-dependent conductance and capacitance, input-dependent
 conductance) is taken linear in time over each sample interval, between its value
 at the interval's start and a predicted value at its end (Cox & Matthews 2002,
-ETD2RK), in `SUBSTEPS` steps per sample period. Both integrals are the
+ETD2RK), in `model.etd2_substeps` steps per sample period. Both integrals are the
 first-order-hold input matrices of the system
 `(A, I)`, so one matrix exponential of the augmented system gives every matrix:
 
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -55,10 +56,7 @@ def initial_state_nonlinear(model, system, u0, run_initial=None):
                                steady_state=functools.partial(nonlinear_steady_state, model))
 
 
-SUBSTEPS = 4  # ETD2 steps per sample period: fast nodes react within a sample to switched power
-
-
-def etd2_matrices(system: LinearSystem, dt, substeps: int = SUBSTEPS):
+def etd2_matrices(system: LinearSystem, dt, substeps: int):
     """`(Phi, B0, B1, G0, G1)` of one ETD2 step of `dt / substeps` (s): the exact-hold
     maps of the inputs (`B0`, `B1`) and of the nonlinear rate (`G0`, `G1`)."""
     m = system.B.shape[1]
@@ -66,13 +64,17 @@ def etd2_matrices(system: LinearSystem, dt, substeps: int = SUBSTEPS):
     return (disc.Phi, disc.B0[:, :m], disc.B1[:, :m], disc.B0[:, m:], disc.B1[:, m:])
 
 
-def etd2_step(model, system: LinearSystem, dt, substeps: int = SUBSTEPS, matrices=None,
-              unroll: bool = True):
-    """`step(x_k, u_k, u_k1) -> x_k+1` over one sample period `dt` (s), in `substeps`
-    ETD2 steps with the inputs held as their `hold` says inside the period;
-    `matrices`: `etd2_matrices(system, dt, substeps)` when already computed. `unroll`:
-    the substeps written out (fastest in a sequential scan) or as a loop (a quarter of the
-    program to compile, for steps evaluated in bulk)."""
+def etd2_step(model, system: LinearSystem, dt, matrices=None, unroll: bool = True,
+              substeps=None):
+    """`step(x_k, u_k, u_k1) -> x_k+1` over one sample period `dt` (s), in
+    `model.etd2_substeps` ETD2 steps with the inputs held as their `hold` says inside the
+    period; `matrices`: `etd2_matrices` when already computed. `unroll`: the substeps
+    written out (fastest in a sequential scan) or as a loop (less program to compile, for
+    steps evaluated in bulk). `substeps`: another number of steps, possibly traced (a
+    loop then, forward-differentiable only)."""
+    if substeps is None:
+        substeps = model.etd2_substeps
+    unroll = unroll and isinstance(substeps, int)
     Phi, B0, B1, G0, G1 = etd2_matrices(system, dt, substeps) if matrices is None else matrices
     zoh = np.array([hold == "zoh" for hold in system.holds], dtype=bool)
 
@@ -125,3 +127,32 @@ def dataset_outputs_nonlinear(model, data, run_initial=None):
     system = model.linear_system()
     x = dataset_states_nonlinear(model, data, run_initial)
     return x @ system.C.T + model.output_offset()[None, None, :]
+
+
+@eqx.filter_jit
+def etd2_error(model, data, run_initial, substeps):
+    """The estimated error (°C) of the model's readings simulated in `substeps` (traced:
+    one program for every number) ETD2 steps per sample period: their largest difference,
+    over runs, samples and outputs, from the same simulation in four times as many, times
+    16/15 (ETD2's error falls as the square of the step, so the finer one's is a
+    sixteenth of it). Both run in one scan."""
+    system = model.linear_system()
+
+    def one(ts, u, r0):
+        dt = sample_period(ts)
+        steps = tuple(etd2_step(model, system, dt, unroll=False, substeps=k)
+                      for k in (substeps, 4 * substeps))
+        x0 = initial_state_nonlinear(model, system, u[0], r0)
+        u_next = jnp.concatenate([u[1:], u[-1:]], axis=0)
+
+        def body(xs, inp):
+            xs = tuple(step(x, *inp) for step, x in zip(steps, xs))
+            return xs, jnp.max(jnp.abs(system.C @ (xs[0] - xs[1])))
+
+        return jnp.max(jax.lax.scan(body, (x0, x0), (u, u_next))[1])
+
+    if run_initial is None:
+        errors = jax.vmap(lambda ts, u: one(ts, u, None))(data.ts, data.inputs)
+    else:
+        errors = jax.vmap(one)(data.ts, data.inputs, run_initial)
+    return (16 / 15) * jnp.max(errors)

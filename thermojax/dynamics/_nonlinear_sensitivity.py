@@ -52,7 +52,7 @@ def run_outputs_and_jacobian(params_to_model, theta, ts, u, run: int | jax.Array
 
     def small(t):  # what depends on the parameters alone: step matrices, read-out
         model, system, _ = parts(t)
-        return etd2_matrices(system, dt), system.C, model.output_offset()
+        return etd2_matrices(system, dt, model.etd2_substeps), system.C, model.output_offset()
 
     # Their values and tangents along every parameter, once per run.
     (mats, C, offset), (dmats, dC, doffset) = jax.vmap(

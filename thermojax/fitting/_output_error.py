@@ -11,6 +11,7 @@ profiled over them).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -26,6 +27,7 @@ from ._likelihood import ml_sigma, output_error_nll
 from ._bias_residuals import bias_residuals, pushed_forward
 from ._problem import (FitState, Prepared, Solution, _check_finite, _model_of, _perturbed_starts,
                        _prior, _Problem, _state, dataset, make_problem, template_at)
+from ._integration import fewest_substeps, integration_tolerance, with_substeps
 from ._solver import TruncatedGaussNewton, _flat_rows, _grams, gauss_newton, traced_settings
 from ..model._parameters import free_parameters, with_free_parameters
 from ..measurements._data import Experiment
@@ -288,6 +290,8 @@ def fit_output_error(prep: Prepared, solver, max_steps: int, n_starts: int, seed
         if best is None or (np.isfinite(run.nll) and run.nll < best.nll):
             best = run
     _check_finite(best.theta, theta0, prep.names)
+    if prep.template.model.is_nonlinear:
+        best, prep = _accurate_at_solution(best, prep, theta0, solver, max_steps, say)
     sigma = best.sigma
     state = with_free_parameters(prep.template, prep.index, best.theta)
     p = len(prep.spec.sensors)
@@ -309,6 +313,29 @@ def fit_output_error(prep: Prepared, solver, max_steps: int, n_starts: int, seed
                     best.n_evaluations)
 
 
+def _accurate_at_solution(best: _Pass, prep: Prepared, theta0, solver, max_steps: int, say
+                          ) -> tuple[_Pass, Prepared]:
+    """`(best, prep)`, solved again with more ETD2 substeps from `best` as long as the
+    solution needs more than it was solved with (`_integration`: the parameters moved to
+    where the nonlinearity is stronger)."""
+    p = len(prep.spec.sensors)
+    while True:
+        used = prep.template.model.etd2_substeps
+        state = with_free_parameters(prep.template, prep.index, best.theta)
+        substeps, error = fewest_substeps(state, prep.data, integration_tolerance(
+            best.sigma[:p]), read_states=prep.bias is not None, at_least=used)
+        if substeps == used:
+            say(f"nonlinear effects: {used} ETD2 step(s) per sample period, estimated "
+                f"integration error {error:.2g} °C at the solution")
+            return best, prep
+        say(f"nonlinear effects: {used} ETD2 step(s) per sample period are not accurate "
+            f"at the solution; solving again with {substeps}")
+        prep = dataclasses.replace(prep, template=with_substeps(prep.template, substeps))
+        again = _reweighted(best.theta, prep, theta0, solver, max_steps, say)
+        best = dataclasses.replace(again, n_steps=best.n_steps + again.n_steps,
+                                   n_evaluations=best.n_evaluations + again.n_evaluations)
+
+
 def output_error_at(result: FitResult, experiments: list[Experiment]):
     """The output-error problem at a fit's values: `(data, weights, residuals, jacobian)`,
     `weights` (runs, T, p) = 1/σ where measured (σ the fitted noise stds, °C),
@@ -316,6 +343,7 @@ def output_error_at(result: FitResult, experiments: list[Experiment]):
     physical parameters. `experiments` in the input order of `result.lowered_spec`."""
     data = dataset(experiments)
     template, index = template_at(result.lowered_spec, result.state.run_initial, data.n_runs)
+    template = with_substeps(template, result.state.model.etd2_substeps)  # as the fit's
     theta = free_parameters(template, index)
     sigma = np.exp(np.asarray(template.model.log_noise))
     problem = make_problem(template, index, data, sigma, theta)

@@ -57,6 +57,9 @@ class Candidate:
     hold: str | None = None  # the hold the likelihood chose for a column the effect brings
     duplicate: str = ""  # why the refitted effect only duplicates existing structure
     absorbed_by: dict = field(default_factory=dict)  # unmeasured node -> moved parameters
+    # The score test's one-step estimate of the effect's leading parameter (its units):
+    # the least-squares coefficient of its direction, the fitted parameters' projected out.
+    estimate: float | None = None
 
     def __post_init__(self):
         if self.score_test is None and self.method == "score":
@@ -125,12 +128,18 @@ def enumerate_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str]
     return out
 
 
-def new_effect(spec: ModelSpec, lowered: ModelSpec, kind: str, where, holds: dict[str, str]
-               ) -> Effect:
+def new_effect(spec: ModelSpec, lowered: ModelSpec, kind: str, where, holds: dict[str, str],
+               leading: float | None = None) -> Effect:
     """The effect `kind` at `where` with its first-guess parameters, ready to add; a data
-    column it brings in is held as `holds` says (column name -> "zoh" or "foh")."""
+    column it brings in is held as `holds` says (column name -> "zoh" or "foh").
+    `leading`: a value of the leading parameter to start from instead, used when finite
+    and, for a positive parameter, positive."""
     impl = KINDS[kind]
     params = {k: Parameter(float(v)) for k, v in impl.initial_parameters(lowered, where).items()}
+    first = EFFECT_KINDS[kind].parameters[0]
+    if leading is not None and np.isfinite(leading) and (
+            leading > 0 or first not in EFFECT_KINDS[kind].positive):
+        params[first] = Parameter(float(leading))
     if kind == "extra_node" and len(where) == 1:
         params.pop("conductance_b", None)
     name = unique_name(lowered, "mass_" + "_".join(where)) if kind == "extra_node" else None
@@ -276,7 +285,7 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
     cands = []
     for i, (kind, where, how, dirs) in enumerate(raw):
         one_sided = EFFECT_KINDS[kind].parameters[0] in EFFECT_KINDS[kind].positive
-        scores = []
+        scores, estimates = [], []
         for j in range(len(dirs)):
             dw = directions.get((i, j))
             if dw is None or not np.all(np.isfinite(dw)):
@@ -284,18 +293,21 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
             dp = dw - U @ (U.T @ dw)
             norm2 = float(dp @ dp)
             if norm2 <= 1e-12 * max(float(dw @ dw), 1e-300):
-                stat, u = 0.0, 0.0
+                stat, u, norm2 = 0.0, 0.0, 1.0
             else:
                 u = float(dp @ r)
                 stat = u * u / norm2
             scores.append(0.0 if one_sided and u <= 0 else stat)
+            estimates.append(u / norm2)
         if not scores:
             continue
-        stat = max(scores)
+        best = int(np.argmax(scores))
+        stat = scores[best]
         p = stats.chi2.sf(stat / max(deflation, 1.0), 1) * (0.5 if one_sided else 1.0) \
             * len(dirs)
         cands.append(Candidate(kind, tuple(where), float(stat), float(min(1.0, p)),
-                               lr_deflation=float(max(deflation, 1.0))))
+                               lr_deflation=float(max(deflation, 1.0)),
+                               estimate=float(estimates[best])))
     cands.sort(key=lambda c: -c.score)
     return cands
 

@@ -259,11 +259,14 @@ def _refit(c: Candidate, step: Step, runs, likelihood, new_columns, initial, say
     say(f"refitting with {c.kind} {list(c.where)} (score {c.score:.1f})")
     brings = [w for w in c.where if w in new_columns]
     options = ("zoh", "foh") if brings else (None,)
+    # A nonlinear effect starts at the score test's estimate, not at its null value: the
+    # fit chooses how finely to integrate it (`fitting._integration`) at its start.
+    leading = c.estimate if KINDS[c.kind].nonlinear else None
     by_hold, ext = {}, None
     for hold in options:
         try:
             effect = new_effect(spec, lowered, c.kind, c.where,
-                                {w: hold for w in brings})
+                                {w: hold for w in brings}, leading)
             extended = spec.replace(effects=spec.effects + (effect,))
             starts = [extended]
             if initial is not None:

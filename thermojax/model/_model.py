@@ -16,6 +16,9 @@ from ._spec import ModelSpec, Parameter
 DEFAULT_NOISE = 0.01  # °C: start of an estimated sensor noise std without a value
 DEFAULT_PROCESS_NOISE = 1e-3  # °C/√s: start of an estimated process noise without a value
 DEFAULT_INITIAL_STD = 1.0  # °C
+# ETD2 steps per sample period of a nonlinear simulation, unless a fit chose fewer
+# (`fitting._integration`): fast nodes react within a sample to switched power.
+DEFAULT_ETD2_SUBSTEPS = 4
 
 
 class ThermalModel(eqx.Module):
@@ -27,6 +30,7 @@ class ThermalModel(eqx.Module):
     - `initial`: initial temperature (°C) of the nodes in `initial_nodes`; the
       other nodes start at the steady state of the first input sample.
     - `initial_std`: std of the initial state (°C), per node.
+    - `etd2_substeps`: integration steps per sample period of a nonlinear model.
     """
 
     network: ThermalNetwork
@@ -42,6 +46,8 @@ class ThermalModel(eqx.Module):
     # True: every node's temperature is read out after the sensors (outputs: sensors,
     # then nodes), so one simulation gives the states that bias channels need.
     read_states: bool = eqx.field(static=True, default=False)
+    # ETD2 steps per sample period when the model has nonlinear effects (`_nonlinear`).
+    etd2_substeps: int = eqx.field(static=True, default=DEFAULT_ETD2_SUBSTEPS)
 
     @classmethod
     def from_spec(cls, spec: ModelSpec) -> "ThermalModel":

@@ -1,0 +1,102 @@
+"""How finely a fit integrates nonlinear effects (`fitting._integration`), against the
+independent truth generator (`tests/hidden/generator.py`: Radau, rtol = atol = 1e-10,
+no thermojax import) on the hidden cases' truth models.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+from thermojax import Dataset, Experiment, ThermalModel, fit
+from thermojax.dynamics._nonlinear import dataset_outputs_nonlinear, etd2_error
+from thermojax.fitting._integration import (SUBSTEP_LADDER, fewest_substeps,
+                                            integration_tolerance)
+from thermojax.fitting._problem import FitState
+from thermojax.model.effects import lower_effects
+
+from hidden import generator as g
+from test_effects import HORIZON_S, _truth_spec
+
+NONLINEAR_CASES = ["radiation", "conductance_temperature", "capacitance_temperature",
+                   "conductance_input"]
+
+
+def _case(name, noise=False, horizon_s=HORIZON_S):
+    """`(spec, data, reference)`: the case's truth model, its first run's inputs and the
+    generator's readings (T, sensors)."""
+    case = g.load_case(name)
+    spec = _truth_spec(case)
+    ts, cols = g.generate_case(name, seed=0, horizon_s=horizon_s, noise=noise)[0]
+    inputs = g.run_inputs(case, 0, [0], horizon_s)[1]
+    u = np.stack([inputs[c] for c in lower_effects(spec).spec.input_columns], 1)
+    p = len(spec.sensor_columns)
+    data = Dataset.from_experiments([Experiment(ts, u, np.zeros((len(ts), p)))])
+    return spec, data, np.stack([cols[c] for c in spec.sensor_columns], 1)
+
+
+def _true_error(model, substeps, data, reference) -> float:
+    y = dataset_outputs_nonlinear(dataclasses.replace(model, etd2_substeps=substeps), data)
+    return float(np.max(np.abs(np.asarray(y)[0] - reference)))
+
+
+@pytest.mark.parametrize("name", NONLINEAR_CASES)
+def test_estimated_error_is_the_error_against_the_generator(name):
+    """`etd2_error` (the difference from four times as many substeps, times 16/15) is
+    the simulation's largest error against the generator, coarse and fine."""
+    spec, data, reference = _case(name)
+    model = ThermalModel.from_spec(spec)
+    for substeps in (1, 4):
+        true = _true_error(model, substeps, data, reference)
+        estimate = float(etd2_error(model, data, None, jax.device_put(np.asarray(substeps))))
+        assert true > 1e-8  # far above the generator's own error
+        assert estimate == pytest.approx(true, rel=0.05), (substeps, estimate, true)
+
+
+@pytest.mark.parametrize("name", ["radiation", "conductance_temperature"])
+def test_fewest_substeps_within_tolerance_by_the_generator(name):
+    """The chosen count keeps the error against the generator under the tolerance, and
+    the next fewer on the ladder does not (a mild radiation exchange: one substep; a
+    temperature-dependent conductance at a fast node: more)."""
+    spec, data, reference = _case(name)
+    model = ThermalModel.from_spec(spec)
+    tolerance = integration_tolerance([0.01])  # 1e-4 °C
+    state = FitState(model, np.zeros((1, 0)), np.zeros(0))
+    substeps, estimate = fewest_substeps(state, data, tolerance)
+    assert _true_error(model, substeps, data, reference) <= tolerance
+    if substeps > SUBSTEP_LADDER[0]:
+        fewer = SUBSTEP_LADDER[SUBSTEP_LADDER.index(substeps) - 1]
+        assert _true_error(model, fewer, data, reference) > tolerance
+    assert (substeps == 1) == (name == "radiation")
+
+
+@pytest.mark.slow
+def test_a_fit_whose_effect_grows_integrates_more_finely():
+    """Fitted from the effect's null value (α = 0, where one substep is exact), the
+    solution's α needs more: the fit solves again from it with more substeps, and the
+    model it returns simulates within the tolerance of the generator at the truth."""
+    name = "conductance_temperature"
+    case = g.load_case(name)
+    truth = _truth_spec(case)
+    spec = truth.replace(effects=tuple(
+        dataclasses.replace(e, parameters={k: dataclasses.replace(p, value=0.0)
+                                           for k, p in e.parameters.items()})
+        for e in truth.effects))
+    runs = g.generate_case(name, seed=0, horizon_s=HORIZON_S)
+    ts, cols = runs[0]
+    inputs = [c for c in lower_effects(spec).spec.input_columns]
+    u = np.stack([cols[c] for c in inputs], 1)
+    y = np.stack([cols[c] for c in spec.sensor_columns], 1)
+    said = []
+    result = fit(spec, [Experiment(ts, u, y)], progress=said.append)
+    fitted = result.state.model.etd2_substeps
+    assert fitted > 1 and any("solving again" in m for m in said), said
+    _, data, reference = _case(name)
+    model = ThermalModel.from_spec(truth)
+    assert _true_error(model, fitted, data, reference) <= integration_tolerance([0.01])
+    alpha = next(v["value"] for k, v in result.parameters.items() if k.endswith("alpha"))
+    true_alpha = next(p.value for e in truth.effects for k, p in e.parameters.items())
+    assert alpha == pytest.approx(true_alpha, rel=0.1)

@@ -1,0 +1,57 @@
+"""How finely a fit integrates a model with nonlinear effects.
+
+ETD2 (`dynamics._nonlinear`) integrates the linear part exactly; its error comes from
+the nonlinear rate changing within a step and falls as the square of the step. A mild
+nonlinearity (radiation between a slow housing and the chamber) is integrated to within
+2e-5 °C by one step per sample period; a temperature-dependent conductance at a fast
+node needs four. Every substep is paid in every residual evaluation and every Jacobian
+of the fit, so a fit takes the fewest substeps of `SUBSTEP_LADDER` whose estimated error
+(`etd2_error`) is below `ERROR_SHARE` of the smallest sensor noise std: at its start
+values (with a margin of `START_MARGIN`, `_problem.prepare`) and again at its solution
+(`_output_error`), since the parameters may have moved to where the nonlinearity is
+stronger; there, too few substeps mean another solve from the solution with more.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+
+from ..dynamics._nonlinear import etd2_error
+from ..measurements._data import Dataset
+from ..model._model import DEFAULT_ETD2_SUBSTEPS
+
+SUBSTEP_LADDER = (1, 2, 4, 8, 16)  # ETD2 substeps per sample period a fit chooses from
+ERROR_SHARE = 0.01  # integration error allowed, as a share of the smallest noise std
+ERROR_FLOOR = 1e-6  # °C: the tolerance never goes below this (no sensor resolves it)
+START_MARGIN = 2.0  # at the start values the error must be this many times smaller
+
+
+def integration_tolerance(sensor_sigma) -> float:
+    """The integration error (°C) allowed for sensors of noise stds `sensor_sigma` (°C)."""
+    return max(ERROR_SHARE * float(np.min(sensor_sigma)), ERROR_FLOOR)
+
+
+def fewest_substeps(state, data: Dataset, tolerance: float, read_states: bool = False,
+                    at_least: int = 1) -> tuple[int, float]:
+    """`(substeps, estimated error °C)`: the fewest of `SUBSTEP_LADDER`, and at least
+    `at_least`, that simulate `state` (a `FitState` with a nonlinear model) within
+    `tolerance` °C (the last one unchecked, error NaN). `read_states`: the node
+    temperatures count too (bias columns are indexed to them)."""
+    # one compiled check for every number of substeps (traced), whatever the model's
+    model = dataclasses.replace(state.model, read_states=read_states,
+                                etd2_substeps=DEFAULT_ETD2_SUBSTEPS)
+    for substeps in [s for s in SUBSTEP_LADDER[:-1] if s >= at_least]:
+        error = float(etd2_error(model, data, state.run_initial,
+                                 jax.device_put(np.asarray(substeps))))
+        if error <= tolerance:
+            return substeps, error
+    return SUBSTEP_LADDER[-1], float("nan")
+
+
+def with_substeps(state, substeps: int):
+    """`state` (a `FitState`) with its model integrated in `substeps` per sample period."""
+    return dataclasses.replace(state, model=dataclasses.replace(state.model,
+                                                                etd2_substeps=substeps))
