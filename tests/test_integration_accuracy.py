@@ -100,3 +100,18 @@ def test_a_fit_whose_effect_grows_integrates_more_finely():
     alpha = next(v["value"] for k, v in result.parameters.items() if k.endswith("alpha"))
     true_alpha = next(p.value for e in truth.effects for k, p in e.parameters.items())
     assert alpha == pytest.approx(true_alpha, rel=0.1)
+
+
+def test_fits_of_one_structure_share_the_most_substeps_any_needed(monkeypatch):
+    """A structure that needed 8 substeps keeps 8 for its later fits (one compiled
+    program); another structure is not affected; the model's values do not matter."""
+    from thermojax.fitting import _integration
+
+    monkeypatch.setattr(_integration, "_NEEDED", {})
+    strong = ThermalModel.from_spec(_truth_spec(g.load_case("conductance_temperature")))
+    mild = ThermalModel.from_spec(_truth_spec(g.load_case("radiation")))
+    assert _integration.shared_substeps(strong, 8) == 8
+    other_values = jax.tree.map(lambda x: x * 1.1, strong)
+    assert _integration.shared_substeps(other_values, 1) == 8
+    assert _integration.shared_substeps(mild, 1) == 1
+    assert _integration.shared_substeps(strong, 16) == 16

@@ -7,9 +7,10 @@ nonlinearity (radiation between a slow housing and the chamber) is integrated to
 node needs four. Every substep is paid in every residual evaluation and every Jacobian
 of the fit, so a fit takes the fewest substeps of `SUBSTEP_LADDER` whose estimated error
 (`etd2_error`) is below `ERROR_SHARE` of the smallest sensor noise std: at its start
-values (with a margin of `START_MARGIN`, `_problem.prepare`) and again at its solution
+values (`start_tolerance`, `_problem.prepare`) and again at its solution
 (`_output_error`), since the parameters may have moved to where the nonlinearity is
 stronger; there, too few substeps mean another solve from the solution with more.
+Fits of one structure share the most any of them needed (`shared_substeps`).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 
 from ..dynamics._nonlinear import etd2_error
 from ..measurements._data import Dataset
-from ..model._model import DEFAULT_ETD2_SUBSTEPS
+from ..model._model import DEFAULT_ETD2_SUBSTEPS, DEFAULT_NOISE
 
 SUBSTEP_LADDER = (1, 2, 4, 8, 16)  # ETD2 substeps per sample period a fit chooses from
 ERROR_SHARE = 0.01  # integration error allowed, as a share of the smallest noise std
@@ -32,6 +33,15 @@ START_MARGIN = 2.0  # at the start values the error must be this many times smal
 def integration_tolerance(sensor_sigma) -> float:
     """The integration error (°C) allowed for sensors of noise stds `sensor_sigma` (°C)."""
     return max(ERROR_SHARE * float(np.min(sensor_sigma)), ERROR_FLOOR)
+
+
+def start_tolerance(sensor_sigma) -> float:
+    """The integration error (°C) allowed at a fit's start values: `integration_tolerance`
+    of the starting noise stds (°C), but at most that of a `DEFAULT_NOISE` sensor (a
+    refit starts from the stds of a fit without its effect, inflated by the misfit the
+    effect removes), over `START_MARGIN`."""
+    return min(integration_tolerance(sensor_sigma),
+               integration_tolerance([DEFAULT_NOISE])) / START_MARGIN
 
 
 def fewest_substeps(state, data: Dataset, tolerance: float, read_states: bool = False,
@@ -49,6 +59,21 @@ def fewest_substeps(state, data: Dataset, tolerance: float, read_states: bool = 
         if error <= tolerance:
             return substeps, error
     return SUBSTEP_LADDER[-1], float("nan")
+
+
+# The most substeps a fit of each model structure (its static part) has needed in this
+# process: later fits of the structure take at least as many, so that they share one
+# compiled program instead of compiling one per number (a refit's two starts, its
+# held-out folds).
+_NEEDED: dict = {}
+
+
+def shared_substeps(model, substeps: int) -> int:
+    """`substeps` for a fit of `model`, or more if a fit of the same structure needed
+    more earlier in this process; remembered for the fits after it."""
+    key = jax.tree.structure(dataclasses.replace(model, etd2_substeps=0))
+    _NEEDED[key] = max(_NEEDED.get(key, 0), substeps)
+    return _NEEDED[key]
 
 
 def with_substeps(state, substeps: int):

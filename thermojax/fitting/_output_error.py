@@ -27,7 +27,7 @@ from ._likelihood import ml_sigma, output_error_nll
 from ._bias_residuals import bias_residuals, pushed_forward
 from ._problem import (FitState, Prepared, Solution, _check_finite, _model_of, _perturbed_starts,
                        _prior, _Problem, _state, dataset, make_problem, template_at)
-from ._integration import fewest_substeps, integration_tolerance, with_substeps
+from ._integration import fewest_substeps, integration_tolerance, shared_substeps, with_substeps
 from ._solver import TruncatedGaussNewton, _flat_rows, _grams, gauss_newton, traced_settings
 from ..model._parameters import free_parameters, with_free_parameters
 from ..measurements._data import Experiment
@@ -324,6 +324,7 @@ def _accurate_at_solution(best: _Pass, prep: Prepared, theta0, solver, max_steps
         state = with_free_parameters(prep.template, prep.index, best.theta)
         substeps, error = fewest_substeps(state, prep.data, integration_tolerance(
             best.sigma[:p]), read_states=prep.bias is not None, at_least=used)
+        substeps = shared_substeps(state.model, substeps)
         if substeps == used:
             say(f"nonlinear effects: {used} ETD2 step(s) per sample period, estimated "
                 f"integration error {error:.2g} °C at the solution")

@@ -26,7 +26,7 @@ from ..model._parameters import FreeIndex, with_free_parameters
 from ..model._spec import EFFECT_KINDS, ModelSpec
 from ..model.effects import Lowered, lower_effects
 from ._bias_residuals import BiasColumns, bias_columns, spec_strains
-from ._integration import START_MARGIN, fewest_substeps, integration_tolerance, with_substeps
+from ._integration import fewest_substeps, shared_substeps, start_tolerance, with_substeps
 
 LIKELIHOODS = ("output_error", "kalman")
 
@@ -179,8 +179,9 @@ def prepare(spec: ModelSpec, experiments: list[Experiment], likelihood: str,
     bias_sigma = np.array([_bias_sigma_start(b, j, experiments)
                            for j, b in enumerate(spec.biases)])
     if model.is_nonlinear:  # the fewest ETD2 substeps accurate at the start values
-        tolerance = integration_tolerance(np.exp(np.asarray(model.log_noise))) / START_MARGIN
-        substeps, _ = fewest_substeps(template, data, tolerance, read_states=bias is not None)
+        substeps, _ = fewest_substeps(template, data, start_tolerance(np.exp(np.asarray(
+            model.log_noise))), read_states=bias is not None)
+        substeps = shared_substeps(model, substeps)
         template = with_substeps(template, substeps)
     return Prepared(lowered, experiments, data, template, index, names, fixed_sigma, bias,
                     bias_sigma)
