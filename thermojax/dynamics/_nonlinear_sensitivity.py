@@ -104,8 +104,5 @@ def dataset_outputs_and_jacobian(params_to_model, theta, data, states=None):
     """`run_outputs_and_jacobian` of every run of a `Dataset`: readings (runs, T, p) and
     their Jacobian (runs, T, p, P); `states` (runs, T, n) when already simulated."""
     runs = jnp.arange(data.ts.shape[0])
-    if states is None:
-        return jax.vmap(lambda ts, u, r: run_outputs_and_jacobian(
-            params_to_model, theta, ts, u, r))(data.ts, data.inputs, runs)
-    return jax.vmap(lambda ts, u, r, x: run_outputs_and_jacobian(
+    return jax.vmap(lambda ts, u, r, x: run_outputs_and_jacobian(  # states None: x None
         params_to_model, theta, ts, u, r, x))(data.ts, data.inputs, runs, states)
