@@ -13,6 +13,7 @@ import pytest
 
 from thermojax import Dataset, Experiment, ThermalModel, fit
 from thermojax.dynamics._nonlinear import dataset_outputs_nonlinear, etd2_error
+from thermojax.fitting._fit_report import fit_report
 from thermojax.fitting._integration import (SUBSTEP_LADDER, fewest_substeps,
                                             integration_tolerance)
 from thermojax.fitting._problem import FitState
@@ -94,6 +95,7 @@ def test_a_fit_whose_effect_grows_integrates_more_finely():
     result = fit(spec, [Experiment(ts, u, y)], progress=said.append)
     fitted = result.state.model.etd2_substeps
     assert fitted > 1 and any("solving again" in m for m in said), said
+    assert fit_report(result, ["run0.csv"])["etd2_substeps"] == fitted
     _, data, reference = _case(name)
     model = ThermalModel.from_spec(truth)
     assert _true_error(model, fitted, data, reference) <= integration_tolerance([0.01])

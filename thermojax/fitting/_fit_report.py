@@ -37,6 +37,8 @@ def fit_report(result: FitResult, runs: list[str]) -> dict:
         "message": result.message,
         "n_steps": result.n_steps,
         "wall_time_s": result.wall_time_s,
+        # ETD2 steps per sample period the fit integrated nonlinear effects with
+        "etd2_substeps": result.model.etd2_substeps if result.model.is_nonlinear else None,
     })
 
 
@@ -287,7 +289,10 @@ def write_fit_markdown(out: Path, report: dict, rows: list[dict], plots: list[st
           f"{report.get('n_samples')} samples; "
           + ("converged" if report.get("converged") else "**not converged**")
           + (f" ({report.get('message')})" if report.get("message") not in
-             (None, "converged") else "") + ".", "", "## Parameters", ""]
+             (None, "converged") else "") + "."
+          + (f" Nonlinear effects integrated in {report['etd2_substeps']} ETD2 step(s) per "
+             "sample period." if report.get("etd2_substeps") else ""),
+          "", "## Parameters", ""]
     md += _md_parameter_table(rows) + [
         "", "95 % interval: profile likelihood where computed (`--profile`); else Wald, "
         "value ± 1.96 std, taken on the log scale, exp(log value ± 1.96 std/value), for "
