@@ -4,12 +4,14 @@ ETD2 (`dynamics._nonlinear`) integrates the linear part exactly; its error comes
 the nonlinear rate changing within a step and falls as the square of the step. A mild
 nonlinearity (radiation between a slow housing and the chamber) is integrated to within
 2e-5 °C by one step per sample period; a temperature-dependent conductance at a fast
-node needs four. Every substep is paid in every residual evaluation and every Jacobian
+die needs four to eight. Every substep is paid in every residual evaluation and every Jacobian
 of the fit, so a fit takes the fewest substeps of `SUBSTEP_LADDER` whose estimated error
 (`etd2_error`) is below `ERROR_SHARE` of the smallest sensor noise std: at its start
 values (`start_tolerance`, `_problem.prepare`) and again at its solution
 (`_output_error`), since the parameters may have moved to where the nonlinearity is
-stronger; there, too few substeps mean another solve from the solution with more.
+stronger; there, too few substeps mean another solve from the solution with more. (A
+Kalman fit is checked at its start only: the filter corrects the state every sample, so
+only one sample's error, not the free run's, reaches its likelihood.)
 Fits of one structure share the most any of them needed (`shared_substeps`).
 """
 
