@@ -120,11 +120,15 @@ def dataset_states_nonlinear(model, data, run_initial=None):
     return jax.vmap(one)(data.ts, data.inputs, run_initial)  # None: each run gets None
 
 
+def readings(model, x):
+    """The readings (..., p) of node temperatures `x` (..., n), °C: `C x + offset`."""
+    offset = model.output_offset()
+    return x @ model.linear_system().C.T + offset.reshape((1,) * (x.ndim - 1) + offset.shape)
+
+
 def dataset_outputs_nonlinear(model, data, run_initial=None):
     """Free-run readings (runs, T, p) of every run."""
-    system = model.linear_system()
-    x = dataset_states_nonlinear(model, data, run_initial)
-    return x @ system.C.T + model.output_offset()[None, None, :]
+    return readings(model, dataset_states_nonlinear(model, data, run_initial))
 
 
 @eqx.filter_jit

@@ -119,11 +119,10 @@ def block_outputs_and_states(model, data, run_initial=None):
     n), which `output_sensitivity_parts` can reuse at the same parameters; None for a
     linear model (its blocked recurrence keeps no per-sample states)."""
     if model.is_nonlinear:
-        from ._nonlinear import dataset_states_nonlinear
+        from ._nonlinear import dataset_states_nonlinear, readings
 
         x = dataset_states_nonlinear(model, data, run_initial)
-        y = x @ model.linear_system().C.T + model.output_offset()[None, None, :]
-        return pad_to_blocks(y), x
+        return pad_to_blocks(readings(model, x)), x
     maps, z0 = dataset_maps(model, data, run_initial)
     y = jax.vmap(lambda m, z, u: run_primal(m, z, u)[0])(maps, z0, data.inputs.astype(z0.dtype))
     return y + model.output_offset()[None, None, :], None
