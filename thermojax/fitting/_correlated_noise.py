@@ -73,7 +73,7 @@ def correlated_noise_stds(result, lags: int | None = None) -> CorrelatedNoiseStd
     **Arguments:** `result` (output error, at least one free parameter); `lags` (default
     `newey_west_lags` of the longest run).
     """
-    from ._output_error import _oe_evaluate
+    from ._output_error import weighted_residuals_and_jacobian
 
     if result.likelihood != "output_error":
         raise ValueError("correlated_noise_stds corrects output-error fits; a Kalman fit's "
@@ -81,8 +81,7 @@ def correlated_noise_stds(result, lags: int | None = None) -> CorrelatedNoiseStd
                          "whiteness instead).")
     if result.theta is None or len(result.theta) == 0:
         raise ValueError("the fit has no free parameters to correct.")
-    r, J = (np.asarray(a) for a in _oe_evaluate(result.theta, result.problem,
-                                                full_jacobian=True))
+    r, J = weighted_residuals_and_jacobian(result.theta, result.problem)
     n_times = int(max(np.asarray(result.problem.data.lengths)))
     L = newey_west_lags(n_times) if lags is None else int(lags)
     if L < 0:

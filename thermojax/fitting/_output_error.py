@@ -144,6 +144,7 @@ class _OEEvaluation(eqx.Module):
     gram: jax.Array  # JᵀJ of each column's weighted data rows, (columns, free, free)
     predictions: jax.Array  # (runs, times, sensors) °C
     num_evaluations: jax.Array | None = None  # residual evaluations at trial points
+    jacobian: jax.Array | None = None  # of `residuals`, (runs, times, outputs, free)
 
 
 @eqx.filter_jit
@@ -214,20 +215,32 @@ def _solve_oe_jit(theta0, problem, solver, max_steps, estimated):
                            reweight=lambda r: _ml_weights(r, problem, estimated),
                            hinted=hinted)
         T = problem.data.outputs.shape[1]
+        J = jnp.stack([j.reshape(*r.shape, -1) for j, r in zip(sol.jacobian[0],
+                                                                sol.residuals[0])], axis=2)
         return sol.value, sol.num_steps, sol.converged, _OEEvaluation(
             jnp.stack(sol.residuals[0], axis=-1)[:, :T], jnp.stack(sol.grams[0]), sol.aux,
-            sol.num_evaluations), problem.sigma / jnp.stack(sol.weights[0])
+            sol.num_evaluations, J[:, :T]), problem.sigma / jnp.stack(sol.weights[0])
     sol = optx.least_squares(_oe_flat, solver, theta0, problem, max_steps=max_steps,
                              throw=False)
     return (sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
             _oe_evaluate(sol.value, problem), problem.sigma)
 
 
+def weighted_residuals_and_jacobian(theta, problem: _Problem):
+    """At `theta`: the weighted data residuals (runs, times, outputs) and their Jacobian
+    (runs, times, outputs, free), as arrays. One Gauss-Newton evaluation without a step:
+    the fit's own compiled program serves (no other program to compile)."""
+    if theta.shape[0] == 0:
+        r, J = _oe_evaluate(theta, problem, full_jacobian=True)
+    else:
+        evaluation = _solve_oe(theta, problem, TruncatedGaussNewton(), 1)[3]
+        r, J = evaluation.residuals, evaluation.jacobian
+    return np.asarray(r), np.asarray(J)
+
+
 def _chi_square(theta, problem: _Problem) -> float:
-    """χ² of the weighted data residuals at `theta` (prior rows excluded): one
-    Gauss-Newton evaluation without a step, so the fit's compilation serves."""
-    residuals = _solve_oe(theta, problem, TruncatedGaussNewton(), 1)[3].residuals
-    return float(np.sum(np.asarray(residuals) ** 2))
+    """χ² of the weighted data residuals at `theta` (prior rows excluded)."""
+    return float(np.sum(weighted_residuals_and_jacobian(theta, problem)[0] ** 2))
 
 
 @dataclass
@@ -349,5 +362,5 @@ def output_error_at(result: FitResult, experiments: list[Experiment]):
     sigma = np.exp(np.asarray(template.model.log_noise))
     problem = make_problem(template, index, data, sigma, theta)
     weights = np.asarray(data.mask) / sigma[None, None, :]
-    r, J = _oe_evaluate(theta, problem, full_jacobian=True)
-    return data, weights, np.asarray(r).reshape(-1), np.asarray(J).reshape(-1, theta.shape[0])
+    r, J = weighted_residuals_and_jacobian(theta, problem)
+    return data, weights, r.reshape(-1), J.reshape(-1, theta.shape[0])

@@ -43,8 +43,8 @@ from ._newton import TruncatedNewton
 class GaussNewtonSolution(eqx.Module):
     """What `gauss_newton` returns: the parameters, and how the solve went.
 
-    `residuals`, `grams` and `aux` are those of the last Jacobian evaluation, taken at
-    `value` (the solver always ends on an evaluation at its final point).
+    `residuals`, `grams`, `jacobian` and `aux` are those of the last Jacobian evaluation,
+    taken at `value` (the solver always ends on an evaluation at its final point).
     """
 
     value: Float[Array, " params"]
@@ -57,6 +57,7 @@ class GaussNewtonSolution(eqx.Module):
     aux: object = None  # what `jac` returned besides residuals and Jacobian, at `value`
     num_evaluations: Int[Array, ""] = None  # residual evaluations (trial points)
     weights: object = None  # `reweight`'s last weights (residuals and grams carry them)
+    jacobian: object = None  # the last Jacobian, each leaf (rows, params), weighted alike
 
 
 class TruncatedGaussNewton(eqx.Module):
@@ -180,20 +181,23 @@ def _acceleration(lin: _Linearization, v, f, r_probe, solver: TruncatedGaussNewt
     return _capped(v + 0.5 * a, solver.max_step), curved
 
 
-def _trial_steps(fn, theta, args, lin: _Linearization, lam, stop, n_eval, hint,
-                 solver: TruncatedGaussNewton):
+def _trial_steps(fn, theta, args, lin: _Linearization, lam, first, n_eval, hint,
+                 solver: TruncatedGaussNewton, evaluate_first: bool):
     """Trial steps from `theta` until one lowers the cost, one residual evaluation per
     pass (`fn(point, args) -> (residuals, its hint)`). With acceleration a trial takes two
     passes: a probe at `theta + h v` (for the directional second derivative), then the
     cost at `theta + v + a/2`. A failed trial raises `λ` (Nielsen: `λ ν`, `ν 2ν`). Returns
-    the loop's final carry; its `hint` is the accepted point's (else `hint`)."""
+    the loop's final carry; its `hint` is the accepted point's (else `hint`).
+
+    `first` (before any Jacobian; `lin` is a placeholder): no step; with
+    `evaluate_first`, one evaluation at `theta` itself, accepted, for its hint."""
     accel = solver.acceleration
 
     def body(t):
         v, f, predicted = lin.velocity(t["lam"], solver.max_step)
         probe = t["probe"]
-        point = theta + jnp.where(probe, _ACCEL_H * v, t["dx"] if accel else v)
-        r_pt, h_pt = fn(point, args)
+        step = jnp.where(probe, _ACCEL_H * v, t["dx"] if accel else v)
+        r_pt, h_pt = fn(theta + jnp.where(first, 0.0, step), args)
         if accel:
             dx, curved = jax.lax.cond(probe, lambda _: _acceleration(lin, v, f, r_pt, solver),
                                       lambda _: (t["dx"], jnp.zeros((), bool)), None)
@@ -203,7 +207,7 @@ def _trial_steps(fn, theta, args, lin: _Linearization, lam, stop, n_eval, hint,
         # too curved (a failure).
         new_cost = jnp.where(probe, jnp.inf, _half_sum_squares(r_pt))
         rho = (lin.cost - new_cost) / jnp.maximum(predicted, 1e-300)
-        success = rho > 0
+        success = first | (rho > 0)
         failed = (~probe | curved) & ~success
         j = t["j"] + failed
         return {
@@ -218,8 +222,9 @@ def _trial_steps(fn, theta, args, lin: _Linearization, lam, stop, n_eval, hint,
         }
 
     t0 = {"lam": lam, "nu": 2.0 * jnp.ones(()), "j": jnp.zeros((), int),
-          "probe": jnp.ones((), bool) if accel else jnp.zeros((), bool),
-          "dx": jnp.zeros_like(theta), "rho": -jnp.inf * jnp.ones(()), "over": stop,
+          "probe": ~first if accel else jnp.zeros((), bool),
+          "dx": jnp.zeros_like(theta), "rho": -jnp.inf * jnp.ones(()),
+          "over": first & (not evaluate_first),
           "n_eval": n_eval, "hint": hint}
     return jax.lax.while_loop(lambda t: ~t["over"], body, t0)
 
@@ -271,8 +276,9 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
 
     Each iteration takes one Jacobian and the eigendecomposition of `JᵀJ`; trial steps
     reuse them, each costing one or two residual evaluations. `fn` and `jac` each appear
-    once in the traced program (compile time grows with every copy; with `hinted`, `fn`
-    twice: the start's hint). Pure and jittable.
+    once in the traced program (compile time grows with every copy: with `hinted`, the
+    start's hint comes from the trial loop's own `fn`, as a first evaluation without a
+    step). Pure and jittable.
     """
     if jac is None:
         def jac(theta, args):
@@ -288,51 +294,58 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
         def jac_hint(theta, args, _hint):
             return jac(theta, args)
 
-    hint0 = fn_hint(theta0, args)[1] if hinted else None
-    r_like, _, aux_like = jax.eval_shape(jac_hint, theta0, args, hint0)
-
-    def body(c):
-        theta, k = c["theta"], c["k"]
-        r, J, aux = jac_hint(theta, args, c["hint"])
+    def linearized(theta, hint):
+        """The Jacobian at `theta` (with its point's `hint`), weighted by `reweight`."""
+        r, J, aux = jac_hint(theta, args, hint)
         w = None if reweight is None else reweight(r)
-        r, J = _weighted(w, r), _weighted(w, J)
-        lin = _linearize(r, J, solver)
-        done = (0.5 * jnp.sum(lin.Ur ** 2) < solver.tol) & jnp.isfinite(lin.cost)
-        # The last allowed iteration only evaluates (the solution ends on an evaluation).
-        stop = done | (k + 1 >= max_steps) | ~jnp.isfinite(lin.cost)
-        lam = jnp.where(k == 0, solver.initial_damping * jnp.max(lin.s) ** 2, c["lam"])
+        return _linearize(_weighted(w, r), _weighted(w, J), solver), aux, w
+
+    def zeros(x):
+        return jnp.zeros(x.shape, x.dtype)
+
+    hint_like = jax.eval_shape(fn_hint, theta0, args)[1]
+    lin_like, aux_like, w_like = jax.eval_shape(linearized, theta0, hint_like)
+
+    # Each iteration: trial steps from the last linearization, then the Jacobian at the
+    # accepted point. The first has no linearization yet: its "trial" evaluates `fn` at
+    # the start (for the hint), so that `fn` appears once in the traced program.
+    def body(c):
+        theta, k, lin, w = c["theta"], c["k"], c["lin"], c["w"]
+        first = k == 0
 
         def weighted_fn(x, a):
             r_x, h_x = fn_hint(x, a)
             return _weighted(w, r_x), h_x
 
-        t = _trial_steps(weighted_fn, theta, args, lin, lam, stop, c["n_eval"], c["hint"],
-                         solver)
-        better = ~stop & (t["rho"] > 0)
+        t = _trial_steps(weighted_fn, theta, args, lin, c["lam"], first, c["n_eval"],
+                         c["hint"], solver, evaluate_first=hinted)
+        better = first | (t["rho"] > 0)
+        theta = jnp.where(first, theta, jnp.where(better, theta + t["dx"], theta))
+        lam = jnp.where(better & ~first,
+                        _damping_after(t["lam"], t["rho"], solver.acceleration), t["lam"])
+        # No better point: the last Jacobian was the solution's, the loop ends on it.
+        lin, aux, w = jax.lax.cond(better, lambda _: linearized(theta, t["hint"]),
+                                   lambda _: (lin, c["aux"], w), None)
+        done = (0.5 * jnp.sum(lin.Ur ** 2) < solver.tol) & jnp.isfinite(lin.cost)
+        # The last allowed iteration only evaluates (the solution ends on an evaluation).
+        stop = done | (k + 1 >= max_steps) | ~jnp.isfinite(lin.cost)
         return {
-            "theta": jnp.where(better, theta + t["dx"], theta), "k": k + 1,
-            "lam": jnp.where(better, _damping_after(t["lam"], t["rho"], solver.acceleration),
-                             t["lam"]),
-            "finished": ~better, "converged": done, "n_out": jnp.sum(~lin.keep),
-            "cost": lin.cost, "r": r, "grams": lin.grams, "aux": aux, "n_eval": t["n_eval"],
-            "w": w, "hint": t["hint"],
+            "theta": theta, "k": k + better, "lin": lin, "w": w, "aux": aux,
+            "lam": jnp.where(first, solver.initial_damping * jnp.max(lin.s) ** 2, lam),
+            "finished": stop | ~better, "converged": done, "n_out": jnp.sum(~lin.keep),
+            "n_eval": t["n_eval"], "hint": t["hint"],
         }
-
-    def zeros(x):
-        return jnp.zeros(x.shape, x.dtype)
 
     false = jnp.zeros((), bool)
     init = {"theta": theta0, "k": jnp.zeros((), int), "lam": jnp.ones(()), "finished": false,
-            "converged": false, "n_out": jnp.zeros((), int), "cost": jnp.zeros(()),
-            "r": jax.tree.map(zeros, r_like),
-            "grams": jax.tree.map(lambda _: jnp.zeros((theta0.shape[0],) * 2, theta0.dtype),
-                                  r_like),
-            "aux": jax.tree.map(zeros, aux_like), "n_eval": jnp.zeros((), int), "hint": hint0,
-            "w": None if reweight is None else jax.tree.map(zeros, jax.eval_shape(reweight,
-                                                                                  r_like))}
+            "converged": false, "n_out": jnp.zeros((), int),
+            "lin": jax.tree.map(zeros, lin_like), "aux": jax.tree.map(zeros, aux_like),
+            "w": jax.tree.map(zeros, w_like), "n_eval": jnp.zeros((), int),
+            "hint": jax.tree.map(zeros, hint_like)}
     c = jax.lax.while_loop(lambda c: ~c["finished"], body, init)
-    return GaussNewtonSolution(c["theta"], c["cost"], c["k"], c["converged"], c["n_out"],
-                               c["r"], c["grams"], c["aux"], c["n_eval"], c["w"])
+    lin = c["lin"]
+    return GaussNewtonSolution(c["theta"], lin.cost, c["k"], c["converged"], c["n_out"],
+                               lin.r, lin.grams, c["aux"], c["n_eval"], c["w"], lin.J)
 
 
 def traced_settings(solver, max_steps: int):
