@@ -20,6 +20,7 @@ along the states and along the parameters separately (no zero tangents pushed).
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 
@@ -50,31 +51,36 @@ def run_outputs_and_jacobian(params_to_model, theta, ts, u, run: int | jax.Array
     dt = sample_period(ts)
     eye = jnp.eye(theta.shape[0], dtype=theta.dtype)
 
-    def small(t):  # what depends on the parameters alone: step matrices, read-out
-        model, system, _ = parts(t)
-        return etd2_matrices(system, dt, model.etd2_substeps), system.C, model.output_offset()
+    # What depends on the parameters alone (step matrices, read-out, the model's own
+    # arrays), with its tangents along every parameter, once per run: the per-sample
+    # step below is differentiated along these, not through the model's construction.
+    model, system, _ = parts(theta)
+    static = eqx.partition((model, system), eqx.is_inexact_array)[1]
 
-    # Their values and tangents along every parameter, once per run.
-    (mats, C, offset), (dmats, dC, doffset) = jax.vmap(
+    def small(t):
+        model, system, _ = parts(t)
+        return (etd2_matrices(system, dt, model.etd2_substeps), system.C,
+                model.output_offset(), eqx.filter((model, system), eqx.is_inexact_array))
+
+    (mats, C, offset, arrays), (dmats, dC, doffset, darrays) = jax.vmap(
         lambda v: jax.jvp(small, (theta,), (v,)), out_axes=(None, 0))(eye)
 
-    def step(t, matrices, x, u_k, u_k1):
-        model, system, _ = parts(t)
+    def step(arrays, matrices, x, u_k, u_k1):
+        model, system = eqx.combine(arrays, static)
         # substeps as a loop: this step is evaluated in bulk, and an unrolled one would
         # make the fit's program half as large again to compile
         return etd2_step(model, system, dt, matrices=matrices, unroll=False)(x, u_k, u_k1)
 
-    model, system, _ = parts(theta)
     if x is None:
         x = simulate_run_nonlinear(model, system, ts, u, initial(theta))  # (T, n)
     y = x @ C.T + offset[None, :]
 
     def step_jacobians(xk, uk, uk1):  # dF/dx (n, n) and dF/dθ (n, P) at one sample
-        along_x = jax.vmap(lambda d: jax.jvp(lambda x_: step(theta, mats, x_, uk, uk1),
+        along_x = jax.vmap(lambda d: jax.jvp(lambda x_: step(arrays, mats, x_, uk, uk1),
                                              (xk,), (d,))[1])
-        along_t = jax.vmap(lambda dtheta, dm: jax.jvp(lambda t, m: step(t, m, xk, uk, uk1),
-                                                       (theta, mats), (dtheta, dm))[1])
-        return along_x(jnp.eye(xk.shape[0], dtype=xk.dtype)).T, along_t(eye, dmats).T
+        along_t = jax.vmap(lambda da, dm: jax.jvp(lambda a, m: step(a, m, xk, uk, uk1),
+                                                   (arrays, mats), (da, dm))[1])
+        return along_x(jnp.eye(xk.shape[0], dtype=xk.dtype)).T, along_t(darrays, dmats).T
 
     def chunk(S, inp):
         Fx, Ft = jax.vmap(step_jacobians)(*inp)  # (chunk, n, n), (chunk, n, P)
