@@ -20,7 +20,7 @@ import numpy as np
 
 from .._errors import InputError
 from ..measurements._data import Dataset, Experiment
-from ..model._model import ThermalModel
+from ..model._model import ThermalModel, term_effects
 from ..model._network import Topology, conductance_matrix, time_constants
 from ..model._parameters import FreeIndex, with_free_parameters
 from ..model._spec import EFFECT_KINDS, ModelSpec
@@ -246,13 +246,11 @@ def _masks(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
         ([False] * len(nodes), [f"nodes.{n}.initial" for n in nodes]),
         ([False] * len(nodes), [f"nodes.{n}.initial_std" for n in nodes]),
     ]
-    effects = {(e.kind, e.where): e for e in spec.effects}
+    terms = list(zip(term_effects(spec), model.effect_terms, strict=True))
     net_masks.append((
-        [not (p in effects[(t.kind, t.where)].parameters
-              and effects[(t.kind, t.where)].parameters[p].fixed)
-         for t in model.effect_terms for p in t.parameters],
-        [f"effects.{t.kind}.{'-'.join(t.where)}.{p}" for t in model.effect_terms
-         for p in t.parameters]))
+        [not (p in e.parameters and e.parameters[p].fixed) for e, t in terms
+         for p in t.parameters],
+        [f"effects.{t.kind}.{'-'.join(e.where)}.{p}" for e, t in terms for p in t.parameters]))
     strains = spec_strains(spec)
     tau_mask = np.array([not kalman and not (s.time_constant is not None
                                              and s.time_constant.fixed) for s in strains],
@@ -269,7 +267,8 @@ def _masks(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
                                    n.log_boundary_conductance, n.log_heat_gain),
                         model.network, tuple(arrays[:4])),
             arrays[4], arrays[5], arrays[6], arrays[7], model.initial_nodes, arrays[8],
-            model.effect_terms),
+            model.effect_terms, jax.tree.map(lambda x: np.zeros(x.shape, bool),
+                                             model.effect_sensors)),
         run_mask, tau_mask)
     names = ([nm for _, nms in net_masks for nm in nms] + [nm for row in run_names for nm in row]
              + tau_names)

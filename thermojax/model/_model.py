@@ -40,9 +40,12 @@ class ThermalModel(eqx.Module):
     initial_std: Float[Array, " nodes"]
     initial_nodes: tuple[int, ...] = eqx.field(static=True)
     # Term effects (offsets, gains, nonlinear heat flows): their parameters, logs where
-    # positive, and their static descriptions (`effects.Term`).
+    # positive, and their static descriptions (`effects.Term`); per term, the sensor it
+    # reads into (NumPy bool, (sensors,); none for heat terms) is data, so that an offset
+    # at another sensor is the same program.
     effect_values: Float[Array, " effect_parameters"] = None
     effect_terms: tuple = eqx.field(static=True, default=())
+    effect_sensors: tuple = ()
     # True: every node's temperature is read out after the sensors (outputs: sensors,
     # then nodes), so one simulation gives the states that bias channels need.
     read_states: bool = eqx.field(static=True, default=False)
@@ -64,12 +67,11 @@ class ThermalModel(eqx.Module):
         init = [n.initial.value if n.initial is not None else 0.0 for n in spec.nodes]
         std = [n.initial_std if n.initial_std is not None else DEFAULT_INITIAL_STD
                for n in spec.nodes]
-        terms, values = [], []
-        for e in spec.effects:
+        terms, sensors, values = [], [], []
+        for e in term_effects(spec):
             kind = KINDS[e.kind]
-            if not kind.is_term:
-                continue
             term = kind.term(spec, e, len(values))
+            sensors.append(np.array([c == e.where[0] for c in spec.sensor_columns]))
             first = kind.initial_parameters(spec, e.where) if set(e.parameters) != set(
                 term.parameters) else {}
             for name, log in zip(term.parameters, term.logs):
@@ -80,7 +82,8 @@ class ThermalModel(eqx.Module):
                    *jax.device_put((np.log(np.asarray(noise, float)), np.log(np.asarray(q, float)),
                                     np.asarray(init, float), np.asarray(std, float))),
                    tuple(i for i, n in enumerate(spec.nodes) if n.initial is not None),
-                   jax.device_put(np.asarray(values, float).reshape(-1)), tuple(terms))
+                   jax.device_put(np.asarray(values, float).reshape(-1)), tuple(terms),
+                   tuple(sensors))
 
     @property
     def is_nonlinear(self) -> bool:
@@ -103,11 +106,11 @@ class ThermalModel(eqx.Module):
 
         p = len(self.network.topology.sensor_nodes)
         scale, offset = jnp.ones(p), jnp.zeros(p)
-        for t in self.effect_terms:
+        for t, sensor in zip(self.effect_terms, self.effect_sensors):
             got = KINDS[t.kind].output(t, self.effect_values)
             if got is not None:
-                scale = scale.at[t.sensor].add(got[0])
-                offset = offset.at[t.sensor].add(got[1])
+                sensor = sensor.astype(scale.dtype)
+                scale, offset = scale + got[0] * sensor, offset + got[1] * sensor
         return scale, offset
 
     def output_offset(self) -> Float[Array, " outputs"]:
@@ -215,7 +218,8 @@ def model_to_spec(model: ThermalModel, spec: ModelSpec, process_noise: bool = Fa
     sensors = tuple(dataclasses.replace(s, noise=upd(s.noise, sd))
                     for s, sd in zip(spec.sensors, values(model.log_noise)))
     values = iter(model.effect_parameter_values())
-    by_place = {(t.kind, t.where): t for t in model.effect_terms}
+    by_place = {(e.kind, e.where): t for e, t in zip(term_effects(spec), model.effect_terms,
+                                                     strict=True)}
     effects = []
     for e in spec.effects:
         term = by_place.get((e.kind, e.where))
@@ -226,3 +230,11 @@ def model_to_spec(model: ThermalModel, spec: ModelSpec, process_noise: bool = Fa
         effects.append(e)
     return spec.replace(nodes=nodes, links=links, boundaries=bounds, heat_inputs=heats,
                         sensors=sensors, effects=tuple(effects))
+
+
+def term_effects(spec: ModelSpec) -> list:
+    """The effects of `spec` that a model holds as terms (`ThermalModel.effect_terms`),
+    in its order."""
+    from .effects import KINDS
+
+    return [e for e in spec.effects if KINDS[e.kind].is_term]

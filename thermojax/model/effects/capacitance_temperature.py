@@ -19,7 +19,7 @@ class CapacitanceTemperature(AbstractEffect):
         return True
 
     def term(self, spec, effect, slot):
-        return Term(self.kind, effect.where, ("beta",), (False,), slot,
+        return Term(self.kind, ("beta",), (False,), slot,
                     a=spec.node_names.index(effect.where[0]))
 
     def capacitance_factor(self, term, values, T):

@@ -15,8 +15,7 @@ class SensorGain(AbstractEffect):
         return True
 
     def term(self, spec, effect, slot):
-        return Term(self.kind, effect.where, ("gain",), (False,), slot,
-                    sensor=spec.sensor_columns.index(effect.where[0]))
+        return Term(self.kind, ("gain",), (False,), slot)
 
     def output(self, term, values):
         g = values[term.slot]

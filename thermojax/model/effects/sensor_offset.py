@@ -15,8 +15,7 @@ class SensorOffset(AbstractEffect):
         return True
 
     def term(self, spec, effect, slot):
-        return Term(self.kind, effect.where, ("offset",), (False,), slot,
-                    sensor=spec.sensor_columns.index(effect.where[0]))
+        return Term(self.kind, ("offset",), (False,), slot)
 
     def output(self, term, values):
         return 0.0, values[term.slot]
