@@ -81,7 +81,7 @@ def correlated_noise_stds(result, lags: int | None = None) -> CorrelatedNoiseStd
                          "whiteness instead).")
     if result.theta is None or len(result.theta) == 0:
         raise ValueError("the fit has no free parameters to correct.")
-    r, J = weighted_residuals_and_jacobian(result.theta, result.problem)
+    r, J, _ = weighted_residuals_and_jacobian(result.theta, result.problem)
     n_times = int(max(np.asarray(result.problem.data.lengths)))
     L = newey_west_lags(n_times) if lags is None else int(lags)
     if L < 0:

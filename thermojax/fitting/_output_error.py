@@ -145,6 +145,7 @@ class _OEEvaluation(eqx.Module):
     predictions: jax.Array  # (runs, times, sensors) °C
     num_evaluations: jax.Array | None = None  # residual evaluations at trial points
     jacobian: jax.Array | None = None  # of `residuals`, (runs, times, outputs, free)
+    states: jax.Array | None = None  # a nonlinear model's node temperatures (runs, T, n)
 
 
 @eqx.filter_jit
@@ -219,7 +220,7 @@ def _solve_oe_jit(theta0, problem, solver, max_steps, estimated):
                                                                 sol.residuals[0])], axis=2)
         return sol.value, sol.num_steps, sol.converged, _OEEvaluation(
             jnp.stack(sol.residuals[0], axis=-1)[:, :T], jnp.stack(sol.grams[0]), sol.aux,
-            sol.num_evaluations, J[:, :T]), problem.sigma / jnp.stack(sol.weights[0])
+            sol.num_evaluations, J[:, :T], sol.hint), problem.sigma / jnp.stack(sol.weights[0])
     sol = optx.least_squares(_oe_flat, solver, theta0, problem, max_steps=max_steps,
                              throw=False)
     return (sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
@@ -227,15 +228,16 @@ def _solve_oe_jit(theta0, problem, solver, max_steps, estimated):
 
 
 def weighted_residuals_and_jacobian(theta, problem: _Problem):
-    """At `theta`: the weighted data residuals (runs, times, outputs) and their Jacobian
-    (runs, times, outputs, free), as arrays. One Gauss-Newton evaluation without a step:
-    the fit's own compiled program serves (no other program to compile)."""
+    """At `theta`: the weighted data residuals (runs, times, outputs), their Jacobian
+    (runs, times, outputs, free) and a nonlinear model's node temperatures (runs, T, n;
+    else None), as arrays. One Gauss-Newton evaluation without a step: the fit's own
+    compiled program serves (no other program to compile)."""
     if theta.shape[0] == 0:
         r, J = _oe_evaluate(theta, problem, full_jacobian=True)
-    else:
-        evaluation = _solve_oe(theta, problem, TruncatedGaussNewton(), 1)[3]
-        r, J = evaluation.residuals, evaluation.jacobian
-    return np.asarray(r), np.asarray(J)
+        return np.asarray(r), np.asarray(J), None
+    evaluation = _solve_oe(theta, problem, TruncatedGaussNewton(), 1)[3]
+    states = None if evaluation.states is None else np.asarray(evaluation.states)
+    return np.asarray(evaluation.residuals), np.asarray(evaluation.jacobian), states
 
 
 def _chi_square(theta, problem: _Problem) -> float:
@@ -351,10 +353,12 @@ def _accurate_at_solution(best: _Pass, prep: Prepared, theta0, solver, max_steps
 
 
 def output_error_at(result: FitResult, experiments: list[Experiment]):
-    """The output-error problem at a fit's values: `(data, weights, residuals, jacobian)`,
+    """The output-error problem at a fit's values: `(data, weights, residuals, jacobian,
+    states)`,
     `weights` (runs, T, p) = 1/σ where measured (σ the fitted noise stds, °C),
     `residuals` (N,) weighted and flattened, `jacobian` (N, P) in the fit's free
-    physical parameters. `experiments` in the input order of `result.lowered_spec`."""
+    physical parameters; `states`: a nonlinear model's node temperatures (runs, T, n),
+    else None. `experiments` in the input order of `result.lowered_spec`."""
     data = dataset(experiments)
     template, index = template_at(result.lowered_spec, result.state.run_initial, data.n_runs)
     template = with_substeps(template, result.state.model.etd2_substeps)  # as the fit's
@@ -362,5 +366,5 @@ def output_error_at(result: FitResult, experiments: list[Experiment]):
     sigma = np.exp(np.asarray(template.model.log_noise))
     problem = make_problem(template, index, data, sigma, theta)
     weights = np.asarray(data.mask) / sigma[None, None, :]
-    r, J = weighted_residuals_and_jacobian(theta, problem)
-    return data, weights, r.reshape(-1), J.reshape(-1, theta.shape[0])
+    r, J, states = weighted_residuals_and_jacobian(theta, problem)
+    return data, weights, r.reshape(-1), J.reshape(-1, theta.shape[0]), states

@@ -58,6 +58,7 @@ class GaussNewtonSolution(eqx.Module):
     num_evaluations: Int[Array, ""] = None  # residual evaluations (trial points)
     weights: object = None  # `reweight`'s last weights (residuals and grams carry them)
     jacobian: object = None  # the last Jacobian, each leaf (rows, params), weighted alike
+    hint: object = None  # with `hinted`: the hint at `value` (what its Jacobian reused)
 
 
 class TruncatedGaussNewton(eqx.Module):
@@ -345,7 +346,8 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
     c = jax.lax.while_loop(lambda c: ~c["finished"], body, init)
     lin = c["lin"]
     return GaussNewtonSolution(c["theta"], lin.cost, c["k"], c["converged"], c["n_out"],
-                               lin.r, lin.grams, c["aux"], c["n_eval"], c["w"], lin.J)
+                               lin.r, lin.grams, c["aux"], c["n_eval"], c["w"], lin.J,
+                               c["hint"] if hinted else None)
 
 
 def traced_settings(solver, max_steps: int):

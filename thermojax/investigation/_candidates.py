@@ -156,12 +156,14 @@ class ScoreContext:
 
     Arrays are (runs, T, ...) on the padded time grid of the `Dataset`."""
 
-    def __init__(self, spec: ModelSpec, model, data: Dataset, run_initial, columns: dict):
+    def __init__(self, spec: ModelSpec, model, data: Dataset, run_initial, columns: dict,
+                 states=None):
         self.spec = spec
         self.names = list(spec.node_names)
-        x = np.asarray(_states_jit(model, data, run_initial))
+        x = np.asarray(_states_jit(model, data, run_initial) if states is None else states)
         system = model.linear_system()
         A, B = np.asarray(system.A), np.asarray(system.B)
+        self.A, self.C = A, np.asarray(system.C)
         u = np.asarray(data.inputs)
         self.T = x
         self.dTdt = x @ A.T + u @ B.T
@@ -214,28 +216,41 @@ def _states_jit(model, data, run_initial):
     return dataset_states_nonlinear(model, data, run_initial)
 
 
-@eqx.filter_jit
-def _heat_responses(model, data, W):
-    """Output responses (K, runs, T, p) of the fitted network to heat inputs W
-    (K, runs, T, n) W, each from the steady state of its first sample."""
+_HEAT_BATCH = 16  # heat directions per call: one program for every step of a loop
+
+
+def heat_responses(A, C, capacitance, ts, W) -> np.ndarray:
+    """Output responses (K, runs, T, p) of the linear network `A` (n, n), `C` (p, n),
+    `capacitance` (n,) J/K to heat inputs `W` (K, runs, T, n) W, each from the steady
+    state of its first sample; `ts` (runs, T) s. In batches of `_HEAT_BATCH` (the last
+    padded), so that the program depends on the shapes alone, not on the model or K."""
+    K = W.shape[0]
+    pad = -K % _HEAT_BATCH
+    W = np.concatenate([W, np.zeros((pad, *W.shape[1:]))]) if pad else W
+    out = [np.asarray(_heat_batch(A, C, capacitance, ts, W[k:k + _HEAT_BATCH]))
+           for k in range(0, W.shape[0], _HEAT_BATCH)]
+    return np.concatenate(out)[:K]
+
+
+@jax.jit
+def _heat_batch(A, C, capacitance, ts, W):
     from ..dynamics._simulate import ExactHold
     from ..model._system import LinearSystem
 
-    system = model.linear_system()
-    n = system.n_states
-    heat = LinearSystem(system.A, jnp.diag(1.0 / system.capacitance), system.C,
-                        jnp.zeros((system.C.shape[0], n)), holds=("foh",) * n,
-                        capacitance=system.capacitance)
+    n = A.shape[0]
+    heat = LinearSystem(A, jnp.diag(1.0 / capacitance), C, jnp.zeros((C.shape[0], n)),
+                        holds=("foh",) * n, capacitance=capacitance)
 
-    def one(w, ts):
+    def one(w, t):
         x0 = heat.steady_state(w[0])
-        return ExactHold().run(heat, x0, w, ts).outputs
+        return ExactHold().run(heat, x0, w, t).outputs
 
-    return jax.vmap(lambda wk: jax.vmap(one)(wk, data.ts))(W)
+    return jax.vmap(lambda wk: jax.vmap(one)(wk, ts))(W)
 
 
 def score_candidates(result, data: Dataset, places, columns: dict, weights, residuals,
-                     jacobian, deflation: float = 1.0, whiten=None) -> list[Candidate]:
+                     jacobian, deflation: float = 1.0, whiten=None, states=None
+                     ) -> list[Candidate]:
     """Score-test every `(kind, where)` in `places` at the fitted `result`.
 
     `residuals` (N,) and `jacobian` (N, P): the noise-weighted output-error residuals
@@ -245,9 +260,11 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
     statistic divided by it (the reported score is not). `whiten`, when given, maps
     output-space directions (runs, T, p, m) to the rows of `residuals` (N, m) instead of
     weighting them (the Kalman likelihood's innovations: `innovation_directions`).
+    `states`: the fitted model's node temperatures (runs, T, n) when at hand (a nonlinear
+    fit's, from `output_error_at`); else simulated here.
     """
     ctx = ScoreContext(result.lowered_spec, result.model, data, result.state.run_initial,
-                       columns)
+                       columns, states)
     # The fitted parameters' column space, by a truncated SVD (unidentifiable directions
     # carry no information either way).
     U, s, _ = np.linalg.svd(jacobian, full_matrices=False)
@@ -267,7 +284,7 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
     responses = {}
     if heat:
         W = np.stack([raw[i][3][j] for i, j in heat])
-        out = np.asarray(_heat_responses(result.model, data, jnp.asarray(W)))
+        out = heat_responses(ctx.A, ctx.C, ctx.capacitance, np.asarray(data.ts), W)
         responses = {key: out[k] for k, key in enumerate(heat)}
     shape = np.shape(weights)
     keys = [(i, j) for i, (_, _, _, dirs) in enumerate(raw) for j in range(len(dirs))]

@@ -453,7 +453,7 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     lowered = result.lowered_spec
     places = enumerate_places(spec, lowered, unused)
     thermal = [(k, w) for k, w in places if k != "viscoelastic"]
-    data, weights, r, J = output_error_at(result, _experiments(lowered, runs))
+    data, weights, r, J, states = output_error_at(result, _experiments(lowered, runs))
     weights, r, J = np.array(weights), np.array(r), np.array(J)
     whiten = None
     if likelihood == "kalman":
@@ -468,7 +468,8 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     try:
         cands = score_candidates(result, data, thermal, columns, weights, r, J,
                                  deflation=step.deflation(white_p if white_p is not None
-                                                          else 0.01), whiten=whiten)
+                                                          else 0.01), whiten=whiten,
+                                 states=states)
     except Exception as err:  # scoring failure: no thermal candidate this step
         say(f"scoring failed: {type(err).__name__}: {err}")
         cands = []
