@@ -354,8 +354,7 @@ def _accurate_at_solution(best: _Pass, prep: Prepared, theta0, solver, max_steps
 
 def output_error_at(result: FitResult, experiments: list[Experiment]):
     """The output-error problem at a fit's values: `(data, weights, residuals, jacobian,
-    states)`,
-    `weights` (runs, T, p) = 1/σ where measured (σ the fitted noise stds, °C),
+    states)`, `weights` (runs, T, p) = 1/σ where measured (σ the fitted noise stds, °C),
     `residuals` (N,) weighted and flattened, `jacobian` (N, P) in the fit's free
     physical parameters; `states`: a nonlinear model's node temperatures (runs, T, n),
     else None. `experiments` in the input order of `result.lowered_spec`."""

@@ -321,7 +321,7 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
         t = _trial_steps(weighted_fn, theta, args, lin, c["lam"], first, c["n_eval"],
                          c["hint"], solver, evaluate_first=hinted)
         better = first | (t["rho"] > 0)
-        theta = jnp.where(first, theta, jnp.where(better, theta + t["dx"], theta))
+        theta = jnp.where(better & ~first, theta + t["dx"], theta)
         lam = jnp.where(better & ~first,
                         _damping_after(t["lam"], t["rho"], solver.acceleration), t["lam"])
         # No better point: the last Jacobian was the solution's, the loop ends on it.
