@@ -168,7 +168,7 @@ class ScoreContext:
         self.T = x
         self.dTdt = x @ A.T + u @ B.T
         self.capacitance = np.asarray(system.capacitance)
-        self.y = np.asarray(x @ np.asarray(system.C).T)
+        self.y = x @ self.C.T
         self.dts = np.asarray(data.dt)
         self.columns = columns
         self.sensor_columns = list(spec.sensor_columns)
