@@ -37,7 +37,9 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -61,6 +63,7 @@ from ._diagnostics import davies_p_value, davies_variation
 from ..model._spec import EFFECT_KINDS, ModelSpec
 from ..model.effects import KINDS
 from ..measurements._telemetry import Telemetry
+from ._plots_ahead import PlotsAhead
 
 TIE_LR = float(stats.chi2.ppf(0.95, 1))  # 3.84
 MIN_BIC_DROP = 10.0  # Kass & Raftery (1995): a Bayes factor above 150, "very strong"
@@ -317,6 +320,45 @@ def _refit(c: Candidate, step: Step, runs, likelihood, new_columns, initial, say
     return True
 
 
+def refit_best(cands: list[Candidate], refits: int, refit_wave) -> None:
+    """Refit the best-scored thermal candidates (`cands` in decreasing score) until
+    `refits` succeeded or `2 refits` were tried (a failure counts half), in waves:
+    `refit_wave(list) -> list[bool]` refits each wave's candidates (side by side), a
+    wave as many as are still wanted, so exactly the candidates that refitting one at a
+    time would try are tried."""
+    pending = [c for c in cands if c.method == "score" and c.score > 0]
+    done = tried = 0
+    while pending and done < refits and tried < 2 * refits:
+        size = min(refits - done, 2 * refits - tried)
+        wave, pending = pending[:size], pending[size:]
+        tried += len(wave)
+        done += sum(refit_wave(wave))
+
+
+def _refit_side_by_side(cands: list[Candidate], *args) -> list[bool]:
+    """`_refit(c, *args)` for each candidate, on up to `os.cpu_count()` threads (the fits
+    spend their time in compiled XLA code, which releases the GIL). Candidates of one
+    kind are refitted one after the other on one thread, in order: fits of one model
+    structure share state in this process (`fitting._integration.shared_substeps`), so
+    the results are those of refitting one candidate at a time, whatever the threads'
+    timing."""
+    groups: dict[str, list[Candidate]] = {}
+    for c in cands:
+        groups.setdefault(c.kind, []).append(c)
+
+    def refit_group(group):
+        return [_refit(c, *args) for c in group]
+
+    workers = min(len(groups), os.cpu_count() or 1)
+    if workers <= 1:
+        done = [refit_group(g) for g in groups.values()]
+    else:
+        with ThreadPoolExecutor(workers, thread_name_prefix="thermojax-refit") as pool:
+            done = list(pool.map(refit_group, groups.values()))
+    by_candidate = {id(c): ok for g, oks in zip(groups.values(), done) for c, ok in zip(g, oks)}
+    return [by_candidate[id(c)] for c in cands]
+
+
 FAST_FRACTION = 0.2  # a mass or lag faster than this share of a sample period is unseen
 MIN_RELAXATION_SAMPLES = 3.0  # a viscoelastic τ under this many samples is white noise
 AT_BOUND = 1e-6  # a positive parameter below this share of its first guess sits at zero
@@ -476,15 +518,9 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     cands += _viscoelastic_candidates(step, runs, places,
                                       white_p if white_p is not None else 0.01)
     cands.sort(key=lambda c: -c.score if np.isfinite(c.score) else math.inf)
-    done = tried = 0
-    for c in list(cands):  # refit the best few thermal candidates (failures count half)
-        if done >= refits or tried >= 2 * refits:
-            break
-        if c.method != "score" or not c.score > 0:
-            continue
-        tried += 1
-        done += _refit(c, step, runs, likelihood, set(unused), initial, say,
-                       white_p if white_p is not None else 0.01)
+    refit_best(cands, refits, lambda wave: _refit_side_by_side(
+        wave, step, runs, likelihood, set(unused), initial, say,
+        white_p if white_p is not None else 0.01))
     cands.sort(key=lambda c: (c.method != "refit",
                               -c.score if np.isfinite(c.score) else math.inf))
     _judge(cands, fdr)
@@ -757,41 +793,58 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
         records.append(current.record)
     steps_traces = [None] * (len(records) - 1) + [current.traces]
     held_out = HeldOutFits()
+    plots = PlotsAhead() if out is not None else None
     stopped = "max_steps"
-    while True:
-        i = len(records) - 1
-        rec = records[-1]
-        say(f"step {i}: −log L {rec['nll']:.1f}, RMSE " +
-            ", ".join(f"{c} {v:.4g}" for c, v in rec["rmse"].items()))
-        if all(p is not None and p > white_p for p in rec["whiteness_p"].values()):
-            stopped = "residuals_white"
-            break
-        if i >= max_steps:
-            stopped = "max_steps"
-            break
-        t_step = time.perf_counter()
-        current = confirmed_optimum(current, runs, likelihood, say)
-        records[-1] = rec = current.record
-        steps_traces[-1] = current.traces
-        cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say,
-                              white_p=white_p, initial=spec)
-        chosen = _choose(cands, current, runs, likelihood, holdout_check, say, held_out)
-        rec["candidates"] = [c.as_json() for c in cands]
-        rec["wall_time_s"] = time.perf_counter() - t_step
-        if chosen is not None and chosen.tied_with:
-            rec["separation"] = separation_advice({chosen.kind, *(k for k, _ in
-                                                                   chosen.tied_with)})
-        if chosen is None:
-            stopped = "no_supported_candidate"
-            break
-        current = _extend(current, chosen, runs, likelihood)
-        say(f"added {chosen.kind} {list(chosen.where)}")
-        records.append(current.record)
-        steps_traces.append(current.traces)
+    try:
+        while True:
+            i = len(records) - 1
+            rec = records[-1]
+            say(f"step {i}: −log L {rec['nll']:.1f}, RMSE " +
+                ", ".join(f"{c} {v:.4g}" for c, v in rec["rmse"].items()))
+            if all(p is not None and p > white_p for p in rec["whiteness_p"].values()):
+                stopped = "residuals_white"
+                break
+            if i >= max_steps:
+                stopped = "max_steps"
+                break
+            t_step = time.perf_counter()
+            current = confirmed_optimum(current, runs, likelihood, say)
+            records[-1] = rec = current.record
+            steps_traces[-1] = current.traces
+            _plot_ahead(plots, out, i, current)
+            cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say,
+                                  white_p=white_p, initial=spec)
+            chosen = _choose(cands, current, runs, likelihood, holdout_check, say, held_out)
+            rec["candidates"] = [c.as_json() for c in cands]
+            rec["wall_time_s"] = time.perf_counter() - t_step
+            if chosen is not None and chosen.tied_with:
+                rec["separation"] = separation_advice({chosen.kind, *(k for k, _ in
+                                                                       chosen.tied_with)})
+            if chosen is None:
+                stopped = "no_supported_candidate"
+                break
+            current = _extend(current, chosen, runs, likelihood)
+            say(f"added {chosen.kind} {list(chosen.where)}")
+            records.append(current.record)
+            steps_traces.append(current.traces)
+            if out is not None:
+                _save_checkpoint(out, fingerprint, records, current.spec)
+            release_compiled_if_crowded()  # rejected candidates' programs are not reused
+        report = _report(records, stopped, likelihood, fdr, white_p,
+                         time.perf_counter() - t0)
+        report["noise"] = _noise(current)
         if out is not None:
-            _save_checkpoint(out, fingerprint, records, current.spec)
-        release_compiled_if_crowded()  # rejected candidates' programs are not reused
-    report = {
+            _write_outputs(out, report, current, steps_traces, runs, plots)
+        return json_safe(report)
+    finally:
+        if plots is not None:
+            plots.close()
+
+
+def _report(records: list[dict], stopped: str, likelihood: str, fdr: float,
+            white_p: float, wall_time_s: float) -> dict:
+    """The `report.json` dict (docs/formats.md §5) but its `noise`."""
+    return {
         "schema": 1, "thermojax_version": _version(), "likelihood": likelihood,
         "steps": records, "stopped_because": stopped, "final_model": "model_final.toml",
         "unexplained": (None if stopped == "residuals_white"
@@ -808,12 +861,8 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
             "(Newey-West)"),
         "whiteness_test": (f"Ljung-Box, lags min(20, N/5), runs pooled by summing per-run "
                            f"autocovariances; white when p > {white_p} for every column"),
-        "wall_time_s": time.perf_counter() - t0,
+        "wall_time_s": wall_time_s,
     }
-    report["noise"] = _noise(current)
-    if out is not None:
-        _write_outputs(out, report, current, steps_traces, runs)
-    return json_safe(report)
 
 
 def _noise(step: Step) -> dict:
@@ -868,23 +917,42 @@ def _load_checkpoint(out: Path, fingerprint: str, spec):
         return [], spec
 
 
-def _write_outputs(out: Path, report: dict, final: Step, traces, runs) -> None:
-    from ._investigation_report import write_investigation_report
+def _report_columns(spec: ModelSpec) -> tuple[list, list, list, dict]:
+    """`(columns, inputs, boundary inputs, units)` the report and its figures use for
+    `spec`: sensor columns then bias columns, input columns, boundary columns, and
+    `_plots.column_units`."""
     from .._plots import column_units
+
+    bias = [b.column for b in spec.biases]
+    return (list(spec.sensor_columns) + bias, list(spec.input_columns),
+            list(spec.boundary_columns), column_units(spec.sensor_columns, bias))
+
+
+def _plot_ahead(plots: PlotsAhead | None, out: Path, i: int, step: Step) -> None:
+    """Queue step `i`'s figures on `plots` against its own model's columns (the report
+    draws them again only if the final model reads other columns)."""
+    from ._investigation_report import step_plot_options
+
+    if plots is None or not step.traces:
+        return
+    cols, inputs, boundary, units = _report_columns(step.spec)
+    plots.ahead(out, f"step{i}", cols, step.traces, inputs, boundary, units=units,
+                **step_plot_options(i, json_safe(step.record)))
+
+
+def _write_outputs(out: Path, report: dict, final: Step, traces, runs,
+                   plots: PlotsAhead | None = None) -> None:
+    from ._investigation_report import write_investigation_report
 
     out.mkdir(parents=True, exist_ok=True)
     save_model(final.spec, out / "model_final.toml",
                header="thermojax investigate: the final model")
     (out / "report.json").write_text(json.dumps(json_safe(report), indent=2,
                                                 allow_nan=False))
-    cols = list(final.spec.sensor_columns) + [b.column for b in final.spec.biases]
-    inputs = list(final.spec.input_columns)
-    boundary = list(final.spec.boundary_columns)
+    cols, inputs, boundary, units = _report_columns(final.spec)
     for step_traces in traces:  # every step's plots against the final model's inputs
         for r, tr in enumerate(step_traces or []):
             tr["inputs"] = np.stack([runs[r].column(c) for c in inputs], 1) if inputs \
                 else np.zeros((len(tr["ts"]), 0))
     write_investigation_report(out, json_safe(report), [t or [] for t in traces], cols,
-                               inputs, boundary, units=column_units(
-                                   final.spec.sensor_columns,
-                                   [b.column for b in final.spec.biases]))
+                               inputs, boundary, units=units, plots_ahead=plots)

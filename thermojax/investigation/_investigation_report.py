@@ -174,26 +174,29 @@ def _candidate_table(cands: list[dict]) -> list[str]:
     return lines
 
 
+def step_plot_options(i: int, step: dict, prefix: str | None = None) -> dict:
+    """The `diagnostic_plots` keywords of step `i` (its `report.json` entry `step`): the
+    lag span's time scale from its parameters and the figures' title."""
+    what = "the given model" if not step.get("added") else f"after adding {_effect(step['added'])}"
+    return {"time_scale": settling_time(step.get("parameters") or {}),
+            "title": f"Diagnosis of {what}" if prefix else f"Step {i}, {what}"}
+
+
 def _diagnose_steps(out: Path, steps, step_traces, columns, input_names, boundary_inputs,
-                    prefix: str | None = None, units: dict | None = None):
+                    prefix: str | None = None, units: dict | None = None, plots_ahead=None):
     """Per step: `diagnose_traces` and `diagnostic_plots` of its traces (None for both
     when the step has none). Plots are named `step<i>_*.png`, or `<prefix>_*.png` for a
-    single step with `prefix`."""
+    single step with `prefix`; with `plots_ahead` (a `PlotsAhead`) they come from it."""
+    draw = plots_ahead.draw if plots_ahead is not None else diagnostic_plots
     diagnoses, plots = [], []
     for i in range(len(steps)):
         traces = step_traces[i] if i < len(step_traces) else None
         if traces:
-            s = steps[i]
-            time_scale = settling_time(s.get("parameters") or {})
+            options = step_plot_options(i, steps[i], prefix)
             diagnoses.append(diagnose_traces(columns, traces, input_names, boundary_inputs,
-                                             units=units, time_scale=time_scale))
-            what = "the given model" if not s.get("added") else \
-                f"after adding {_effect(s['added'])}"
-            title = (f"Diagnosis of {what}" if prefix else f"Step {i}, {what}")
-            plots.append(diagnostic_plots(
-                out, prefix or f"step{i}", columns, traces, input_names, boundary_inputs,
-                time_scale=time_scale, title=title,
-                units=units))
+                                             units=units, time_scale=options["time_scale"]))
+            plots.append(draw(out, prefix or f"step{i}", columns, traces, input_names,
+                              boundary_inputs, units=units, **options))
         else:
             diagnoses.append(None)
             plots.append(None)
@@ -369,7 +372,8 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
 
 def write_investigation_report(out_dir, report: dict, step_traces: list, columns: list[str],
                                input_names: list[str], boundary_inputs=(),
-                               diagnosis: bool = False, units: dict | None = None) -> Path:
+                               diagnosis: bool = False, units: dict | None = None,
+                               plots_ahead=None) -> Path:
     """Write `report.md` (and its PNGs, plus `diagnostics.json`) into `out_dir`.
 
     **Arguments:**
@@ -387,6 +391,8 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
     - `units`: column -> unit (default `_plots.column_units`: °C, or for a bias column,
       one the steps' `parameters` name as `biases.<column>.*`, deg/h for `*_dph`, µg
       for `*_ug`).
+    - `plots_ahead`: a `PlotsAhead` that may already have drawn the steps' figures
+      (the investigation's, while it went on); the figures are drawn by it.
 
     **Returns:** the path of `report.md`.
     """
@@ -397,7 +403,7 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
     noise = {k: v for k, v in (report.get("noise") or {}).items() if v is not None}
     diagnoses, plots = _diagnose_steps(out, steps, step_traces, columns, input_names,
                                        boundary_inputs, "diagnose" if diagnosis else None,
-                                       units)
+                                       units, plots_ahead)
     (out / "diagnostics.json").write_text(json.dumps(
         {"steps": diagnoses}, indent=1, allow_nan=False, ensure_ascii=False))
     sources = noise_sources(steps, columns)

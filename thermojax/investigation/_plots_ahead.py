@@ -1,0 +1,62 @@
+"""Diagnostic figures drawn on a background thread while the investigation goes on.
+
+A step's five PNGs take 0.5-3 s of matplotlib; the loop's next fits spend most of
+their time in compiled JAX code, which releases the GIL. `PlotsAhead` draws a step's
+figures as soon as its fit is final, on one worker thread, and hands them to the report
+when it is written, if the report asks for the very same figures (same traces object,
+columns, inputs, titles, units); otherwise the report's figures are drawn again, after
+the ones ahead (one worker, first in first out: a stale figure never overwrites a
+current one). All drawing of these figures happens on the worker thread, so matplotlib
+is never used from two threads at once.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+
+from ._diagnostic_plots import diagnostic_plots
+
+
+class PlotsAhead:
+    """`diagnostic_plots` calls run on one background thread, keyed by their arguments.
+
+    `ahead(...)` queues the figures; `draw(...)` (same arguments) returns their file names,
+    waiting for the queued job when one matches, else queueing a new one. `close()` cancels
+    what has not started (call it when the loop is interrupted)."""
+
+    def __init__(self):
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="thermojax-plots")
+        self._jobs: list[tuple[tuple, list, Future]] = []
+
+    @staticmethod
+    def _key(out_dir, prefix, columns, input_names, boundary_inputs, kwargs) -> tuple:
+        units = kwargs.get("units") or {}
+        return (str(Path(out_dir)), prefix, tuple(columns), tuple(input_names),
+                tuple(boundary_inputs), kwargs.get("time_scale"), kwargs.get("title"),
+                kwargs.get("max_lag"), tuple(sorted(units.items())))
+
+    def ahead(self, out_dir, prefix: str, columns, runs: list, input_names,
+              boundary_inputs=(), **kwargs) -> None:
+        """Queue `diagnostic_plots(out_dir, prefix, columns, runs, ...)`. The run traces
+        are copied (shallow): the caller may replace a trace's arrays afterwards."""
+        copies = [dict(r) for r in runs]
+        job = self._pool.submit(diagnostic_plots, out_dir, prefix, columns, copies,
+                                input_names, boundary_inputs, **kwargs)
+        key = self._key(out_dir, prefix, columns, input_names, boundary_inputs, kwargs)
+        self._jobs.append((key, runs, job))
+
+    def draw(self, out_dir, prefix: str, columns, runs: list, input_names,
+             boundary_inputs=(), **kwargs) -> dict[str, str]:
+        """`diagnostic_plots`'s file names for these arguments: a matching queued job's
+        (the same `runs` object), else a new job's, once it is done."""
+        key = self._key(out_dir, prefix, columns, input_names, boundary_inputs, kwargs)
+        for k, r, job in reversed(self._jobs):
+            if k == key and r is runs:
+                return job.result()
+        self.ahead(out_dir, prefix, columns, runs, input_names, boundary_inputs, **kwargs)
+        return self._jobs[-1][2].result()
+
+    def close(self) -> None:
+        """Cancel the queued jobs that have not started; wait for the running one."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
