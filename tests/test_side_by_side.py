@@ -7,14 +7,18 @@ import os
 import threading
 import time
 
+import jax
 import numpy as np
 import pytest
 
 import thermojax
+from thermojax import parse_model
 from thermojax.investigation import _investigate as inv
 from thermojax.investigation import _plots_ahead
-from thermojax.investigation._candidates import Candidate
+from thermojax.investigation._candidates import Candidate, enumerate_places, new_effect
 from thermojax.investigation._plots_ahead import PlotsAhead
+from thermojax.model._model import ThermalModel
+from thermojax.model.effects import KINDS, lower_effects
 
 from hidden import generator as g
 
@@ -62,9 +66,10 @@ def test_waves_try_the_candidates_one_at_a_time_would_try():
         assert all(w <= refits for w in waves)
 
 
-def test_a_kind_is_refitted_on_one_thread_in_order(monkeypatch):
-    """Candidates of one kind share a model structure (and state kept per structure):
-    one thread takes them in order; other kinds run on other threads meanwhile."""
+def test_one_structure_is_refitted_on_one_thread_in_order(monkeypatch):
+    """Candidates of one model structure (an offset at any sensor) share state kept per
+    structure: one thread takes them in order; other structures (a radiation at each
+    place) run on other threads meanwhile."""
     seen = []
     lock = threading.Lock()
 
@@ -75,15 +80,14 @@ def test_a_kind_is_refitted_on_one_thread_in_order(monkeypatch):
         return c.where != ("n2",)  # one failure, reported for its own candidate
 
     monkeypatch.setattr(inv, "_refit", fake_refit)
-    monkeypatch.setattr(os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
     cands = _cands(["radiation", "sensor_offset", "radiation", "sensor_offset", "extra_node"])
     ok = inv._refit_side_by_side(cands, "args")
     assert ok == [True, True, False, True, True]
-    for kind in ("radiation", "sensor_offset"):
-        mine = [(w, t) for k, w, t in seen if k == kind]
-        assert [w for w, _ in mine] == [c.where for c in cands if c.kind == kind]
-        assert len({t for _, t in mine}) == 1
-    assert len({t for _, _, t in seen}) == 3  # three kinds, three threads
+    offsets = [(w, t) for k, w, t in seen if k == "sensor_offset"]
+    assert [w for w, _ in offsets] == [("n1",), ("n3",)]
+    assert len({t for _, t in offsets}) == 1
+    assert len({t for _, _, t in seen}) == 4  # four structures, four threads
     # one processor: no thread at all, the same answers
     seen.clear()
     monkeypatch.setattr(os, "cpu_count", lambda: 1)
@@ -91,10 +95,31 @@ def test_a_kind_is_refitted_on_one_thread_in_order(monkeypatch):
     assert {t for _, _, t in seen} == {threading.current_thread().name}
 
 
+def test_place_is_data_says_which_kinds_share_a_structure():
+    """The grouping above relies on `place_is_data`: a kind added at two places gives one
+    model structure (pytree structure, static fields included) exactly when it says so."""
+    spec = parse_model(g.dump_toml(g.load_case("heat_source")["believed"]))
+    lowered = lower_effects(spec).spec
+    places = enumerate_places(spec, lowered, {"P_aux": "power", "T_aux": "temperature"})
+    checked = set()
+    for kind, impl in KINDS.items():
+        where = [w for k, w in places if k == kind][:2]
+        if len(where) < 2:
+            continue
+        structures = []
+        for w in where:
+            ext = spec.replace(effects=spec.effects + (new_effect(spec, lowered, kind, w, {}),))
+            structures.append(jax.tree.structure(ThermalModel.from_spec(
+                lower_effects(ext).spec)))
+        assert (structures[0] == structures[1]) == impl.place_is_data, kind
+        checked.add(kind)
+    assert checked == set(KINDS) - {"viscoelastic"}  # a bias term, not the thermal model
+
+
 @pytest.mark.slow
 def test_refits_side_by_side_give_the_one_at_a_time_answer(tmp_path, monkeypatch):
-    """A real step: four candidates of three kinds (two boundaries) refitted on one
-    thread and on several give identical candidates, to the last bit."""
+    """A real step: four candidates of three kinds refitted on one thread and on several
+    give identical candidates, to the last bit."""
     files = g.write_case("sensor_offset", tmp_path / "data", seed=0, horizon_s=900.0)
     spec = thermojax.load_model(files["model"])
     runs = [thermojax.read_telemetry(p) for p in files["data"]]
@@ -106,7 +131,6 @@ def test_refits_side_by_side_give_the_one_at_a_time_answer(tmp_path, monkeypatch
     steps = [r["steps"][0]["candidates"] for r in reports]
     refitted = [c for c in steps[0] if c["method"] == "refit"]
     assert len(refitted) == 4
-    assert len({c["kind"] for c in refitted}) < 4  # a kind refitted twice (one thread)
     assert steps[0] == steps[1]
     assert reports[0]["steps"][1]["parameters"] == reports[1]["steps"][1]["parameters"]
 

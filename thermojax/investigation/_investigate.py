@@ -338,13 +338,13 @@ def refit_best(cands: list[Candidate], refits: int, refit_wave) -> None:
 def _refit_side_by_side(cands: list[Candidate], *args) -> list[bool]:
     """`_refit(c, *args)` for each candidate, on up to `os.cpu_count()` threads (the fits
     spend their time in compiled XLA code, which releases the GIL). Candidates of one
-    kind are refitted one after the other on one thread, in order: fits of one model
-    structure share state in this process (`fitting._integration.shared_substeps`), so
-    the results are those of refitting one candidate at a time, whatever the threads'
-    timing."""
-    groups: dict[str, list[Candidate]] = {}
+    model structure (one kind whose place is data: `place_is_data`) are refitted one
+    after the other on one thread, in order: fits of one structure share state in this
+    process (`fitting._integration.shared_substeps`), so the results are those of
+    refitting one candidate at a time, whatever the threads' timing."""
+    groups: dict[tuple, list[Candidate]] = {}
     for c in cands:
-        groups.setdefault(c.kind, []).append(c)
+        groups.setdefault((c.kind,) if KINDS[c.kind].place_is_data else c.key, []).append(c)
 
     def refit_group(group):
         return [_refit(c, *args) for c in group]
