@@ -30,6 +30,9 @@ def release_compiled_if_crowded(limit: int = MAPPINGS_LIMIT) -> bool:
         return False
     import jax
 
+    from ._traced_cache import forget_programs
+
+    forget_programs()
     jax.clear_caches()
     gc.collect()
     return True

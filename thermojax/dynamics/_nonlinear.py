@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ._discretize import discretize, sample_period
+from .._traced_cache import stored_jit
 from ..model._system import LinearSystem
 
 
@@ -131,7 +131,7 @@ def dataset_outputs_nonlinear(model, data, run_initial=None):
     return readings(model, dataset_states_nonlinear(model, data, run_initial))
 
 
-@eqx.filter_jit
+@stored_jit
 def etd2_error(model, data, run_initial, substeps):
     """The estimated error (°C) of the model's readings simulated in `substeps` (traced:
     one program for every number) ETD2 steps per sample period: their largest difference,

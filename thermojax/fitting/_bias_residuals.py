@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._traced_cache import stored_jit
 from ..dynamics._blocked import pad_to_blocks
 from ..dynamics._sensitivity import dataset_block_outputs
 from ..model._spec import ModelSpec
@@ -122,7 +123,7 @@ def state_derivative(model, x, inputs):
     return xdot
 
 
-@eqx.filter_jit
+@stored_jit
 def node_temperatures(model, data, run_initial):
     """Free-run node temperatures and their exact derivatives, each (runs, T, n): °C, K/s."""
     T, p = data.outputs.shape[1:]

@@ -20,6 +20,7 @@ import optimistix as optx
 from ._likelihood import kalman_nll, kalman_runs, rts_smoother, simulate_dataset
 from ._newton import TruncatedNewton, newton
 from ._problem import Prepared, Solution, _check_finite, _prior, _state, make_problem
+from .._traced_cache import stored_jit
 from ..model._parameters import free_parameters, with_free_parameters
 
 if TYPE_CHECKING:
@@ -50,7 +51,7 @@ def _minimise_jit(theta0, problem, solver, max_steps):
     return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
 
 
-@eqx.filter_jit
+@stored_jit
 def _value_grad_information(theta, problem):
     """`-log L` (with the prior rows), its gradient and the Fisher information in `theta`
     (free, free), from the forward sensitivities of every innovation `e_k` and its
@@ -84,7 +85,7 @@ def _value_grad_information(theta, problem):
 
 
 # `-log L` alone, at the scoring steps' trial points: the smallest program.
-_value = eqx.filter_jit(_kalman_loss)
+_value = stored_jit(_kalman_loss)
 
 
 # Compiled once per structure: called eagerly, the simulator would trace anew every fit.
@@ -241,14 +242,14 @@ def _polish(theta, problem, names, pins, say, tol: float = 1e-3):
     return jax.device_put(theta), gain, bool(gain < tol or ok)
 
 
-@eqx.filter_jit
+@stored_jit
 def kalman_smoothed(model, data, run_initial):
     """RTS-smoothed node temperatures of every run: mean and std, each (runs, times,
     states) °C."""
     return kalman_runs(model, data, run_initial, lambda ts, kf: rts_smoother(model, ts, kf))
 
 
-@eqx.filter_jit
+@stored_jit
 def _innovations(model, data, run_initial):
     return kalman_runs(model, data, run_initial,
                        lambda ts, kf: kf.innovations / jnp.where(

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._traced_cache import stored_jit
 from ..measurements._data import Dataset
 from ..dynamics._discretize import discretize, discretize_process_noise, sample_period
 from ..model._model import ThermalModel
@@ -143,7 +144,7 @@ def kalman_nll(model: ThermalModel, data: Dataset, run_initial=None) -> Float[Ar
     return jnp.sum(kalman_runs(model, data, run_initial, lambda ts, kf: kf.nll))
 
 
-@eqx.filter_jit
+@stored_jit
 def kalman_sample_nll(model: ThermalModel, data: Dataset, run_initial=None
                       ) -> Float[Array, "runs times"]:
     """Each sample's `−log p(y_k | y_<k)` under the filter (0 where unmeasured): summed
@@ -211,7 +212,7 @@ def innovation_map(model: ThermalModel, ts, mask, P0, V):
     return w
 
 
-@eqx.filter_jit
+@stored_jit
 def dataset_innovation_map(model: ThermalModel, data: Dataset, V):
     """`innovation_map` of every run: `V` (runs, times, outputs, m) -> same shape."""
     P0 = jnp.diag(model.initial_std ** 2)

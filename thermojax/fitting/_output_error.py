@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._traced_cache import stored_jit
 from ..dynamics._sensitivity import (block_outputs_and_states, dataset_block_outputs,
                                      output_sensitivity_parts, pad_to_blocks)
 from ._likelihood import ml_sigma, output_error_nll
@@ -124,7 +125,7 @@ def _oe_blocks_jacobian(theta, problem: _Problem, states=None):
             y[:, :data.outputs.shape[1]])
 
 
-@eqx.filter_jit
+@stored_jit
 def bias_coefficient_jacobian(theta, problem: _Problem):
     """Per bias column, `dĉ/dθ` (m_j, free) of its least-squares coefficients (the
     `_bias_residuals.design_matrices` columns) along the free parameters."""
@@ -148,7 +149,7 @@ class _OEEvaluation(eqx.Module):
     states: jax.Array | None = None  # a nonlinear model's node temperatures (runs, T, n)
 
 
-@eqx.filter_jit
+@stored_jit
 def _oe_evaluate(theta, problem: _Problem, full_jacobian: bool = False):
     """At `theta`: an `_OEEvaluation`; with `full_jacobian`, the weighted data residuals
     (runs, times, outputs) and their Jacobian (runs, times, outputs, free) instead."""
@@ -204,7 +205,7 @@ def _measured_counts(problem: _Problem):
                                             dtype=problem.sigma.dtype)])
 
 
-@eqx.filter_jit
+@stored_jit
 def _solve_oe_jit(theta0, problem, solver, max_steps, estimated):
     if isinstance(solver, TruncatedGaussNewton):
         # A nonlinear model's Jacobian reuses the states of the accepted trial point (one

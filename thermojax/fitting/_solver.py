@@ -295,6 +295,12 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
         def jac_hint(theta, args, _hint):
             return jac(theta, args)
 
+    # `jax.jit` (nested: inlined by XLA) keeps each function's trace, so the shapes taken
+    # below and the loop's calls trace it once (tracing the Jacobian is much of the time
+    # a fit takes when its compiled program is cached).
+    evaluated = jax.jit(lambda theta: fn_hint(theta, args))
+
+    @jax.jit
     def linearized(theta, hint):
         """The Jacobian at `theta` (with its point's `hint`), weighted by `reweight`."""
         r, J, aux = jac_hint(theta, args, hint)
@@ -304,7 +310,7 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
     def zeros(x):
         return jnp.zeros(x.shape, x.dtype)
 
-    hint_like = jax.eval_shape(fn_hint, theta0, args)[1]
+    hint_like = jax.eval_shape(evaluated, theta0)[1]
     lin_like, aux_like, w_like = jax.eval_shape(linearized, theta0, hint_like)
 
     # Each iteration: trial steps from the last linearization, then the Jacobian at the
@@ -315,7 +321,7 @@ def gauss_newton(fn: Callable, theta0: Float[Array, " params"], args,
         first = k == 0
 
         def weighted_fn(x, a):
-            r_x, h_x = fn_hint(x, a)
+            r_x, h_x = evaluated(x)
             return _weighted(w, r_x), h_x
 
         t = _trial_steps(weighted_fn, theta, args, lin, c["lam"], first, c["n_eval"],

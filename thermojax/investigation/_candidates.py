@@ -22,12 +22,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
+from .._traced_cache import stored_jit
 from ..dynamics._lag import first_order_lag
 from ..measurements._data import Dataset
 from ..model._spec import EFFECT_KINDS, Effect, ModelSpec, Parameter
@@ -209,7 +209,7 @@ class ScoreContext:
                                 else net.boundary_conductance)[i])
 
 
-@eqx.filter_jit
+@stored_jit
 def _states_jit(model, data, run_initial):
     from ..dynamics._nonlinear import dataset_states_nonlinear
 
