@@ -104,16 +104,45 @@ def test_a_fit_whose_effect_grows_integrates_more_finely():
     assert alpha == pytest.approx(true_alpha, rel=0.1)
 
 
-def test_fits_of_one_structure_share_the_most_substeps_any_needed(monkeypatch):
+def test_fits_of_one_structure_share_the_most_substeps_any_needed():
     """A structure that needed 8 substeps keeps 8 for its later fits (one compiled
     program); another structure is not affected; the model's values do not matter."""
     from thermojax.fitting import _integration
 
-    monkeypatch.setattr(_integration, "_NEEDED", {})
     strong = ThermalModel.from_spec(_truth_spec(g.load_case("conductance_temperature")))
     mild = ThermalModel.from_spec(_truth_spec(g.load_case("radiation")))
-    assert _integration.shared_substeps(strong, 8) == 8
-    other_values = jax.tree.map(lambda x: x * 1.1, strong)
-    assert _integration.shared_substeps(other_values, 1) == 8
-    assert _integration.shared_substeps(mild, 1) == 1
-    assert _integration.shared_substeps(strong, 16) == 16
+    with _integration.substep_memory({}):
+        assert _integration.shared_substeps(strong, 8) == 8
+        other_values = jax.tree.map(lambda x: x * 1.1, strong)
+        assert _integration.shared_substeps(other_values, 1) == 8
+        assert _integration.shared_substeps(mild, 1) == 1
+        assert _integration.shared_substeps(strong, 16) == 16
+
+
+@pytest.mark.parametrize("cpus", [1, 4])
+def test_fits_side_by_side_start_from_one_memory_and_keep_the_most(monkeypatch, cpus):
+    """Fits run side by side each see the memory as it was before any ran (so their
+    answers do not depend on threads), and the most each needed is kept after."""
+    import os
+
+    from thermojax.fitting import _integration
+    from thermojax.fitting._side_by_side import side_by_side
+
+    monkeypatch.setattr(os, "cpu_count", lambda: cpus)
+    strong = ThermalModel.from_spec(_truth_spec(g.load_case("conductance_temperature")))
+    mild = ThermalModel.from_spec(_truth_spec(g.load_case("radiation")))
+
+    def fit_needing(model, substeps):
+        return lambda: _integration.shared_substeps(model, substeps)
+
+    with _integration.substep_memory({}):
+        _integration.shared_substeps(mild, 2)
+        got = side_by_side([fit_needing(strong, 4), fit_needing(strong, 2),
+                            fit_needing(mild, 1), fit_needing(strong, 1)])
+        assert got == [4, 2, 2, 1]
+        assert _integration.shared_substeps(strong, 1) == 4
+        assert _integration.shared_substeps(mild, 1) == 2
+        with pytest.raises(ValueError, match="second"):  # raised after all finished
+            side_by_side([fit_needing(strong, 8), lambda: int("second"),
+                          fit_needing(mild, 16)])
+        assert _integration.shared_substeps(mild, 1) == 16

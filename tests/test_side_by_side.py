@@ -7,18 +7,14 @@ import os
 import threading
 import time
 
-import jax
 import numpy as np
 import pytest
 
 import thermojax
-from thermojax import parse_model
 from thermojax.investigation import _investigate as inv
 from thermojax.investigation import _plots_ahead
-from thermojax.investigation._candidates import Candidate, enumerate_places, new_effect
+from thermojax.investigation._candidates import Candidate
 from thermojax.investigation._plots_ahead import PlotsAhead
-from thermojax.model._model import ThermalModel
-from thermojax.model.effects import KINDS, lower_effects
 
 from hidden import generator as g
 
@@ -66,68 +62,58 @@ def test_waves_try_the_candidates_one_at_a_time_would_try():
         assert all(w <= refits for w in waves)
 
 
-def test_one_structure_is_refitted_on_one_thread_in_order(monkeypatch):
-    """Candidates of one model structure (an offset at any sensor) share state kept per
-    structure: one thread takes them in order; other structures (a radiation at each
-    place) run on other threads meanwhile."""
-    seen = []
-    lock = threading.Lock()
+@pytest.mark.parametrize("cpus", [1, 8])
+def test_every_start_of_every_candidate_is_fitted_side_by_side(monkeypatch, cpus):
+    """A wave's fits (each candidate's starts) all go to the threads, first starts
+    before second starts; each candidate concludes from its own fits in start order,
+    a failed fit passed on as its exception (the loop goes on)."""
+    submitted, lock = [], threading.Lock()
 
-    def fake_refit(c, *args):
+    def fake_starts(c, step, new_columns, initial):
+        n = 1 if c.kind == "radiation" else 2
+        return [(None, f"{c.where[0]}:{k}") for k in range(n)]
+
+    def fake_evaluate(model, runs, likelihood):
         with lock:
-            seen.append((c.kind, c.where, threading.current_thread().name))
-        time.sleep(0.05)
-        return c.where != ("n2",)  # one failure, reported for its own candidate
+            submitted.append(model)
+        time.sleep(0.02)
+        if model == "n2:1":
+            raise FloatingPointError("went non-finite")
+        return f"fit of {model}"
 
+    concluded = {}
+
+    def fake_refit(c, step, runs, new_columns, fits, say, white_p=0.01):
+        concluded[c.where[0]] = fits
+        return not any(isinstance(f, Exception) for _, f in fits)
+
+    monkeypatch.setattr(inv, "_refit_starts", fake_starts)
+    monkeypatch.setattr(inv, "evaluate", fake_evaluate)
     monkeypatch.setattr(inv, "_refit", fake_refit)
-    monkeypatch.setattr(os, "cpu_count", lambda: 8)
-    cands = _cands(["radiation", "sensor_offset", "radiation", "sensor_offset", "extra_node"])
-    ok = inv._refit_side_by_side(cands, "args")
-    assert ok == [True, True, False, True, True]
-    offsets = [(w, t) for k, w, t in seen if k == "sensor_offset"]
-    assert [w for w, _ in offsets] == [("n1",), ("n3",)]
-    assert len({t for _, t in offsets}) == 1
-    assert len({t for _, _, t in seen}) == 4  # four structures, four threads
-    # one processor: no thread at all, the same answers
-    seen.clear()
-    monkeypatch.setattr(os, "cpu_count", lambda: 1)
-    assert inv._refit_side_by_side(cands, "args") == ok
-    assert {t for _, _, t in seen} == {threading.current_thread().name}
-
-
-def test_place_is_data_says_which_kinds_share_a_structure():
-    """The grouping above relies on `place_is_data`: a kind added at two places gives one
-    model structure (pytree structure, static fields included) exactly when it says so."""
-    spec = parse_model(g.dump_toml(g.load_case("heat_source")["believed"]))
-    lowered = lower_effects(spec).spec
-    places = enumerate_places(spec, lowered, {"P_aux": "power", "T_aux": "temperature"})
-    checked = set()
-    for kind, impl in KINDS.items():
-        where = [w for k, w in places if k == kind][:2]
-        if len(where) < 2:
-            continue
-        structures = []
-        for w in where:
-            ext = spec.replace(effects=spec.effects + (new_effect(spec, lowered, kind, w, {}),))
-            structures.append(jax.tree.structure(ThermalModel.from_spec(
-                lower_effects(ext).spec)))
-        assert (structures[0] == structures[1]) == impl.place_is_data, kind
-        checked.add(kind)
-    assert checked == set(KINDS) - {"viscoelastic"}  # a bias term, not the thermal model
+    monkeypatch.setattr(os, "cpu_count", lambda: cpus)
+    cands = _cands(["radiation", "sensor_offset", "extra_node"])
+    ok = inv._refit_side_by_side(cands, None, [], "output_error", set(), None, lambda m: None)
+    assert ok == [True, True, False]
+    assert sorted(submitted) == ["n0:0", "n1:0", "n1:1", "n2:0", "n2:1"]
+    if cpus == 1:
+        assert submitted == ["n0:0", "n1:0", "n2:0", "n1:1", "n2:1"]
+    assert concluded["n1"] == [(None, "fit of n1:0"), (None, "fit of n1:1")]
+    assert concluded["n2"][0] == (None, "fit of n2:0")
+    assert isinstance(concluded["n2"][1][1], FloatingPointError)
 
 
 @pytest.mark.slow
 def test_refits_side_by_side_give_the_one_at_a_time_answer(tmp_path, monkeypatch):
-    """A real step: four candidates of three kinds refitted on one thread and on several
-    give identical candidates, to the last bit."""
+    """A real step: four candidates of three kinds refitted, and the chosen one's
+    held-out folds fitted, on one thread and on several give identical candidates, to
+    the last bit."""
     files = g.write_case("sensor_offset", tmp_path / "data", seed=0, horizon_s=900.0)
     spec = thermojax.load_model(files["model"])
     runs = [thermojax.read_telemetry(p) for p in files["data"]]
     reports = []
     for cpus in (1, 4):
         monkeypatch.setattr(os, "cpu_count", lambda cpus=cpus: cpus)
-        reports.append(thermojax.investigate(spec, runs, max_steps=1, refits=4,
-                                             holdout_check=False))
+        reports.append(thermojax.investigate(spec, runs, max_steps=1, refits=4))
     steps = [r["steps"][0]["candidates"] for r in reports]
     refitted = [c for c in steps[0] if c["method"] == "refit"]
     assert len(refitted) == 4
@@ -182,3 +168,23 @@ def test_figures_drawn_ahead_are_reused_or_redrawn(tmp_path, monkeypatch):
         assert len(calls) == 3
     finally:
         plots.close()
+
+
+def test_figures_of_a_candidate_are_staged_until_drawn(tmp_path):
+    """A candidate's figures (its step may never be taken) are drawn into a hidden
+    folder: moved into place when the report asks for them, removed at close if not."""
+    kept, dropped = _traces(), _traces()
+    plots = PlotsAhead()
+    try:
+        for prefix, traces in (("step1", kept), ("step2", dropped)):
+            plots.ahead(tmp_path, prefix, ["T_die"], traces, ["T_chamber", "P_die"],
+                        ["T_chamber"], staged=True, title="Step 1", time_scale=100.0)
+        plots.ahead(tmp_path, "step1", ["T_die"], kept, ["T_chamber", "P_die"],
+                    ["T_chamber"], title="Step 1", time_scale=100.0)  # queued already
+        assert len(plots._jobs) == 2
+        names = plots.draw(tmp_path, "step1", ["T_die"], kept, ["T_chamber", "P_die"],
+                           ["T_chamber"], title="Step 1", time_scale=100.0)
+        assert sorted(p.name for p in tmp_path.glob("*.png")) == sorted(names.values())
+    finally:
+        plots.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names.values())

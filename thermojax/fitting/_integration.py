@@ -17,6 +17,8 @@ Fits of one structure share the most any of them needed (`shared_substeps`).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 
 import jax
@@ -66,16 +68,46 @@ def fewest_substeps(state, data: Dataset, tolerance: float, read_states: bool = 
 # The most substeps a fit of each model structure (its static part) has needed in this
 # process: later fits of the structure take at least as many, so that they share one
 # compiled program instead of compiling one per number (a refit's two starts, its
-# held-out folds).
-_NEEDED: dict = {}
+# held-out folds). Fits run side by side (`_side_by_side`) each read and write a copy,
+# taken before any of them ran (`substep_memory`).
+_PROCESS_NEEDED: dict = {}
+_NEEDED = contextvars.ContextVar("thermojax_substeps", default=None)
+
+
+def _needed() -> dict:
+    needed = _NEEDED.get()
+    return _PROCESS_NEEDED if needed is None else needed
 
 
 def shared_substeps(model, substeps: int) -> int:
     """`substeps` for a fit of `model`, or more if a fit of the same structure needed
     more earlier in this process; remembered for the fits after it."""
     key = jax.tree.structure(dataclasses.replace(model, etd2_substeps=0))
-    _NEEDED[key] = max(_NEEDED.get(key, 0), substeps)
-    return _NEEDED[key]
+    needed = _needed()
+    needed[key] = max(needed.get(key, 0), substeps)
+    return needed[key]
+
+
+def substep_snapshot() -> dict:
+    """A copy of what the fits so far needed, for a fit run side by side with others."""
+    return dict(_needed())
+
+
+@contextlib.contextmanager
+def substep_memory(memory: dict):
+    """Fits inside read and write `memory` (a `substep_snapshot`) instead."""
+    token = _NEEDED.set(memory)
+    try:
+        yield
+    finally:
+        _NEEDED.reset(token)
+
+
+def merge_substeps(memory: dict) -> None:
+    """Keep what the fits of `memory` needed, as if they had run here."""
+    needed = _needed()
+    for key, substeps in memory.items():
+        needed[key] = max(needed.get(key, 0), substeps)
 
 
 def with_substeps(state, substeps: int):

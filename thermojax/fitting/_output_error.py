@@ -12,6 +12,7 @@ profiled over them).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -28,6 +29,7 @@ from ._likelihood import ml_sigma, output_error_nll
 from ._bias_residuals import bias_residuals, pushed_forward
 from ._problem import (FitState, Prepared, Solution, _check_finite, _model_of, _perturbed_starts,
                        _prior, _Problem, _state, dataset, make_problem, template_at)
+from ._side_by_side import side_by_side
 from ._integration import fewest_substeps, integration_tolerance, shared_substeps, with_substeps
 from ._solver import TruncatedGaussNewton, _flat_rows, _grams, gauss_newton, traced_settings
 from ..model._parameters import free_parameters, with_free_parameters
@@ -294,14 +296,20 @@ def _reweighted(start, prep: Prepared, theta0, solver, max_steps: int, say, oute
 def fit_output_error(prep: Prepared, solver, max_steps: int, n_starts: int, seed: int,
                      say) -> Solution:
     """The output-error stage: the best of `n_starts` starts by likelihood (the first at
-    the file's values, the others perturbed), each solved with `_reweighted`."""
+    the file's values, the others perturbed), each solved with `_reweighted`, side by
+    side (`_side_by_side`; their progress lines are told in order when all finish)."""
     solver = solver or TruncatedGaussNewton()
     theta0 = free_parameters(prep.template, prep.index)
     best = None
     starts = [theta0] + _perturbed_starts(theta0, prep.names, n_starts - 1, seed)
-    for i, start in enumerate(starts):
-        run = _reweighted(start, prep, theta0, solver, max_steps, say)
-        if n_starts > 1:
+    told = [[] for _ in starts] if len(starts) > 1 else [None]
+    passes = side_by_side([functools.partial(_reweighted, start, prep, theta0, solver,
+                                             max_steps, say if lines is None else lines.append)
+                           for start, lines in zip(starts, told)])
+    for i, (run, lines) in enumerate(zip(passes, told)):
+        if lines is not None:
+            for line in lines:
+                say(line)
             say(f"start {i + 1}/{len(starts)}: -log L = {run.nll:.2f}")
         if best is None or (np.isfinite(run.nll) and run.nll < best.nll):
             best = run

@@ -161,13 +161,12 @@ class ScoreContext:
         self.spec = spec
         self.names = list(spec.node_names)
         x = np.asarray(_states_jit(model, data, run_initial) if states is None else states)
-        system = model.linear_system()
-        A, B = np.asarray(system.A), np.asarray(system.B)
-        self.A, self.C = A, np.asarray(system.C)
+        A, B, C, capacitance = (np.asarray(a) for a in _linear_parts(model))
+        self.A, self.C = A, C
         u = np.asarray(data.inputs)
         self.T = x
         self.dTdt = x @ A.T + u @ B.T
-        self.capacitance = np.asarray(system.capacitance)
+        self.capacitance = capacitance
         self.y = x @ self.C.T
         self.dts = np.asarray(data.dt)
         self.columns = columns
@@ -210,6 +209,14 @@ class ScoreContext:
 
 
 @stored_jit
+def _linear_parts(model):
+    """`(A, B, C, capacitance)` of the model's linear part (one program, not one per
+    operation)."""
+    system = model.linear_system()
+    return system.A, system.B, system.C, system.capacitance
+
+
+@stored_jit
 def _states_jit(model, data, run_initial):
     from ..dynamics._nonlinear import dataset_states_nonlinear
 
@@ -232,7 +239,7 @@ def heat_responses(A, C, capacitance, ts, W) -> np.ndarray:
     return np.concatenate(out)[:K]
 
 
-@jax.jit
+@stored_jit
 def _heat_batch(A, C, capacitance, ts, W):
     from ..dynamics._simulate import ExactHold
     from ..model._system import LinearSystem

@@ -34,12 +34,11 @@ are reported as tied (`tied_with`): the data cannot tell them apart.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
-import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,6 +53,7 @@ from ._candidates import (Candidate, benjamini_hochberg, column_role,
                           enumerate_places, new_effect, refit_p_value, score_candidates)
 from ..measurements._data import Experiment
 from ..fitting._fit import FitResult, fit, output_error_at, standardized_innovations
+from ..fitting._side_by_side import side_by_side
 from .._json import json_safe
 from .._memory import release_compiled_if_crowded
 from ..model._model_file import dump_model, save_model
@@ -248,43 +248,48 @@ def _viscoelastic_candidates(step: Step, runs: list[Telemetry], places,
     return out
 
 
-def _refit(c: Candidate, step: Step, runs, likelihood, new_columns, initial, say,
-           white_p: float = 0.01) -> bool:
-    """Refit the model of `step` with candidate `c` added; on success `c` holds the
-    likelihood ratio, its p-value, Δ BIC, the extended step and the fitted parameters.
-
-    The refit starts from the fitted model plus the effect's first guess and, with
-    `initial`, also from the user's values; the better likelihood is kept. An effect that
-    brings a data column into the model (one of `new_columns`) is fitted with the column
-    held both ways, "zoh" and "foh", and keeps the hold of the better likelihood
-    (`c.hold`; the other's likelihood ratio goes into the note)."""
+def _refit_starts(c: Candidate, step: Step, new_columns, initial) -> list[tuple]:
+    """`(hold, model)` for each fit that refitting the model of `step` with candidate `c`
+    takes: from the fitted model plus the effect's first guess and, with `initial`, also
+    from the user's values; an effect that brings a data column into the model (one of
+    `new_columns`) with the column held each way, "zoh" and "foh" (`_refit`)."""
     spec, lowered = step.spec, step.result.lowered_spec
-    say(f"refitting with {c.kind} {list(c.where)} (score {c.score:.1f})")
     brings = [w for w in c.where if w in new_columns]
-    options = ("zoh", "foh") if brings else (None,)
     # A nonlinear effect starts at the score test's estimate, not at its null value: the
     # fit chooses how finely to integrate it (`fitting._integration`) at its start.
     leading = c.estimate if KINDS[c.kind].nonlinear else None
-    by_hold, ext = {}, None
-    for hold in options:
+    starts = []
+    for hold in ("zoh", "foh") if brings else (None,):
         try:
             effect = new_effect(spec, lowered, c.kind, c.where,
                                 {w: hold for w in brings}, leading)
             extended = spec.replace(effects=spec.effects + (effect,))
-            starts = [extended]
+            starts.append((hold, extended))
             if initial is not None:
-                starts.append(with_spec_parameters(extended, spec_parameters(initial)))
+                starts.append((hold, with_spec_parameters(extended,
+                                                          spec_parameters(initial))))
         except Exception as err:
             c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
-            starts = []
-        for start in starts:
-            try:
-                got = evaluate(start, runs, likelihood)
-            except Exception as err:  # one candidate's failure must not end the loop
-                c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
-                continue
-            if hold not in by_hold or got.record["nll"] < by_hold[hold].record["nll"]:
-                by_hold[hold] = got
+    return starts
+
+
+def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
+           white_p: float = 0.01) -> bool:
+    """Complete candidate `c` from its refits `fits`, `(hold, Step or the exception the
+    fit raised)` for each of `_refit_starts`: on success `c` holds the likelihood
+    ratio, its p-value, Δ BIC, the extended step and the fitted parameters.
+
+    The better likelihood of the starts is kept; an effect that brings a data column
+    into the model keeps the hold of the better likelihood (`c.hold`; the other's
+    likelihood ratio goes into the note)."""
+    by_hold, ext = {}, None
+    for hold, got in fits:
+        if isinstance(got, Exception):  # one candidate's failure must not end the loop
+            c.note = f"refit failed: {type(got).__name__}: {got}"[:300]
+            continue
+        if hold not in by_hold or got.record["nll"] < by_hold[hold].record["nll"]:
+            by_hold[hold] = got
+    brings = [w for w in c.where if w in new_columns]
     for hold, got in by_hold.items():
         if ext is None or got.record["nll"] < ext.record["nll"]:
             ext, c.hold = got, hold
@@ -313,7 +318,7 @@ def _refit(c: Candidate, step: Step, runs, likelihood, new_columns, initial, say
             f"near-tie with the unmeasured node {moved}: its parameters moved to mimic "
             f"the effect when it was absent; a sensor on "
             f"{' or '.join(c.absorbed_by)} would separate them"))))
-    first = KINDS[c.kind].initial_parameters(lowered, c.where)
+    first = KINDS[c.kind].initial_parameters(step.result.lowered_spec, c.where)
     c.duplicate = duplicate_reason(c, first, sample_period(runs))
     if c.duplicate:
         say(c.duplicate)
@@ -335,28 +340,29 @@ def refit_best(cands: list[Candidate], refits: int, refit_wave) -> None:
         done += sum(refit_wave(wave))
 
 
-def _refit_side_by_side(cands: list[Candidate], *args) -> list[bool]:
-    """`_refit(c, *args)` for each candidate, on up to `os.cpu_count()` threads (the fits
-    spend their time in compiled XLA code, which releases the GIL). Candidates of one
-    model structure (one kind whose place is data: `place_is_data`) are refitted one
-    after the other on one thread, in order: fits of one structure share state in this
-    process (`fitting._integration.shared_substeps`), so the results are those of
-    refitting one candidate at a time, whatever the threads' timing."""
-    groups: dict[tuple, list[Candidate]] = {}
+def _refit_side_by_side(cands: list[Candidate], step: Step, runs, likelihood, new_columns,
+                        initial, say, white_p: float = 0.01) -> list[bool]:
+    """`_refit` each candidate, every fit of every candidate side by side
+    (`fitting._side_by_side`: the answers are those of fitting one at a time, whatever
+    the threads). Each candidate's first start is fitted before any second start, so
+    that fits of one model structure seldom wait for each other's compilation."""
+    plans = []
     for c in cands:
-        groups.setdefault((c.kind,) if KINDS[c.kind].place_is_data else c.key, []).append(c)
+        say(f"refitting with {c.kind} {list(c.where)} (score {c.score:.1f})")
+        plans.append(_refit_starts(c, step, new_columns, initial))
+    order = sorted((k, i) for i, plan in enumerate(plans) for k in range(len(plan)))
 
-    def refit_group(group):
-        return [_refit(c, *args) for c in group]
+    def fit(model):
+        try:
+            return evaluate(model, runs, likelihood)
+        except Exception as err:  # reported for its candidate by `_refit`
+            return err
 
-    workers = min(len(groups), os.cpu_count() or 1)
-    if workers <= 1:
-        done = [refit_group(g) for g in groups.values()]
-    else:
-        with ThreadPoolExecutor(workers, thread_name_prefix="thermojax-refit") as pool:
-            done = list(pool.map(refit_group, groups.values()))
-    by_candidate = {id(c): ok for g, oks in zip(groups.values(), done) for c, ok in zip(g, oks)}
-    return [by_candidate[id(c)] for c in cands]
+    done = dict(zip(order, side_by_side([functools.partial(fit, plans[i][k][1])
+                                         for k, i in order])))
+    return [_refit(c, step, runs, new_columns,
+                   [(hold, done[k, i]) for k, (hold, _) in enumerate(plans[i])], say, white_p)
+            for i, c in enumerate(cands)]
 
 
 FAST_FRACTION = 0.2  # a mass or lag faster than this share of a sample period is unseen
@@ -608,18 +614,33 @@ class HeldOutFits:
     def __init__(self):
         self._done: list[tuple] = []  # (spec, fold, likelihood, FitResult)
 
-    def __call__(self, spec, experiments, fold, likelihood):
+    def _kept(self, spec, fold, likelihood):
         for s, f, lk, res in self._done:
             if f == fold and lk == likelihood and s == spec:
                 return res
-        res = _fit_without(spec, experiments, fold, likelihood)
-        self._done.append((spec, fold, likelihood, res))
+        return None
+
+    def __call__(self, spec, experiments, fold, likelihood):
+        res = self._kept(spec, fold, likelihood)
+        if res is None:
+            self.make([(spec, experiments, fold)], likelihood)
+            res = self._kept(spec, fold, likelihood)
         return res
+
+    def make(self, wanted: list[tuple], likelihood) -> None:
+        """Make the fits `(spec, experiments, fold)` of `wanted` not made yet, side by
+        side (`fitting._side_by_side`); a fit's exception is raised after all finish."""
+        missing = [w for w in wanted if self._kept(w[0], w[2], likelihood) is None]
+        made = side_by_side([functools.partial(_fit_without, *w, likelihood)
+                             for w in missing])
+        self._done += [(s, fold, likelihood, res) for (s, _, fold), res in zip(missing, made)]
 
 
 def _thermal_fold_gains(spec_base, spec_ext, runs, sigma, folds, say, likelihood,
                         fits: HeldOutFits) -> list[float]:
     experiments = {id(s): _experiments(s, runs) for s in (spec_base, spec_ext)}
+    fits.make([(s, experiments[id(s)], fold) for fold in folds for s in (spec_base, spec_ext)],
+              likelihood)
     gains = []
     for fold in folds:
         r = fold[0]
@@ -685,17 +706,20 @@ def holdout_verdict(gains) -> tuple[bool, float, float, str]:
 
 
 def _choose(cands: list[Candidate], current: Step, runs, likelihood, holdout_check: bool,
-            say, fits: HeldOutFits) -> Candidate | None:
+            say, fits: HeldOutFits, checking=None) -> Candidate | None:
     """The first supported candidate that (with `holdout_check`) also predicts held-out
     data better (`holdout_verdict`) and whose extended model could be built; the others
     it tries are marked unsupported, with the reason. On return `chosen.result` holds the
-    extended step. `fits`: the loop's held-out fits so far."""
+    extended step. `fits`: the loop's held-out fits so far; `checking(c)`: called as the
+    held-out check of a refitted candidate starts (its figures are drawn meanwhile)."""
     folds = holdout_folds(runs)
     for c in cands:
         if not c.supported:
             continue
         try:
             if holdout_check:
+                if checking is not None and c.kind != "viscoelastic":
+                    checking(c)
                 if c.kind == "viscoelastic":
                     gains = _viscoelastic_fold_gains(current, c, runs, folds, say)
                 else:
@@ -747,15 +771,20 @@ def confirmed_optimum(step: Step, runs, likelihood, say) -> Step:
     return step
 
 
+def _added(c: Candidate) -> dict:
+    """The `added` entry of the record of the step that adds `c` (`c.result`)."""
+    added = next(e for e in c.result.spec.effects if (e.kind, tuple(e.where)) == c.key)
+    return {"kind": added.kind, "where": list(added.where),
+            "parameters": {k: p.value for k, p in added.parameters.items()},
+            **({"name": added.name} if added.name else {}),
+            **({"hold": added.hold} if added.hold else {})}
+
+
 def _extend(current: Step, chosen: Candidate, runs, likelihood) -> Step:
     """The next step: the extended step `_choose` built for `chosen`, its record's `added`
     filled in."""
     nxt = chosen.result
-    added = next(e for e in nxt.spec.effects if (e.kind, tuple(e.where)) == chosen.key)
-    nxt.record["added"] = {"kind": added.kind, "where": list(added.where),
-                           "parameters": {k: p.value for k, p in added.parameters.items()},
-                           **({"name": added.name} if added.name else {}),
-                           **({"hold": added.hold} if added.hold else {})}
+    nxt.record["added"] = _added(chosen)
     return nxt
 
 
@@ -814,7 +843,8 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
             _plot_ahead(plots, out, i, current)
             cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say,
                                   white_p=white_p, initial=spec)
-            chosen = _choose(cands, current, runs, likelihood, holdout_check, say, held_out)
+            chosen = _choose(cands, current, runs, likelihood, holdout_check, say, held_out,
+                             lambda c, i=i: _plot_ahead(plots, out, i + 1, c.result, _added(c)))
             rec["candidates"] = [c.as_json() for c in cands]
             rec["wall_time_s"] = time.perf_counter() - t_step
             if chosen is not None and chosen.tied_with:
@@ -928,16 +958,20 @@ def _report_columns(spec: ModelSpec) -> tuple[list, list, list, dict]:
             list(spec.boundary_columns), column_units(spec.sensor_columns, bias))
 
 
-def _plot_ahead(plots: PlotsAhead | None, out: Path, i: int, step: Step) -> None:
+def _plot_ahead(plots: PlotsAhead | None, out: Path, i: int, step: Step,
+                added: dict | None = None) -> None:
     """Queue step `i`'s figures on `plots` against its own model's columns (the report
-    draws them again only if the final model reads other columns)."""
+    draws them again only if the final model reads other columns). With `added` (its
+    record's `added`, `_added`), `step` is a candidate's, not yet taken: its figures are
+    staged until the report asks for them."""
     from ._investigation_report import step_plot_options
 
     if plots is None or not step.traces:
         return
+    record = step.record if added is None else {**step.record, "added": added}
     cols, inputs, boundary, units = _report_columns(step.spec)
     plots.ahead(out, f"step{i}", cols, step.traces, inputs, boundary, units=units,
-                **step_plot_options(i, json_safe(step.record)))
+                staged=added is not None, **step_plot_options(i, json_safe(record)))
 
 
 def _write_outputs(out: Path, report: dict, final: Step, traces, runs,

@@ -48,8 +48,8 @@ class Term:
     `column_b`: input index of `b` when it is a column; `column`: the input index of a
     third place (`conductance_input`); `path`: ("link" | "boundary", index) of the
     conductance a temperature or input coefficient modulates. The sensor of an offset or
-    gain is data, not structure (`ThermalModel.effect_sensors`, `place_is_data`):
-    candidates of one kind at different sensors share one compiled program. A heat
+    gain is data, not structure (`ThermalModel.effect_sensors`): candidates of one kind
+    at different sensors share one compiled program. A heat
     term's indices stay static: read as data, they slowed the per-sample Jacobian by
     15-45 % (measured on imu6).
     The names (`where`) live in the spec (`model._model.term_effects`).
@@ -71,9 +71,6 @@ class AbstractEffect:
 
     kind: str = ""
     nonlinear: bool = False  # adds a state-dependent heat flow (no exact discretization)
-    # The place is data in the model (`ThermalModel.effect_sensors`), not structure: the
-    # kind at every place is one model structure, one compiled program.
-    place_is_data: bool = False
 
     @property
     def parameters(self) -> tuple[str, ...]:

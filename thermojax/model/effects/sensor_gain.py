@@ -9,7 +9,6 @@ from ._base import T_REF, AbstractEffect, Term
 
 class SensorGain(AbstractEffect):
     kind = "sensor_gain"
-    place_is_data = True
 
     @property
     def is_term(self):

@@ -9,7 +9,6 @@ from ._base import AbstractEffect, Term
 
 class SensorOffset(AbstractEffect):
     kind = "sensor_offset"
-    place_is_data = True
 
     @property
     def is_term(self):
