@@ -95,7 +95,7 @@ def bench_imu6() -> None:
         print(f"step {i}: {added or 'start'}; RMSE/noise " +
               ", ".join(f"{c} {v / 0.01:.2f}" for c, v in s["rmse"].items()) +
               (f"; step wall {s['wall_time_s']:.0f} s" if s.get("wall_time_s") else ""))
-    print(f"imu6, 3 x 3.5 h at 1 Hz: {wall:.0f} s in all ({report['stopped_because']})")
+    print(f"imu6, 3 x 3.5 h at 1 Hz: {wall:.1f} s in all ({report['stopped_because']})")
 
 
 def main() -> None:

@@ -228,15 +228,18 @@ _HEAT_BATCH = 16  # heat directions per call: one program for every step of a lo
 
 def heat_responses(A, C, capacitance, ts, W) -> np.ndarray:
     """Output responses (K, runs, T, p) of the linear network `A` (n, n), `C` (p, n),
-    `capacitance` (n,) J/K to heat inputs `W` (K, runs, T, n) W, each from the steady
-    state of its first sample; `ts` (runs, T) s. In batches of `_HEAT_BATCH` (the last
-    padded), so that the program depends on the shapes alone, not on the model or K."""
-    K = W.shape[0]
-    pad = -K % _HEAT_BATCH
-    W = np.concatenate([W, np.zeros((pad, *W.shape[1:]))]) if pad else W
-    out = [np.asarray(_heat_batch(A, C, capacitance, ts, W[k:k + _HEAT_BATCH]))
-           for k in range(0, W.shape[0], _HEAT_BATCH)]
-    return np.concatenate(out)[:K]
+    `capacitance` (n,) J/K to heat inputs `W` (K arrays (runs, T, n), W), each from the
+    steady state of its first sample; `ts` (runs, T) s. In batches of `_HEAT_BATCH` (the
+    last padded with zeros), so that the program depends on the shapes alone, not on the
+    model or K."""
+    K = len(W)
+    out = np.empty((K, *np.shape(ts), C.shape[0]))
+    for k in range(0, K, _HEAT_BATCH):
+        batch = np.zeros((_HEAT_BATCH, *np.shape(W[k])))
+        batch[:min(_HEAT_BATCH, K - k)] = W[k:k + _HEAT_BATCH]
+        out[k:k + _HEAT_BATCH] = np.asarray(_heat_batch(A, C, capacitance, ts,
+                                                        batch))[:K - k]
+    return out
 
 
 @stored_jit
@@ -290,8 +293,8 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
             for j in range(len(dirs))]
     responses = {}
     if heat:
-        W = np.stack([raw[i][3][j] for i, j in heat])
-        out = heat_responses(ctx.A, ctx.C, ctx.capacitance, np.asarray(data.ts), W)
+        out = heat_responses(ctx.A, ctx.C, ctx.capacitance, np.asarray(data.ts),
+                             [raw[i][3][j] for i, j in heat])
         responses = {key: out[k] for k, key in enumerate(heat)}
     shape = np.shape(weights)
     keys = [(i, j) for i, (_, _, _, dirs) in enumerate(raw) for j in range(len(dirs))]
