@@ -718,8 +718,8 @@ def _choose(cands: list[Candidate], current: Step, runs, likelihood, holdout_che
             continue
         try:
             if holdout_check:
-                if checking is not None and c.kind != "viscoelastic":
-                    checking(c)
+                if checking is not None and isinstance(c.result, Step):
+                    checking(c)  # a thermal candidate's extended step
                 if c.kind == "viscoelastic":
                     gains = _viscoelastic_fold_gains(current, c, runs, folds, say)
                 else:
