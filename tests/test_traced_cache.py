@@ -123,9 +123,13 @@ def test_any_change_the_trace_depends_on_is_a_new_entry(cache_folder, monkeypatc
                             (_chain(0.3), x0, jnp.asarray(2, dtype=jnp.int32))]:
         _check(spectrum_and_decay(chain, x, steps), chain, x, 2)
     assert len(list(cache_folder.iterdir())) == 4 and TRACES["n"] == 4
+    # static values that compare equal but are not the same (1.0 == 1 == True)
+    for scale in (1.0, 1):
+        _check(spectrum_and_decay(_chain(scale), x0, jnp.asarray(2)), _chain(scale), x0, 2)
+    assert len(list(cache_folder.iterdir())) == 6 and TRACES["n"] == 6
     monkeypatch.setattr(_traced_cache, "_source_digest", lambda: "another version")
     spectrum_and_decay(_chain(0.3), x0, jnp.asarray(2))
-    assert len(list(cache_folder.iterdir())) == 5 and TRACES["n"] == 5
+    assert len(list(cache_folder.iterdir())) == 7 and TRACES["n"] == 7
 
 
 def test_a_corrupt_entry_is_traced_again(cache_folder):

@@ -82,7 +82,7 @@ def _folder() -> Path | None:
 def _key(name: str, treedef, leaves, dynamic) -> str:
     h = hashlib.sha256()
     h.update(repr((_environment(), name, jax.default_backend())).encode())
-    h.update(_describe_structure(treedef).encode())
+    h.update(_describe_treedef(treedef).encode())
     for x, d in zip(leaves, dynamic):
         h.update((repr((tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False))))
                   if d else _describe(x)).encode())
@@ -114,21 +114,6 @@ def _versions() -> tuple:
 def _environment() -> tuple:
     settings = tuple((s, str(getattr(jax.config, s))) for s in _SETTINGS)
     return (_source_digest(), _versions(), settings)
-
-
-def _describe_structure(treedef) -> str:
-    """`_describe_treedef`, remembered for treedefs seen before (equal treedefs have
-    equal static fields)."""
-    try:
-        return _described[treedef]
-    except TypeError:  # a static field JAX cannot hash
-        return _describe_treedef(treedef)
-    except KeyError:
-        _described[treedef] = text = _describe_treedef(treedef)
-        return text
-
-
-_described: dict = {}
 
 
 def _describe_treedef(treedef) -> str:

@@ -70,27 +70,24 @@ def fewest_substeps(state, data: Dataset, tolerance: float, read_states: bool = 
 # compiled program instead of compiling one per number (a refit's two starts, its
 # held-out folds). Fits run side by side (`_side_by_side`) each read and write a copy,
 # taken before any of them ran (`substep_memory`).
-_PROCESS_NEEDED: dict = {}
-_NEEDED = contextvars.ContextVar("thermojax_substeps", default=None)
+_NEEDED = contextvars.ContextVar("thermojax_substeps", default={})  # the process's
 
 
-def _needed() -> dict:
-    needed = _NEEDED.get()
-    return _PROCESS_NEEDED if needed is None else needed
+def _remember(needed: dict, key, substeps: int) -> int:
+    needed[key] = max(needed.get(key, 0), substeps)
+    return needed[key]
 
 
 def shared_substeps(model, substeps: int) -> int:
     """`substeps` for a fit of `model`, or more if a fit of the same structure needed
     more earlier in this process; remembered for the fits after it."""
     key = jax.tree.structure(dataclasses.replace(model, etd2_substeps=0))
-    needed = _needed()
-    needed[key] = max(needed.get(key, 0), substeps)
-    return needed[key]
+    return _remember(_NEEDED.get(), key, substeps)
 
 
 def substep_snapshot() -> dict:
     """A copy of what the fits so far needed, for a fit run side by side with others."""
-    return dict(_needed())
+    return dict(_NEEDED.get())
 
 
 @contextlib.contextmanager
@@ -105,9 +102,8 @@ def substep_memory(memory: dict):
 
 def merge_substeps(memory: dict) -> None:
     """Keep what the fits of `memory` needed, as if they had run here."""
-    needed = _needed()
     for key, substeps in memory.items():
-        needed[key] = max(needed.get(key, 0), substeps)
+        _remember(_NEEDED.get(), key, substeps)
 
 
 def with_substeps(state, substeps: int):
