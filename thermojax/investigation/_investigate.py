@@ -54,6 +54,7 @@ from ._candidates import (Candidate, benjamini_hochberg, column_role,
 from ..measurements._data import Experiment
 from ..fitting._fit import FitResult, fit, output_error_at, standardized_innovations
 from ..fitting._side_by_side import side_by_side
+from ..fitting._solver import TruncatedGaussNewton
 from .._json import json_safe
 from .._memory import release_compiled_if_crowded
 from ..model._model_file import dump_model, save_model
@@ -573,18 +574,26 @@ def _held_rows(fold, n: int) -> slice:
     return slice(0, n) if fold[1] is None else slice(*fold[1])
 
 
+# A held-out fit starts at the fit to all the data (`spec`'s values): a warm start, whose
+# first Gauss-Newton steps are already good, so its damping starts a thousand times
+# lower than a cold start's (on imu6 the folds take 2-4 steps fewer each).
+_WARM_START = TruncatedGaussNewton(initial_damping=1e-6)
+
+
 def _fit_without(spec, experiments, fold, likelihood="output_error"):
-    """Fit of `spec` with the fold's measurements masked; its predictions still cover
-    them (the free run, or the filter, goes through the held-out block)."""
+    """Fit of `spec` (its values those of the fit to all the data) with the fold's
+    measurements masked; its predictions still cover them (the free run, or the filter,
+    goes through the held-out block)."""
     r, span = fold
+    solver = _WARM_START if likelihood == "output_error" else None
     if span is None:
-        res = fit(spec, experiments, likelihood=likelihood, holdout=r)
+        res = fit(spec, experiments, likelihood=likelihood, holdout=r, solver=solver)
     else:
         e = experiments[r]
         y = np.array(e.outputs, float)
         y[span[0]:span[1]] = np.nan
         masked = [*experiments[:r], dataclasses.replace(e, outputs=y), *experiments[r + 1:]]
-        res = fit(spec, masked, likelihood=likelihood)
+        res = fit(spec, masked, likelihood=likelihood, solver=solver)
     if not np.isfinite(res.nll) or not all(np.all(np.isfinite(p)) for p in res.predictions):
         raise FloatingPointError("the held-out fit went non-finite")
     return res
