@@ -14,6 +14,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
+from .._blas_threads import one_blas_thread
 from ._integration import merge_substeps, substep_memory, substep_snapshot
 
 T = TypeVar("T")
@@ -36,7 +37,8 @@ def side_by_side(tasks: list[Callable[[], T]]) -> list[T]:
     if workers <= 1:
         done = [run(task, memory) for task, memory in zip(tasks, memories)]
     else:
-        with ThreadPoolExecutor(workers, thread_name_prefix="thermojax-fit") as pool:
+        with one_blas_thread(), ThreadPoolExecutor(
+                workers, thread_name_prefix="thermojax-fit") as pool:
             done = list(pool.map(run, tasks, memories))
     for memory in memories:
         merge_substeps(memory)

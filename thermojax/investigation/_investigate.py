@@ -55,6 +55,7 @@ from ..measurements._data import Experiment
 from ..fitting._fit import FitResult, fit, output_error_at, standardized_innovations
 from ..fitting._side_by_side import side_by_side
 from ..fitting._solver import TruncatedGaussNewton
+from .._blas_threads import one_blas_thread
 from .._json import json_safe
 from .._memory import release_compiled_if_crowded
 from ..model._model_file import dump_model, save_model
@@ -805,6 +806,7 @@ def _unexplained(record: dict, white_p: float) -> str:
             "vocabulary).")
 
 
+@one_blas_thread()  # XLA's pool and the fits' threads use the cores (`_blas_threads`)
 def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "output_error",
                 max_steps: int = 4, refits: int = 3, fdr: float = 0.05,
                 white_p: float = 0.01, out: Path | None = None, progress=None,
