@@ -354,13 +354,13 @@ def _refit_side_by_side(cands: list[Candidate], step: Step, runs, likelihood, ne
         plans.append(_refit_starts(c, step, new_columns, initial))
     order = sorted((k, i) for i, plan in enumerate(plans) for k in range(len(plan)))
 
-    def fit(model):
+    def evaluated(model):  # a Step, or the exception `_refit` reports for its candidate
         try:
             return evaluate(model, runs, likelihood)
-        except Exception as err:  # reported for its candidate by `_refit`
+        except Exception as err:
             return err
 
-    done = dict(zip(order, side_by_side([functools.partial(fit, plans[i][k][1])
+    done = dict(zip(order, side_by_side([functools.partial(evaluated, plans[i][k][1])
                                          for k, i in order])))
     return [_refit(c, step, runs, new_columns,
                    [(hold, done[k, i]) for k, (hold, _) in enumerate(plans[i])], say, white_p)
