@@ -69,9 +69,9 @@ def test_every_start_of_every_candidate_is_fitted_side_by_side(monkeypatch, cpus
     a failed fit passed on as its exception (the loop goes on)."""
     submitted, lock = [], threading.Lock()
 
-    def fake_starts(c, step, new_columns, initial):
+    def fake_starts(c, step, new_columns, initial, runs=(), nested=False):
         n = 1 if c.kind == "radiation" else 2
-        return [(None, f"{c.where[0]}:{k}") for k in range(n)]
+        return [(None, f"start {k}", f"{c.where[0]}:{k}") for k in range(n)]
 
     def fake_evaluate(model, runs, likelihood):
         with lock:
@@ -85,11 +85,12 @@ def test_every_start_of_every_candidate_is_fitted_side_by_side(monkeypatch, cpus
 
     def fake_refit(c, step, runs, new_columns, fits, say, white_p=0.01):
         concluded[c.where[0]] = fits
-        return not any(isinstance(f, Exception) for _, f in fits)
+        return not any(isinstance(f, Exception) for _, _, f in fits)
 
     monkeypatch.setattr(inv, "_refit_starts", fake_starts)
     monkeypatch.setattr(inv, "evaluate", fake_evaluate)
     monkeypatch.setattr(inv, "_refit", fake_refit)
+    monkeypatch.setattr(inv, "_needs_retry", lambda fits, step: False)
     monkeypatch.setattr(os, "cpu_count", lambda: cpus)
     cands = _cands(["radiation", "sensor_offset", "extra_node"])
     ok = inv._refit_side_by_side(cands, None, [], "output_error", set(), None, lambda m: None)
@@ -97,9 +98,10 @@ def test_every_start_of_every_candidate_is_fitted_side_by_side(monkeypatch, cpus
     assert sorted(submitted) == ["n0:0", "n1:0", "n1:1", "n2:0", "n2:1"]
     if cpus == 1:
         assert submitted == ["n0:0", "n1:0", "n2:0", "n1:1", "n2:1"]
-    assert concluded["n1"] == [(None, "fit of n1:0"), (None, "fit of n1:1")]
-    assert concluded["n2"][0] == (None, "fit of n2:0")
-    assert isinstance(concluded["n2"][1][1], FloatingPointError)
+    assert concluded["n1"] == [(None, "start 0", "fit of n1:0"),
+                               (None, "start 1", "fit of n1:1")]
+    assert concluded["n2"][0] == (None, "start 0", "fit of n2:0")
+    assert isinstance(concluded["n2"][1][2], FloatingPointError)
 
 
 @pytest.mark.slow

@@ -134,15 +134,47 @@ def test_a_refit_gone_non_finite_fails_softly(tmp_path, monkeypatch):
     assert (tmp_path / "out" / "report.json").is_file()
 
 
-def test_holdout_verdict_needs_most_folds_and_more_than_the_spread():
-    from thermojax.investigation._investigate import holdout_verdict
+def _votes(*gains, broken=()):
+    from thermojax.investigation._selection import FoldVote
 
-    assert holdout_verdict([50.0, 40.0, 60.0, 45.0])[0]
-    ok, total, spread, why = holdout_verdict([100.0, -20.0, -10.0, -5.0])
-    assert not ok and total > 0 and "1 of 4 folds" in why
-    ok, total, spread, why = holdout_verdict([10.0, 1.0, -8.0, 2.0])
-    assert not ok and total < spread and "spread" in why
-    assert not holdout_verdict([float("nan"), 1.0])[0]
+    return [FoldVote((0, (i, i + 1)), g, "broken" if i in broken else "")
+            for i, g in enumerate(gains)]
+
+
+def test_holdout_verdict_counts_the_votes_of_conclusive_folds_only():
+    from thermojax.investigation._selection import holdout_verdict
+
+    assert holdout_verdict(_votes(50.0, 40.0, 60.0, 45.0))[0] is True
+    ok, total, why = holdout_verdict(_votes(100.0, -20.0, -10.0, -5.0))
+    assert ok is False and total > 0 and "1 of 4 conclusive folds" in why
+    ok, total, why = holdout_verdict(_votes(5.0, 1.0, -80.0, 2.0))  # most win, sum < 0
+    assert ok is False and "not positive" in why
+    # the real-data pattern (PRBS1, step 0): three folds for, one against, sum positive
+    assert holdout_verdict(_votes(132.2, 52.0, -88.7, 10.7))[0] is True
+    # a broken fold's huge loss does not vote: the other folds decide
+    ok, total, why = holdout_verdict(_votes(-8879.6, 322.5, 240.7, 356.6, broken=(0,)))
+    assert ok is True and total == pytest.approx(919.8) and "1 inconclusive" in why
+    # with fewer than two conclusive folds the check cannot decide
+    ok, _, why = holdout_verdict(_votes(-5e4, 30.0, float("nan"), -7e3, broken=(0, 2, 3)))
+    assert ok is None and "inconclusive" in why
+
+
+def test_a_fold_dominated_by_a_few_samples_or_a_failed_fit_cannot_vote():
+    from thermojax.investigation._selection import fold_vote
+
+    rng = np.random.default_rng(0)
+    base = 1.0 + 0.1 * rng.standard_normal(400)
+    better = base - 0.05  # the effect predicts every sample a little better
+    v = fold_vote((0, (0, 400)), base, better)
+    assert not v.inconclusive and v.gain == pytest.approx(20.0)
+    spike = better.copy()
+    spike[0] += 9000.0  # one sample under a collapsed noise std
+    v = fold_vote((0, (0, 400)), base, spike)
+    assert v.inconclusive and "4 of 400 samples" in v.inconclusive and v.gain < 0
+    v = fold_vote((0, None), base, FloatingPointError("went non-finite"))
+    assert v.inconclusive.startswith("a held-out fit failed")
+    v = fold_vote((0, None), base, np.full(400, np.nan))
+    assert v.inconclusive and v.as_json()["vote"] == "inconclusive"
 
 
 def test_duplicates_of_existing_structure_are_named():

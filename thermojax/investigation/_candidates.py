@@ -52,7 +52,8 @@ class Candidate:
     holdout_gain: float | None = None  # held-out −log L improvement (leave one run out)
     result: object = field(default=None, repr=False)  # FitResult of the refit
     lr_deflation: float = 1.0  # long-run variance ratio dividing the statistic (non-white)
-    holdout_spread: float | None = None  # fold-to-fold spread of the held-out gain
+    holdout_votes: list = field(default_factory=list)  # `_selection.FoldVote` per fold
+    refit_start: str | None = None  # which start of the refit won (`_investigate._refit`)
     score_test: float | None = None  # the score-test statistic (kept once refitted)
     hold: str | None = None  # the hold the likelihood chose for a column the effect brings
     duplicate: str = ""  # why the refitted effect only duplicates existing structure
@@ -83,7 +84,9 @@ class Candidate:
                 "delta_bic": _finite(self.delta_bic), "p_value": _finite(self.p_value),
                 "tied_with": [[k, list(w)] for k, w in self.tied_with],
                 "supported": bool(self.supported), "method": self.method,
-                "holdout_gain": _finite(self.holdout_gain), "parameters": self.parameters,
+                "holdout_gain": _finite(self.holdout_gain),
+                "holdout_folds": [v.as_json() for v in self.holdout_votes],
+                "refit_start": self.refit_start, "parameters": self.parameters,
                 "hold": self.hold, "absorbed_by": self.absorbed_by, "note": self.note}
 
 

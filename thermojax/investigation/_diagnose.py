@@ -7,7 +7,9 @@ from pathlib import Path
 
 from ._diagnostic_plots import PLOT_KEYS
 from ._diagnostics import diagnose_traces, slowest_time_constant
-from ._investigate import diagnose_step, evaluate, _noise, _version
+from ._investigate import (N_BLOCKS, HeldOutFits, check_holdout, diagnose_step, evaluate,
+                           _noise, _version)
+from ._selection import significance_rule
 from .._json import json_safe
 from .._plots import column_units
 from ..model._spec import ModelSpec
@@ -28,6 +30,15 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
     step = evaluate(spec, runs, likelihood)
     cands = diagnose_step(step, runs, likelihood, refits=refits, fdr=fdr, say=say,
                           initial=spec)
+    fits = HeldOutFits()  # the same rule as `investigate`: every supported one checked
+    for c in cands:
+        if c.supported:
+            try:
+                check_holdout(c, step, runs, likelihood, say, fits)
+            except Exception as err:  # the check could not run: say so, keep the verdict
+                c.note = "; ".join(filter(None, (
+                    f"held-out check could not run: {type(err).__name__}: {err}"[:200],
+                    c.note)))
     columns = list(spec.sensor_columns) + [b.column for b in spec.biases]
     inputs = list(spec.input_columns)
     boundary = list(spec.boundary_columns)
@@ -42,9 +53,7 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
         "diagnostics": diagnose_traces(columns, step.traces, inputs, boundary, units=units,
                                        time_scale=time_scale),
         "noise": _noise(step),
-        "significance_rule": (
-            f"Benjamini-Hochberg at false-discovery rate {fdr} over all candidates "
-            "(one-sided boundary tests for positive effects) and Δ BIC < 0 after refitting"),
+        "significance_rule": significance_rule(fdr, N_BLOCKS),
     }
     report = json_safe(report)
     if out is not None:

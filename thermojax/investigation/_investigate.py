@@ -4,29 +4,13 @@ Fit the model; if its residuals are not white, score every candidate effect
 (`_candidates`), refit the best few, and add the best one the evidence supports;
 repeat until the residuals are white, no candidate is supported, or `max_steps`.
 
-A candidate is *supported* only with strong evidence, all at once (issue 10, item 4):
+A candidate is *supported* by the selection rule of `_selection` (stated there once,
+used by `diagnose` too): forward selection by likelihood-ratio tests (Benjamini-Hochberg,
+a BIC drop of `MIN_BIC_DROP`), then a held-out check whose broken folds do not vote.
 
-1. its p-value passes the Benjamini-Hochberg procedure at false-discovery rate
-   `fdr` over every candidate of the step (score-test p-values, replaced by the
-   likelihood-ratio p-values of the refitted ones; one-sided where the effect is
-   absent on a boundary of its parameter space; for an extra node or a viscoelastic
-   term, whose time constant does not exist under the null, Davies' (1987) bound over
-   the time constant's range, `_diagnostics.davies_p_value`);
-2. it lowers the BIC by at least `MIN_BIC_DROP` = 10 (Kass & Raftery: "very strong");
-3. it predicts better out of sample: refitted with each fold left out in turn, the
-   extended model predicts the left-out data better than the current model does, in
-   most folds, and by more in sum than the sum's own fold-to-fold spread
-   (`√K · std` of the K fold gains). Folds are the runs with three runs or more, else
-   `N_BLOCKS` contiguous blocks of the data (blocked cross-validation), so one data
-   file is a normal case. Checked for every kind, for the chosen candidate.
-
-While the residuals are not white, the statistics of 1 and 2 are deflated for their
-autocorrelation: divided by the residuals' long-run variance ratio (Newey-West,
-`_residual_analysis.long_run_variance_ratio`) of the extended model's non-white
-columns. Non-white residuals alone never force another step.
-
-Every fit inside the loop fails softly: a candidate whose refit, held-out fit or
-bias fit raises or goes non-finite is reported with the reason and never supported.
+Every fit inside the loop fails softly: a candidate whose refits all raise or go
+non-finite is reported with the reason and never supported; a held-out fit that fails
+makes its fold inconclusive.
 
 Candidates whose likelihood ratios differ by less than the 95 % point of χ²₁ (3.84)
 are reported as tied (`tied_with`): the data cannot tell them apart.
@@ -44,12 +28,11 @@ from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
-from scipy import stats
 
 import dataclasses
 
 from ..fitting._bias import fit_bias, viscoelastic_candidate
-from ._candidates import (Candidate, benjamini_hochberg, column_role,
+from ._candidates import (Candidate, column_role,
                           enumerate_places, new_effect, refit_p_value, score_candidates)
 from ..measurements._data import Experiment
 from ..fitting._fit import FitResult, fit, output_error_at, standardized_innovations
@@ -62,13 +45,13 @@ from ..model._model_file import dump_model, save_model
 from ..model._parameters_by_name import spec_parameters, with_spec_parameters
 from .._residual_analysis import ljung_box, long_run_variance_ratio
 from ._diagnostics import davies_p_value, davies_variation
+from ._selection import FoldVote, fold_vote, holdout_verdict, judge, significance_rule
 from ..model._spec import EFFECT_KINDS, ModelSpec
 from ..model.effects import KINDS
+from ..model.effects._base import T_REF
 from ..measurements._telemetry import Telemetry
 from ._plots_ahead import PlotsAhead
 
-TIE_LR = float(stats.chi2.ppf(0.95, 1))  # 3.84
-MIN_BIC_DROP = 10.0  # Kass & Raftery (1995): a Bayes factor above 150, "very strong"
 N_BLOCKS = 4  # held-out folds when there are fewer than three runs
 N_STARTS = 3  # output-error starts confirming each step's optimum before it is scored
 MULTISTART_TOL = 1e-3  # −log L a perturbed start must gain to replace the fit
@@ -250,66 +233,143 @@ def _viscoelastic_candidates(step: Step, runs: list[Telemetry], places,
     return out
 
 
-def _refit_starts(c: Candidate, step: Step, new_columns, initial) -> list[tuple]:
-    """`(hold, model)` for each fit that refitting the model of `step` with candidate `c`
-    takes: from the fitted model plus the effect's first guess and, with `initial`, also
-    from the user's values; an effect that brings a data column into the model (one of
-    `new_columns`) with the column held each way, "zoh" and "foh" (`_refit`)."""
+MIN_FACTOR = 0.25  # a refit's start keeps every G(T), C(T), G(u) above this share of G0, C0
+
+
+def _within_data(c: Candidate, leading: float | None, runs: list[Telemetry],
+                 spec: ModelSpec) -> float | None:
+    """The score test's estimate of a temperature or input coefficient, clipped so that the
+    factor it scales, `1 + a x` (x: T − 25 °C over the recorded temperatures, or the input
+    column), stays at least `MIN_FACTOR` over the data: a one-step estimate can overshoot
+    to a negative conductance or capacitance, whose model cannot even be simulated."""
+    if leading is None or not np.isfinite(leading) or c.kind not in (
+            "conductance_temperature", "capacitance_temperature", "conductance_input"):
+        return leading
+    if c.kind == "conductance_input":
+        xs = np.concatenate([t.column(c.where[2]) for t in runs])
+    else:
+        cols = [*spec.sensor_columns, *spec.boundary_columns]
+        xs = np.concatenate([t.column(k) for t in runs for k in cols]) - T_REF
+    xs = xs[np.isfinite(xs)]
+    if xs.size == 0:
+        return leading
+    lo, hi = float(xs.min()), float(xs.max())
+    room = 1.0 - MIN_FACTOR
+    if leading > 0 and lo < 0:
+        return min(leading, room / -lo)
+    if leading < 0 and hi > 0:
+        return max(leading, -room / hi)
+    return leading
+
+
+def _at_null(effect):
+    """`effect` with its leading parameter at the null (zero, or a thousandth of its first
+    guess for a positive one): the extended model then predicts as the nested one."""
+    from ..model._spec import Parameter
+
+    lead = EFFECT_KINDS[effect.kind].parameters[0]
+    value = effect.parameters[lead].value
+    value = 1e-3 * value if lead in EFFECT_KINDS[effect.kind].positive else 0.0
+    return dataclasses.replace(effect, parameters={**effect.parameters,
+                                                   lead: Parameter(float(value))})
+
+
+START_FITTED = "the fitted model with the effect's first guess"
+START_USER = "the user's values with the effect's first guess"
+START_NESTED = "the nested model's optimum with the effect at zero"
+
+
+def _refit_starts(c: Candidate, step: Step, new_columns, initial, runs=(), nested=False
+                  ) -> list[tuple]:
+    """`(hold, start, model)` for each fit that refitting the model of `step` with candidate
+    `c` takes: from the fitted model plus the effect's first guess and, with `initial`,
+    also from the user's values; with `nested`, only from the fitted model with the effect
+    at its null (`_at_null`: the retry of a refit that failed or ended below the nested
+    model). An effect that brings a data column into the model (one of `new_columns`) is
+    tried with the column held each way, "zoh" and "foh" (`_refit`)."""
     spec, lowered = step.spec, step.result.lowered_spec
     brings = [w for w in c.where if w in new_columns]
-    # A nonlinear effect starts at the score test's estimate, not at its null value: the
-    # fit chooses how finely to integrate it (`fitting._integration`) at its start.
-    leading = c.estimate if KINDS[c.kind].nonlinear else None
+    # A nonlinear effect starts at the score test's estimate (clipped to the data), not at
+    # its null value: the fit chooses how finely to integrate it (`fitting._integration`).
+    leading = _within_data(c, c.estimate, runs, spec) if KINDS[c.kind].nonlinear else None
     starts = []
     for hold in ("zoh", "foh") if brings else (None,):
         try:
             effect = new_effect(spec, lowered, c.kind, c.where,
-                                {w: hold for w in brings}, leading)
+                                {w: hold for w in brings}, None if nested else leading)
+            if nested:
+                starts.append((hold, START_NESTED,
+                               spec.replace(effects=spec.effects + (_at_null(effect),))))
+                continue
             extended = spec.replace(effects=spec.effects + (effect,))
-            starts.append((hold, extended))
+            starts.append((hold, START_FITTED, extended))
             if initial is not None:
-                starts.append((hold, with_spec_parameters(extended,
-                                                          spec_parameters(initial))))
+                starts.append((hold, START_USER, with_spec_parameters(
+                    extended, spec_parameters(initial))))
         except Exception as err:
             c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
     return starts
 
 
+def _needs_retry(fits: list[tuple], step: Step) -> bool:
+    """Whether every start of a refit failed or ended below the nested model (a nested
+    refit that ends worse than the model without the effect did not reach its optimum)."""
+    nlls = [got.record["nll"] for _, _, got in fits if not isinstance(got, Exception)]
+    return not nlls or min(nlls) > step.record["nll"] + NESTED_TOL
+
+
+NESTED_TOL = 1e-6  # −log L a refit may end above its nested model (round-off)
+
+
 def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
            white_p: float = 0.01) -> bool:
-    """Complete candidate `c` from its refits `fits`, `(hold, Step or the exception the
-    fit raised)` for each of `_refit_starts`: on success `c` holds the likelihood
-    ratio, its p-value, Δ BIC, the extended step and the fitted parameters.
+    """Complete candidate `c` from its refits `fits`, `(hold, start, Step or the exception
+    the fit raised)` for each of `_refit_starts`: on success `c` holds the likelihood
+    ratio, its p-value, Δ BIC, the extended step, the fitted parameters and which start
+    won (`c.refit_start`).
 
     The better likelihood of the starts is kept; an effect that brings a data column
     into the model keeps the hold of the better likelihood (`c.hold`; the other's
-    likelihood ratio goes into the note)."""
+    likelihood ratio goes into the note). A refit that still ends below the nested model
+    has not found the extended model's optimum, which is at least the nested one's (the
+    effect at its null): its likelihood ratio is reported as 0 and it is not supported."""
     by_hold, ext = {}, None
-    for hold, got in fits:
+    for hold, start, got in fits:
         if isinstance(got, Exception):  # one candidate's failure must not end the loop
-            c.note = f"refit failed: {type(got).__name__}: {got}"[:300]
+            c.note = f"refit from {start} failed: {type(got).__name__}: {got}"[:300]
             continue
-        if hold not in by_hold or got.record["nll"] < by_hold[hold].record["nll"]:
-            by_hold[hold] = got
+        if hold not in by_hold or got.record["nll"] < by_hold[hold][1].record["nll"]:
+            by_hold[hold] = (start, got)
     brings = [w for w in c.where if w in new_columns]
-    for hold, got in by_hold.items():
+    for hold, (start, got) in by_hold.items():
         if ext is None or got.record["nll"] < ext.record["nll"]:
-            ext, c.hold = got, hold
+            ext, c.hold, c.refit_start = got, hold, start
     if ext is None:
         c.supported = False
         return False
+    failed = [start for _, start, got in fits if isinstance(got, Exception)]
+    c.note = (f"refit from {', '.join(failed)} failed; {c.refit_start} succeeded"
+              if failed else "")
     if len(by_hold) == 2:
         other = next(h for h in by_hold if h != c.hold)
-        lr_other = 2 * (by_hold[other].record["nll"] - ext.record["nll"])
-        c.note = (f"{', '.join(brings)} held as {c.hold!r}: its likelihood ratio over "
-                  f"{other!r} is {lr_other:.1f}")
+        lr_other = 2 * (by_hold[other][1].record["nll"] - ext.record["nll"])
+        c.note = "; ".join(filter(None, (c.note, (
+            f"{', '.join(brings)} held as {c.hold!r}: its likelihood ratio over "
+            f"{other!r} is {lr_other:.1f}"))))
         say(c.note)
     lr = 2 * (step.record["nll"] - ext.record["nll"])
+    if lr < 0:
+        c.note = "; ".join(filter(None, (c.note, (
+            f"every refit ended below the nested model (−log L {-lr / 2:.3g} higher): the "
+            "extended model's optimum was not found, and it is at least the nested one's "
+            "(the effect at zero), so the likelihood ratio is reported as 0"))))
+        lr = 0.0
     n_new = ext.record["n_params"] - step.record["n_params"]
     c.score, c.method = float(lr), "refit"
     c.lr_deflation = ext.deflation(white_p)
     c.p_value = rule_p_value(c.kind, lr / c.lr_deflation, n_new, runs)
-    c.delta_bic = ext.record["bic"] - step.record["bic"]
+    c.delta_bic = -lr + n_new * math.log(step.record["n_samples"]) if lr == 0.0 else \
+        ext.record["bic"] - step.record["bic"]
     c.result = ext
     added = next(e for e in ext.spec.effects if (e.kind, tuple(e.where)) == c.key)
     c.parameters = {k: p.value for k, p in added.parameters.items()}
@@ -347,11 +407,28 @@ def _refit_side_by_side(cands: list[Candidate], step: Step, runs, likelihood, ne
     """`_refit` each candidate, every fit of every candidate side by side
     (`fitting._side_by_side`: the answers are those of fitting one at a time, whatever
     the threads). Each candidate's first start is fitted before any second start, so
-    that fits of one model structure seldom wait for each other's compilation."""
+    that fits of one model structure seldom wait for each other's compilation. A
+    candidate whose every start failed or ended below the nested model is refitted once
+    more from the nested model's optimum with the effect at zero (`_needs_retry`)."""
     plans = []
     for c in cands:
         say(f"refitting with {c.kind} {list(c.where)} (score {c.score:.1f})")
-        plans.append(_refit_starts(c, step, new_columns, initial))
+        plans.append(_refit_starts(c, step, new_columns, initial, runs))
+    fits = _fit_plans(plans, runs, likelihood)
+    retry = [i for i, f in enumerate(fits) if _needs_retry(f, step)]
+    for i in retry:
+        say(f"refitting {cands[i].kind} {list(cands[i].where)} again from {START_NESTED}")
+    more = _fit_plans([_refit_starts(cands[i], step, new_columns, initial, runs, nested=True)
+                       for i in retry], runs, likelihood)
+    for i, m in zip(retry, more):
+        fits[i] = fits[i] + m
+    return [_refit(c, step, runs, new_columns, fits[i], say, white_p)
+            for i, c in enumerate(cands)]
+
+
+def _fit_plans(plans: list[list[tuple]], runs, likelihood) -> list[list[tuple]]:
+    """Every `(hold, start, model)` of every plan fitted side by side, first starts first:
+    per plan, `(hold, start, Step or the exception its fit raised)`."""
     order = sorted((k, i) for i, plan in enumerate(plans) for k in range(len(plan)))
 
     def evaluated(model):  # a Step, or the exception `_refit` reports for its candidate
@@ -360,11 +437,10 @@ def _refit_side_by_side(cands: list[Candidate], step: Step, runs, likelihood, ne
         except Exception as err:
             return err
 
-    done = dict(zip(order, side_by_side([functools.partial(evaluated, plans[i][k][1])
+    done = dict(zip(order, side_by_side([functools.partial(evaluated, plans[i][k][2])
                                          for k, i in order])))
-    return [_refit(c, step, runs, new_columns,
-                   [(hold, done[k, i]) for k, (hold, _) in enumerate(plans[i])], say, white_p)
-            for i, c in enumerate(cands)]
+    return [[(hold, start, done[k, i]) for k, (hold, start, _) in enumerate(plan)]
+            for i, plan in enumerate(plans)]
 
 
 FAST_FRACTION = 0.2  # a mass or lag faster than this share of a sample period is unseen
@@ -439,40 +515,6 @@ def absorbing_nodes(step: Step, extended: Step) -> dict[str, list[str]]:
     return out
 
 
-def deflated_delta_bic(c: Candidate) -> float:
-    """Δ BIC with the likelihood ratio divided by the candidate's long-run variance ratio."""
-    if c.delta_bic is None or not np.isfinite(c.score):
-        return float("nan")
-    return float(c.delta_bic + c.score * (1.0 - 1.0 / max(c.lr_deflation, 1.0)))
-
-
-def _judge(cands: list[Candidate], fdr: float) -> None:
-    """Mark the supported candidates (Benjamini-Hochberg at `fdr`, refitted, deflated
-    Δ BIC ≤ −`MIN_BIC_DROP`) and the near-ties among the refitted ones, in place."""
-    ok = benjamini_hochberg([c.p_value for c in cands], fdr)
-    for c, passed in zip(cands, ok):
-        dbic = deflated_delta_bic(c)
-        c.supported = bool(passed and c.method == "refit" and dbic <= -MIN_BIC_DROP
-                           and not c.duplicate)
-        if c.duplicate:
-            c.note = "; ".join(filter(None, (c.duplicate, c.note)))
-        elif passed and c.method == "refit" and not c.supported:
-            c.note = c.note or (f"Δ BIC {dbic:.1f} (deflated by {c.lr_deflation:.2f} for "
-                                f"autocorrelated residuals) is not a drop of {MIN_BIC_DROP:g}")
-        if passed and c.method == "score":
-            c.note = c.note or "significant by its score; not refitted (not among the best)"
-    refitted = [c for c in cands if c.method == "refit" and np.isfinite(c.score)]
-    for c in refitted:
-        c.tied_with = [d.key for d in refitted if d is not c and abs(d.score - c.score) < TIE_LR
-                       and (c.supported or d.supported)]
-        if c.tied_with:
-            tie = (f"near-tie: likelihood ratios within {TIE_LR:.2f} (the 95 % point of "
-                   "χ²₁) of " + ", ".join(f"{k} {list(w)}" for k, w in c.tied_with) +
-                   ", so the data cannot tell them apart; " +
-                   separation_advice({c.kind, *(k for k, _ in c.tied_with)}))
-            c.note = "; ".join(filter(None, (tie, c.note)))
-
-
 def innovation_directions(result: FitResult, data):
     """`f(V)`: output-space directions `V` (runs, T, p, m), free-run °C, to the whitened
     innovations they cause in the fitted Kalman filter, (runs, T, p, m)
@@ -531,7 +573,7 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
         white_p if white_p is not None else 0.01))
     cands.sort(key=lambda c: (c.method != "refit",
                               -c.score if np.isfinite(c.score) else math.inf))
-    _judge(cands, fdr)
+    judge(cands, fdr, separation_advice)
     return cands
 
 
@@ -584,27 +626,33 @@ _WARM_START = TruncatedGaussNewton(initial_damping=1e-6)
 def _fit_without(spec, experiments, fold, likelihood="output_error"):
     """Fit of `spec` (its values those of the fit to all the data) with the fold's
     measurements masked; its predictions still cover them (the free run, or the filter,
-    goes through the held-out block)."""
+    goes through the held-out block). A warm start that does not converge is tried once
+    more with the default solver; a fit that still does not converge is returned as it is
+    (`fold_vote` sets its fold aside)."""
     r, span = fold
-    solver = _WARM_START if likelihood == "output_error" else None
     if span is None:
-        res = fit(spec, experiments, likelihood=likelihood, holdout=r, solver=solver)
+        masked = experiments
     else:
         e = experiments[r]
         y = np.array(e.outputs, float)
         y[span[0]:span[1]] = np.nan
         masked = [*experiments[:r], dataclasses.replace(e, outputs=y), *experiments[r + 1:]]
-        res = fit(spec, masked, likelihood=likelihood, solver=solver)
+    holdout = r if span is None else None
+    for solver in ((_WARM_START, None) if likelihood == "output_error" else (None,)):
+        res = fit(spec, masked, likelihood=likelihood, holdout=holdout, solver=solver)
+        if res.converged:
+            break
     if not np.isfinite(res.nll) or not all(np.all(np.isfinite(p)) for p in res.predictions):
         raise FloatingPointError("the held-out fit went non-finite")
     return res
 
 
-def held_out_nll(res, experiments, fold, rows, sigma, likelihood) -> float:
-    """−log L of the fold's rows under a fit made without them: the free run's residuals
-    over `sigma` (output error; the constant terms cancel between models), or, under
-    the Kalman likelihood, the filter run through every sample with those parameters
-    and each held-out sample's one-step predictive term summed (prequential)."""
+def held_out_terms(res, experiments, fold, rows, sigma, likelihood) -> np.ndarray:
+    """Per held-out sample, its −log L term under a fit made without the fold: half the
+    squared free-run residuals over `sigma` summed over the outputs (output error; the
+    constant terms cancel between models), or, under the Kalman likelihood, the filter run
+    through every sample with those parameters and each held-out sample's one-step
+    predictive term (prequential). Missing readings contribute nothing."""
     r = fold[0]
     if likelihood == "kalman":
         from ..fitting._likelihood import kalman_sample_nll
@@ -612,17 +660,23 @@ def held_out_nll(res, experiments, fold, rows, sigma, likelihood) -> float:
 
         data = Dataset.from_experiments(experiments)
         per = np.asarray(kalman_sample_nll(res.model, data, res.state.run_initial))
-        return float(np.sum(per[r, :len(experiments[r].ts)][rows]))
+        return per[r, :len(experiments[r].ts)][rows]
     e = (experiments[r].outputs[rows] - res.predictions[r][rows]) / sigma[None, :]
-    return 0.5 * float(np.nansum(e ** 2))
+    return 0.5 * np.nansum(e ** 2, axis=1)
+
+
+def _unconverged(res) -> str:
+    return "" if getattr(res, "converged", True) else \
+        f"a held-out fit did not converge ({getattr(res, 'message', '')})"
 
 
 class HeldOutFits:
     """`_fit_without` of one loop's runs, kept: the model a step adds is the next step's
-    base, held out on the same folds, so its fits are made once."""
+    base, held out on the same folds, so its fits are made once. A fit that raised is
+    kept as its exception."""
 
     def __init__(self):
-        self._done: list[tuple] = []  # (spec, fold, likelihood, FitResult)
+        self._done: list[tuple] = []  # (spec, fold, likelihood, FitResult or exception)
 
     def _kept(self, spec, fold, likelihood):
         for s, f, lk, res in self._done:
@@ -639,31 +693,45 @@ class HeldOutFits:
 
     def make(self, wanted: list[tuple], likelihood) -> None:
         """Make the fits `(spec, experiments, fold)` of `wanted` not made yet, side by
-        side (`fitting._side_by_side`); a fit's exception is raised after all finish."""
+        side (`fitting._side_by_side`); a fit that raises is kept as its exception."""
         missing = [w for w in wanted if self._kept(w[0], w[2], likelihood) is None]
-        made = side_by_side([functools.partial(_fit_without, *w, likelihood)
-                             for w in missing])
+
+        def attempt(*args):
+            try:
+                return _fit_without(*args)
+            except Exception as err:  # the fold is inconclusive, not the candidate
+                return err
+
+        made = side_by_side([functools.partial(attempt, *w, likelihood) for w in missing])
         self._done += [(s, fold, likelihood, res) for (s, _, fold), res in zip(missing, made)]
 
 
-def _thermal_fold_gains(spec_base, spec_ext, runs, sigma, folds, say, likelihood,
-                        fits: HeldOutFits) -> list[float]:
+def _thermal_fold_votes(spec_base, spec_ext, runs, sigma, folds, say, likelihood,
+                        fits: HeldOutFits) -> list[FoldVote]:
     experiments = {id(s): _experiments(s, runs) for s in (spec_base, spec_ext)}
     fits.make([(s, experiments[id(s)], fold) for fold in folds for s in (spec_base, spec_ext)],
               likelihood)
-    gains = []
+    votes = []
     for fold in folds:
-        r = fold[0]
-        rows = _held_rows(fold, len(runs[r].ts))
-        held = [held_out_nll(fits(s, experiments[id(s)], fold, likelihood),
-                             experiments[id(s)], fold, rows, sigma, likelihood)
-                for s in (spec_base, spec_ext)]
-        gains.append(held[0] - held[1])
-        say(f"held-out fold {fold}: −log L change {-gains[-1]:.1f}")
-    return gains
+        rows = _held_rows(fold, len(runs[fold[0]].ts))
+        terms = []
+        for s in (spec_base, spec_ext):
+            res = fits(s, experiments[id(s)], fold, likelihood)
+            why = "" if isinstance(res, Exception) else _unconverged(res)
+            terms.append(res if isinstance(res, Exception) else RuntimeError(why) if why else
+                         held_out_terms(res, experiments[id(s)], fold, rows, sigma,
+                                        likelihood))
+        votes.append(fold_vote(fold, *terms))
+        _say_vote(say, votes[-1])
+    return votes
 
 
-def _viscoelastic_fold_gains(current: Step, c: Candidate, runs, folds, say) -> list[float]:
+def _say_vote(say, v: FoldVote) -> None:
+    say(f"held-out fold {v.fold}: −log L change {-v.gain:.1f}" +
+        (f" (inconclusive: {v.inconclusive})" if v.inconclusive else ""))
+
+
+def _viscoelastic_fold_votes(current: Step, c: Candidate, runs, folds, say) -> list[FoldVote]:
     """Held-out gains of a viscoelastic term, fitted on its bias channel with the fold's
     bias samples masked (a whole held-out run keeps its first sample), on the current
     thermal states."""
@@ -671,7 +739,7 @@ def _viscoelastic_fold_gains(current: Step, c: Candidate, runs, folds, say) -> l
     base_runs, rates = _bias_runs(current.result, runs, bias)
     node_names = list(current.result.lowered_spec.node_names)
     sigma = float(current.biases[bias.column].sigma)
-    gains = []
+    votes = []
     for fold in folds:
         r = fold[0]
         rows = _held_rows(fold, len(runs[r].ts))
@@ -682,47 +750,58 @@ def _viscoelastic_fold_gains(current: Step, c: Candidate, runs, folds, say) -> l
         if fold[1] is None:
             ym[0] = y[0]
         masked[r] = (ts, x, ym)
-        before = fit_bias(bias, list(current.spec.effects), masked, node_names, rates)
-        after, _ = viscoelastic_candidate(bias, list(current.spec.effects), masked, node_names,
-                                          c.where[0], node_rates=rates)
-        ssr = [float(np.nansum(((y[rows] - f.predictions[r][rows]) / sigma) ** 2))
-               for f in (before, after)]
-        if not np.all(np.isfinite(ssr)):
-            raise FloatingPointError("the held-out bias fit went non-finite")
-        gains.append(0.5 * (ssr[0] - ssr[1]))
-        say(f"held-out fold {fold}: −log L change {-gains[-1]:.1f}")
-    return gains
-
-
-def holdout_verdict(gains) -> tuple[bool, float, float, str]:
-    """`(passes, total gain, spread, reason)`: the total held-out gain must be positive,
-    come from most folds, and exceed its own spread `√K · std` of the K fold gains."""
-    g = np.asarray(gains, float)
-    if g.size == 0 or not np.all(np.isfinite(g)):
-        return False, float("nan"), float("nan"), "no finite held-out gain"
-    total = float(g.sum())
-    spread = float(math.sqrt(g.size) * np.std(g, ddof=1)) if g.size > 1 else float("inf")
-    wins = int(np.sum(g > 0))
-    if not wins > g.size / 2:
-        return False, total, spread, f"predicts held-out data better in {wins} of {g.size} folds"
-    if not total > spread:
-        return False, total, spread, (f"held-out gain {total:.1f} is within its fold-to-fold "
-                                      f"spread {spread:.1f}")
-    return True, total, spread, ""
+        try:
+            before = fit_bias(bias, list(current.spec.effects), masked, node_names, rates)
+            after, _ = viscoelastic_candidate(bias, list(current.spec.effects), masked,
+                                              node_names, c.where[0], node_rates=rates)
+        except Exception as err:  # this fold is inconclusive, not the candidate
+            votes.append(fold_vote(fold, err, err))
+            _say_vote(say, votes[-1])
+            continue
+        terms = [0.5 * np.nan_to_num(((y[rows] - f.predictions[r][rows]) / sigma) ** 2,
+                                     nan=0.0, posinf=np.inf)
+                 for f in (before, after)]
+        votes.append(fold_vote(fold, *terms))
+        _say_vote(say, votes[-1])
+    return votes
 
 
 # ---------------------------------------------------------------------------
 # The loop
 
 
+def check_holdout(c: Candidate, current: Step, runs, likelihood, say,
+                  fits: HeldOutFits) -> None:
+    """The held-out check of a candidate that passed the likelihood-ratio rule
+    (`_selection.holdout_verdict`): its fold votes, summed gain and verdict go into `c`;
+    a rejected candidate is marked unsupported with the reason."""
+    folds = holdout_folds(runs)
+    if c.kind == "viscoelastic":
+        votes = _viscoelastic_fold_votes(current, c, runs, folds, say)
+    else:
+        sigma = np.array([current.record["parameters"].get(
+            f"sensors.{s}.noise", {"value": 0.01})["value"]
+            for s in current.spec.sensor_columns])
+        votes = _thermal_fold_votes(current.spec, c.result.spec, runs, sigma,
+                                    folds, say, likelihood, fits)
+    ok, c.holdout_gain, why = holdout_verdict(votes)
+    c.holdout_votes = votes
+    scheme = "leave one run out" if folds[0][1] is None else f"{len(folds)} contiguous blocks"
+    if ok is False:
+        c.supported = False
+        c.note = "; ".join(filter(None, (f"held-out check against it ({scheme}): {why}",
+                                         c.note)))
+    else:
+        c.note = "; ".join(filter(None, (f"{why} ({scheme})", c.note)))
+
+
 def _choose(cands: list[Candidate], current: Step, runs, likelihood, holdout_check: bool,
             say, fits: HeldOutFits, checking=None) -> Candidate | None:
-    """The first supported candidate that (with `holdout_check`) also predicts held-out
-    data better (`holdout_verdict`) and whose extended model could be built; the others
-    it tries are marked unsupported, with the reason. On return `chosen.result` holds the
+    """The first supported candidate that (with `holdout_check`) the held-out check does
+    not reject (`check_holdout`) and whose extended model could be built; the others it
+    tries are marked unsupported, with the reason. On return `chosen.result` holds the
     extended step. `fits`: the loop's held-out fits so far; `checking(c)`: called as the
     held-out check of a refitted candidate starts (its figures are drawn meanwhile)."""
-    folds = holdout_folds(runs)
     for c in cands:
         if not c.supported:
             continue
@@ -730,24 +809,12 @@ def _choose(cands: list[Candidate], current: Step, runs, likelihood, holdout_che
             if holdout_check:
                 if checking is not None and isinstance(c.result, Step):
                     checking(c)  # a thermal candidate's extended step
-                if c.kind == "viscoelastic":
-                    gains = _viscoelastic_fold_gains(current, c, runs, folds, say)
-                else:
-                    sigma = np.array([current.record["parameters"].get(
-                        f"sensors.{s}.noise", {"value": 0.01})["value"]
-                        for s in current.spec.sensor_columns])
-                    gains = _thermal_fold_gains(current.spec, c.result.spec, runs, sigma,
-                                                folds, say, likelihood, fits)
-                ok, c.holdout_gain, c.holdout_spread, why = holdout_verdict(gains)
-                if not ok:
-                    c.supported = False
-                    kind = "leave one run out" if folds[0][1] is None else \
-                        f"{len(folds)} contiguous blocks"
-                    c.note = f"held-out evidence too weak ({kind}): {why}"
+                check_holdout(c, current, runs, likelihood, say, fits)
+                if not c.supported:
                     continue
             if c.kind == "viscoelastic":
                 c.result = _viscoelastic_step(current, c, runs, likelihood)
-        except Exception as err:  # a failed held-out or extended fit rejects the candidate
+        except Exception as err:  # a failed extended fit rejects the candidate
             c.supported = False
             c.note = f"held-out or extended fit failed: {type(err).__name__}: {err}"[:300]
             continue
@@ -890,16 +957,7 @@ def _report(records: list[dict], stopped: str, likelihood: str, fdr: float,
         "steps": records, "stopped_because": stopped, "final_model": "model_final.toml",
         "unexplained": (None if stopped == "residuals_white"
                         else _unexplained(records[-1], white_p)),
-        "significance_rule": (
-            f"strong evidence, all at once: Benjamini-Hochberg at false-discovery rate {fdr} "
-            "over all candidates of a step (one-sided boundary tests for positive effects; "
-            "Davies' bound over the time constant for extra_node and viscoelastic, which "
-            f"do not exist under the null), a BIC drop of at least {MIN_BIC_DROP:g} after "
-            "refitting (Kass-Raftery 'very strong'), and a held-out gain in most folds "
-            "larger than its own fold-to-fold spread (leave one run out with three runs or "
-            f"more, else {N_BLOCKS} contiguous blocks), for every kind; while residuals are "
-            "not white the statistics are divided by their long-run variance ratio "
-            "(Newey-West)"),
+        "significance_rule": significance_rule(fdr, N_BLOCKS),
         "whiteness_test": (f"Ljung-Box, lags min(20, N/5), runs pooled by summing per-run "
                            f"autocovariances; white when p > {white_p} for every column"),
         "wall_time_s": wall_time_s,

@@ -1,4 +1,8 @@
-"""`heat_source`: a measured input column that also dissipates heat in a node, `q = g · input`."""
+"""`heat_source`: a measured input column that also dissipates heat in a node, `q = g · input`.
+
+The column may be one the model does not use yet, or a heat input it already routes to
+other nodes (solar radiation that heats the interior may heat the envelope too:
+Bacher & Madsen's `Ae`)."""
 
 from __future__ import annotations
 
@@ -19,8 +23,11 @@ class HeatSource(AbstractEffect):
                 [ParameterLink("gain", f"heat_inputs.{node}-{col}.gain")])
 
     def places(self, spec, columns):
-        return [(c, n) for c, role in columns.items() if role != "temperature"
-                for n in spec.node_names]
+        heated = {(h.input, h.node) for h in spec.heat_inputs}
+        routed = list(dict.fromkeys(h.input for h in spec.heat_inputs))
+        unused = [c for c, role in columns.items() if role != "temperature"]
+        return [(c, n) for c in unused + routed for n in spec.node_names
+                if (c, n) not in heated]
 
     def initial_parameters(self, spec, where):
         return {"gain": 0.1}

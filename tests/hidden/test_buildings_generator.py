@@ -1,0 +1,127 @@
+"""Checks of the synthetic building generator (`buildings.py`) against independent truths:
+a Radau integration of the ODE written here from the truth dict, a brute-force quadrature of the
+process-noise covariance, tomllib/CSV parsing of the written files, and byte-for-byte reproducibility.
+"""
+
+from __future__ import annotations
+
+import tomllib
+
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.linalg
+
+from . import buildings as b
+
+CASES = b.building_case_names()
+
+
+def _rhs(truth: dict, names: list[str]):
+    """dT/dt written from the truth dict by hand (no matrices), inputs frozen per interval."""
+    idx = {k: i for i, k in enumerate(names)}
+
+    def f(t, x, u):
+        q = np.zeros(len(names))
+        for a, c, g in truth["links"]:
+            q[idx[a]] += g * (x[idx[c]] - x[idx[a]])
+            q[idx[c]] += g * (x[idx[a]] - x[idx[c]])
+        for a, col, g in truth["boundaries"]:
+            q[idx[a]] += g * (u[col] - x[idx[a]])
+        for a, col, gain in truth["heats"]:
+            q[idx[a]] += gain * u[col]
+        return q / np.array([truth["nodes"][k][0] for k in names])
+
+    return f
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_noise_free_matches_radau(name):
+    truth = b.truth_of(name)
+    ts = np.arange(2 * 96) * b.DT  # two days
+    inputs = b.building_inputs(ts, np.random.default_rng(3))
+    sim = b.simulate_building(truth, ts, inputs, np.random.default_rng(4), noise=False)
+    names = list(truth["nodes"])
+    f = _rhs(truth, names)
+    x = np.array([sim[k][0] for k in names])
+    # the start is the steady state of the first sample
+    u0 = {c: inputs[c][0] for c in b.COLUMNS}
+    assert np.max(np.abs(f(0.0, x, u0))) < 1e-12
+    ref = [x]
+    for k in range(len(ts) - 1):
+        u = {c: inputs[c][k] for c in b.COLUMNS}
+        r = scipy.integrate.solve_ivp(f, (ts[k], ts[k + 1]), ref[-1], method="Radau", args=(u,),
+                                      rtol=1e-10, atol=1e-10)
+        ref.append(r.y[:, -1])
+    ref = np.array(ref)
+    got = np.column_stack([sim[k] for k in names])
+    assert np.max(np.abs(got - ref)) < 1e-6
+    assert np.array_equal(sim["yTi"], sim[truth["sensor"]["node"]])
+
+
+def test_process_noise_covariance():
+    truth = b.truth_of("building_4state")
+    names, A, B, Q, _ = b.matrices(truth)
+    Ad, Bd, Qd = b.discretize(A, B, Q, b.DT)
+    # brute force: ∫0^dt e^{As} Q e^{Aᵀs} ds
+    brute, _ = scipy.integrate.quad_vec(
+        lambda s: scipy.linalg.expm(A * s) @ Q @ scipy.linalg.expm(A.T * s), 0.0, b.DT,
+        epsabs=0.0, epsrel=1e-11)
+    assert np.allclose(Qd, brute, rtol=1e-8, atol=1e-14 * np.max(Qd))
+    # sample covariance of one-step transitions from the same state, through simulate_building
+    ts = np.array([0.0, b.DT])
+    inputs = {"Ta": np.array([1.0, 1.0]), "Ps": np.array([200.0, 200.0]),
+              "Ph": np.array([5000.0, 5000.0])}
+    n_draw = 20000
+    rng = np.random.default_rng(11)
+    draws = np.empty((n_draw, len(names)))
+    x0 = None
+    for i in range(n_draw):
+        sim = b.simulate_building(truth, ts, inputs, rng)
+        draws[i] = [sim[k][1] for k in names]
+        x0 = [sim[k][0] for k in names] if x0 is None else x0
+    S = np.cov(draws, rowvar=False)
+    se = np.sqrt((np.outer(np.diag(brute), np.diag(brute)) + brute ** 2) / n_draw)
+    assert np.all(np.abs(S - brute) < 5 * se)
+    # and the mean is the exact noise-free step (x0 is a steady state only for the first input)
+    mean_se = np.sqrt(np.diag(brute) / n_draw)
+    assert np.all(np.abs(draws.mean(0) - (Ad @ x0 + Bd @ [1.0, 200.0, 5000.0])) < 5 * mean_se)
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_written_files(tmp_path, name):
+    out = b.write_building_case(name, tmp_path, seed=2, days=3)
+    assert out["model"] == tmp_path / f"{name}_model.toml"
+    assert out["data"] == [tmp_path / f"{name}.csv"]
+    assert out["expected_states"] == len(out["truth"]["nodes"])
+    lines = out["data"][0].read_text().splitlines()
+    assert lines[0] == "time_s,Ta,Ps,Ph,yTi"
+    table = np.loadtxt(out["data"][0], delimiter=",", skiprows=1)
+    assert table.shape == (3 * 96, 5)
+    assert np.allclose(np.diff(table[:, 0]), b.DT) and table[0, 0] == 0.0
+    assert np.all(np.isfinite(table))
+    assert set(np.unique(table[:, 3])) == {0.0, 5000.0}
+    assert table[:, 2].min() == 0.0 and table[:, 2].max() < 600.0
+    doc = tomllib.loads(out["model"].read_text())
+    assert [n["name"] for n in doc["nodes"]] == ["Ti"]
+    assert {"process_noise", "initial", "initial_std"} <= set(doc["nodes"][0])
+    assert [(x["node"], x["input"], x["hold"]) for x in doc["boundaries"]] == [("Ti", "Ta", "zoh")]
+    assert [(x["input"], x["hold"]) for x in doc["heat_inputs"]] == [("Ph", "zoh"), ("Ps", "zoh")]
+    assert doc["heat_inputs"][0]["gain"] == {"value": 1.0, "fixed": True}
+    assert doc["sensors"] == [{"node": "Ti", "column": "yTi", "noise": 0.01}]
+    try:
+        from thermojax.model._model_file import load_model
+    except ImportError:
+        return
+    spec = load_model(out["model"])
+    assert len(spec.nodes) == 1
+
+
+def test_reproducible(tmp_path):
+    a = b.write_building_case("building_4state", tmp_path / "a", seed=5, days=2)
+    c = b.write_building_case("building_4state", tmp_path / "c", seed=5, days=2)
+    d = b.write_building_case("building_4state", tmp_path / "d", seed=6, days=2)
+    for key in ("model",):
+        assert a[key].read_bytes() == c[key].read_bytes()
+    assert a["data"][0].read_bytes() == c["data"][0].read_bytes()
+    assert a["data"][0].read_bytes() != d["data"][0].read_bytes()
