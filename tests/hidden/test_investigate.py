@@ -60,6 +60,12 @@ def _check_report_keys(report):
         for key in ("added", "n_params", "rmse", "nll", "aic", "bic", "whiteness_p",
                     "candidates"):
             assert key in step
+        for c in step["candidates"]:  # issue 31: a refit never fails or ends below its nested
+            assert not (c["method"] == "score" and "refit" in c["note"] and
+                        "failed" in c["note"]), c
+            assert "ended below the nested model" not in c["note"], c
+            if c["method"] == "refit":
+                assert c["likelihood_ratio"] >= 0.0, c
         scores = [c["score"] for c in step["candidates"]]
         assert all(c["kind"] and isinstance(c["tied_with"], list) for c in step["candidates"])
         # ranked best first among the refitted ones, which lead the list

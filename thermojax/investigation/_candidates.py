@@ -154,6 +154,10 @@ def new_effect(spec: ModelSpec, lowered: ModelSpec, kind: str, where, holds: dic
 # The score test
 
 
+FAST_TRIALS = (20.0, 200.0, 2000.0)  # s
+SLOW_SAMPLING_S = 60.0
+
+
 class ScoreContext:
     """The fitted model's reconstructed states and the data, for `score_direction`.
 
@@ -197,6 +201,14 @@ class ScoreContext:
 
     def is_heat_column(self, node: str, column: str) -> bool:
         return any(h.node == node and h.input == column for h in self.spec.heat_inputs)
+
+    def trial_time_constants(self) -> tuple[float, ...]:
+        """Time constants (s) at which a lag-like effect's score direction is tried (the
+        best one scores): 20, 200 and 2000 s for data sampled faster than once a minute
+        (sensor modules), else 2, 20 and 200 sample periods (buildings sampled every 5 to
+        15 min, whose heaters, sensors and envelopes lag by hours to days)."""
+        dt = float(np.max(self.dts))
+        return FAST_TRIALS if dt < SLOW_SAMPLING_S else tuple(k * dt for k in (2.0, 20.0, 200.0))
 
     def lag(self, x: np.ndarray, tau: float) -> np.ndarray:
         """First-order lag (`tau` in s) of `x` (runs, T, ...) along time, per run's sample

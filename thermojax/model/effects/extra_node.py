@@ -11,7 +11,6 @@ from ._base import AbstractEffect, ParameterLink, fail, param, path_between
 
 # Time constants (s) of the trial masses the candidate search tries: a hidden mass is
 # seen through its own time constant, which the first-order score cannot know.
-TRIAL_TIME_CONSTANTS = (20.0, 200.0, 2000.0)
 
 
 class ExtraNode(AbstractEffect):
@@ -78,7 +77,7 @@ class ExtraNode(AbstractEffect):
         a = ctx.node(where[0])
         out = []
         if len(where) == 1:
-            for tau in TRIAL_TIME_CONSTANTS:  # heat G (T_m - T_a) per unit C, T_m = lag(T_a)
+            for tau in ctx.trial_time_constants():  # heat G (T_m - T_a) per unit C, T_m = lag(T_a)
                 Ta = ctx.T[..., a]
                 w = np.zeros_like(ctx.T)
                 w[..., a] = (ctx.lag(Ta, tau) - Ta) / tau
@@ -87,13 +86,13 @@ class ExtraNode(AbstractEffect):
         b = where[1]
         if ctx.is_heat_column(where[0], b):  # the power reaches a through a lag
             q = ctx.column(b)
-            for tau in TRIAL_TIME_CONSTANTS:
+            for tau in ctx.trial_time_constants():
                 w = np.zeros_like(ctx.T)
                 w[..., a] = ctx.lag(q, tau) - q
                 out.append(w)
             return "heat", out
         Tb = ctx.temperature(b)
-        for tau in TRIAL_TIME_CONSTANTS:  # a mass at the path's midpoint, lagging it
+        for tau in ctx.trial_time_constants():  # a mass at the path's midpoint, lagging it
             mid = 0.5 * (ctx.T[..., a] + Tb)
             flow = (ctx.lag(mid, tau) - mid) / tau  # W per J/K of the mass, split half/half
             w = np.zeros_like(ctx.T)

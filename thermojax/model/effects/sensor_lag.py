@@ -45,7 +45,16 @@ class SensorLag(AbstractEffect):
         return {"time_constant": 1.0}
 
     def score_direction(self, ctx, where):
-        d = np.zeros_like(ctx.y)
+        # At τ → 0 the reading moves by −τ dT/dt; a lag of several samples is far from
+        # that local direction (on building data the score test then misses a lag whose
+        # likelihood ratio is in the thousands), so the lagged reading (lag(T, τ) − T)/τ
+        # at the trial time constants is tried too, the best one scoring.
         s = ctx.sensor(where[0])
-        d[..., s] = -ctx.dTdt[..., ctx.sensor_node(s)]
-        return "output", [d]
+        T = ctx.T[..., ctx.sensor_node(s)]
+        out = []
+        for direction in [-ctx.dTdt[..., ctx.sensor_node(s)]] + [
+                (ctx.lag(T, tau) - T) / tau for tau in ctx.trial_time_constants()]:
+            d = np.zeros_like(ctx.y)
+            d[..., s] = direction
+            out.append(d)
+        return "output", out
