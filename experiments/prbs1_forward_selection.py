@@ -28,7 +28,8 @@ from pathlib import Path
 
 from scipy import stats
 
-from _study_cli import ROOT, results_folder, study_parser, write_results
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _study_cli import ROOT, results_folder, study_parser, write_results  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "realdata" / "prbs1"
 PAPER_PATH = [

@@ -158,3 +158,15 @@ def test_unit_variance_procurement_study(tmp_path):
         peak, within = r["bias_peak"], r["within_spec"]
         assert within["fitted"] >= within["nominal"] and within["own"] == 1.0, p
         assert peak["own"]["p50"] <= peak["fitted"]["p50"] < 0.2 * peak["nominal"]["p50"], p
+
+
+def test_prbs1_forward_selection_tests_each_step_as_the_paper_and_needs_its_data(
+        tmp_path, capsys):
+    from scipy import stats
+
+    study = load_study("prbs1_forward_selection")
+    lr, df, p = study.lr_test({"nll": -100.0, "n_params": 6}, {"nll": -110.0, "n_params": 9})
+    assert (lr, df) == (20.0, 3) and p == pytest.approx(stats.chi2.sf(20.0, 3))
+    study.DATA = tmp_path / "absent"  # the real data live beside the repository only
+    assert study.main(["--out", str(tmp_path / "out")]) == 2
+    assert "PRBS1 data are not at" in capsys.readouterr().err

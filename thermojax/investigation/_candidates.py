@@ -156,6 +156,7 @@ def new_effect(spec: ModelSpec, lowered: ModelSpec, kind: str, where, holds: dic
 
 FAST_TRIALS = (20.0, 200.0, 2000.0)  # s
 SLOW_SAMPLING_S = 60.0
+SLOW_TRIALS = (2.0, 6.0, 20.0, 60.0, 200.0)  # sample periods
 
 
 class ScoreContext:
@@ -205,10 +206,12 @@ class ScoreContext:
     def trial_time_constants(self) -> tuple[float, ...]:
         """Time constants (s) at which a lag-like effect's score direction is tried (the
         best one scores): 20, 200 and 2000 s for data sampled faster than once a minute
-        (sensor modules), else 2, 20 and 200 sample periods (buildings sampled every 5 to
-        15 min, whose heaters, sensors and envelopes lag by hours to days)."""
+        (sensor modules), else 2, 6, 20, 60 and 200 sample periods (buildings sampled every
+        5 to 15 min, whose heaters, sensors and envelopes lag by an hour to days: on PRBS1
+        a grid of 2, 20 and 200 periods scored the heater's mass 143 where its likelihood
+        ratio is 478, and the loop never refitted it)."""
         dt = float(np.max(self.dts))
-        return FAST_TRIALS if dt < SLOW_SAMPLING_S else tuple(k * dt for k in (2.0, 20.0, 200.0))
+        return FAST_TRIALS if dt < SLOW_SAMPLING_S else tuple(k * dt for k in SLOW_TRIALS)
 
     def lag(self, x: np.ndarray, tau: float) -> np.ndarray:
         """First-order lag (`tau` in s) of `x` (runs, T, ...) along time, per run's sample
