@@ -61,6 +61,9 @@ class Candidate:
     # The score test's one-step estimate of the effect's leading parameter (its units):
     # the least-squares coefficient of its direction, the fitted parameters' projected out.
     estimate: float | None = None
+    # For a kind with a time constant of its own (a mass, a lag): the trial time constant
+    # (s) of the best score direction, where a refit also starts (`_investigate`).
+    time_constant: float | None = None
 
     def __post_init__(self):
         if self.score_test is None and self.method == "score":
@@ -132,13 +135,17 @@ def enumerate_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str]
 
 
 def new_effect(spec: ModelSpec, lowered: ModelSpec, kind: str, where, holds: dict[str, str],
-               leading: float | None = None) -> Effect:
+               leading: float | None = None, time_constant: float | None = None) -> Effect:
     """The effect `kind` at `where` with its first-guess parameters, ready to add; a data
     column it brings in is held as `holds` says (column name -> "zoh" or "foh").
     `leading`: a value of the leading parameter to start from instead, used when finite
     and, for a positive parameter, positive."""
     impl = KINDS[kind]
-    params = {k: Parameter(float(v)) for k, v in impl.initial_parameters(lowered, where).items()}
+    first_guess = impl.initial_parameters(lowered, where)
+    if time_constant is not None:
+        first_guess = impl.with_time_constant(lowered, tuple(where), first_guess,
+                                              time_constant)
+    params = {k: Parameter(float(v)) for k, v in first_guess.items()}
     first = EFFECT_KINDS[kind].parameters[0]
     if leading is not None and np.isfinite(leading) and (
             leading > 0 or first not in EFFECT_KINDS[kind].positive):
@@ -352,7 +359,8 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
             * len(dirs)
         cands.append(Candidate(kind, tuple(where), float(stat), float(min(1.0, p)),
                                lr_deflation=float(max(deflation, 1.0)),
-                               estimate=float(estimates[best])))
+                               estimate=float(estimates[best]),
+                               time_constant=impl.direction_time_constant(ctx, best)))
     cands.sort(key=lambda c: -c.score)
     return cands
 

@@ -130,7 +130,13 @@ def evaluate(spec: ModelSpec, runs: list[Telemetry], likelihood: str, progress=N
     }
     if not (np.isfinite(record["nll"]) and np.isfinite(record["bic"])):
         raise FloatingPointError(f"the fit's −log L is not finite ({record['nll']})")
-    lrv = {c: long_run_variance_ratio([s[:, j] for s in seq]) for j, c in enumerate(cols)}
+    # Deflation for autocorrelated residuals (`Step.deflation`): free-run residuals only.
+    # The Kalman likelihood's innovations are whitened by the model itself, and its
+    # likelihood-ratio test is used as the field uses it (Bacher & Madsen; CTSM-R): on
+    # PRBS1 a deflation of 4 (the innovations of an incomplete model) hid the solar gain
+    # on the envelope (LR 34) that the paper's selection keeps.
+    lrv = {c: 1.0 if likelihood == "kalman" else
+           long_run_variance_ratio([s[:, j] for s in seq]) for j, c in enumerate(cols)}
     lrv.update({c: long_run_variance_ratio(f.residuals) for c, f in biases.items()})
     step = Step(spec_out, result, biases, record, lrv=lrv)
     step.traces = _traces(spec, runs, result, biases)
@@ -277,13 +283,24 @@ def _at_null(effect):
 START_FITTED = "the fitted model with the effect's first guess"
 START_USER = "the user's values with the effect's first guess"
 START_NESTED = "the nested model's optimum with the effect at zero"
+START_TAU = "the fitted model with the effect at the score test's best time constant"
+TAU_START_RATIO = 3.0  # a time-constant start is added when it is this far from the guess
+
+
+def _far_from(effect, other) -> bool:
+    """Whether some parameter of `effect` is over `TAU_START_RATIO` times from `other`'s."""
+    return any(not (1 / TAU_START_RATIO < p.value / other.parameters[k].value <
+                    TAU_START_RATIO) for k, p in effect.parameters.items()
+               if other.parameters[k].value > 0)
 
 
 def _refit_starts(c: Candidate, step: Step, new_columns, initial, runs=(), nested=False
                   ) -> list[tuple]:
     """`(hold, start, model)` for each fit that refitting the model of `step` with candidate
     `c` takes: from the fitted model plus the effect's first guess and, with `initial`,
-    also from the user's values; with `nested`, only from the fitted model with the effect
+    also from the user's values; for a mass or a lag whose best score direction's time
+    constant is over `TAU_START_RATIO` from the first guess's, also from the fitted model
+    with the effect at that time constant; with `nested`, only from the fitted model with the effect
     at its null (`_at_null`: the retry of a refit that failed or ended below the nested
     model). An effect that brings a data column into the model (one of `new_columns`) is
     tried with the column held each way, "zoh" and "foh" (`_refit`)."""
@@ -306,6 +323,12 @@ def _refit_starts(c: Candidate, step: Step, new_columns, initial, runs=(), neste
             if initial is not None:
                 starts.append((hold, START_USER, with_spec_parameters(
                     extended, spec_parameters(initial))))
+            if c.time_constant is not None:  # a mass or lag: also at the score's τ
+                timed = new_effect(spec, lowered, c.kind, c.where, {w: hold for w in brings},
+                                   None, c.time_constant)
+                if _far_from(timed, effect):
+                    starts.append((hold, START_TAU,
+                                   spec.replace(effects=spec.effects + (timed,))))
         except Exception as err:
             c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
     return starts

@@ -112,6 +112,17 @@ class AbstractEffect:
         """A physical first guess of every parameter at this place."""
         raise NotImplementedError
 
+    def direction_time_constant(self, ctx, j: int) -> float | None:
+        """The time constant (s) that score direction `j` of `score_direction` tried, for
+        a kind whose own time constant the first-order score cannot know; else None."""
+        return None
+
+    def with_time_constant(self, spec: ModelSpec, where: tuple[str, ...], params: dict,
+                           tau: float) -> dict:
+        """`params` (first guesses) changed so that the effect's local time constant is
+        `tau` (s): a refit start at the time constant the score test found best."""
+        return params
+
     def score_direction(self, ctx, where: tuple[str, ...]):
         """How the effect first moves the model at its null value (no effect):
         `("heat", w)` with `w` (runs, T, nodes) W injected into the nodes, or

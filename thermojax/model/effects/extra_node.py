@@ -9,8 +9,6 @@ import numpy as np
 from .._spec import Boundary, Link, Node, Parameter
 from ._base import AbstractEffect, ParameterLink, fail, param, path_between
 
-# Time constants (s) of the trial masses the candidate search tries: a hidden mass is
-# seen through its own time constant, which the first-order score cannot know.
 
 
 class ExtraNode(AbstractEffect):
@@ -73,7 +71,21 @@ class ExtraNode(AbstractEffect):
                 return {"capacitance": c, "conductance": 2 * g, "conductance_b": 2 * g}
         return {"capacitance": c, "conductance": c / 200.0, "conductance_b": c / 200.0}
 
+    def direction_time_constant(self, ctx, j):
+        return ctx.trial_time_constants()[j]
+
+    def with_time_constant(self, spec, where, params, tau):
+        # local time constant: C over the conductances touching the mass
+        out = dict(params)
+        if len(where) == 2 and path_between(spec, *where) is not None:
+            out["capacitance"] = tau * (out["conductance"] + out["conductance_b"])
+        else:  # hanging, or on a heat input's path: the one link to `a`
+            out["conductance"] = out["capacitance"] / tau
+        return out
+
     def score_direction(self, ctx, where):
+        # A hidden mass is seen through its own time constant, which the first-order
+        # score cannot know: one direction per trial time constant, the best one scores.
         a = ctx.node(where[0])
         out = []
         if len(where) == 1:

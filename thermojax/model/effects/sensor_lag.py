@@ -44,6 +44,12 @@ class SensorLag(AbstractEffect):
     def initial_parameters(self, spec, where):
         return {"time_constant": 1.0}
 
+    def direction_time_constant(self, ctx, j):
+        return None if j == 0 else ctx.trial_time_constants()[j - 1]
+
+    def with_time_constant(self, spec, where, params, tau):
+        return {**params, "time_constant": float(tau)}
+
     def score_direction(self, ctx, where):
         # At τ → 0 the reading moves by −τ dT/dt; a lag of several samples is far from
         # that local direction (on building data the score test then misses a lag whose
