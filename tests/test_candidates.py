@@ -139,6 +139,22 @@ def test_investigate_resumes_from_its_checkpoint(tmp_path, capsys):
     assert [s["added"] and s["added"]["kind"] for s in again["steps"]] == [None,
                                                                            "sensor_offset"]
     assert again["steps"][0]["candidates"] == first["steps"][0]["candidates"]
+    # a data file edited in place (same path, same times, one value changed): refused,
+    # naming the file, never resumed on the old steps
+    data = files["data"][0]
+    lines = data.read_text().splitlines()
+    row = lines[-1].split(",")
+    row[-1] = repr(float(row[-1]) + 0.5)
+    data.write_text("\n".join(lines[:-1] + [",".join(row)]) + "\n")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "other inputs" in err and f"the data of {data}" in err and "--restart" in err
+    # --restart starts afresh: nothing of the earlier run is left beside the new report
+    (out / "step7_fit.png").write_bytes(b"from a longer earlier run")
+    assert main(argv + ["--restart"]) == 0
+    assert not (out / "step7_fit.png").exists()
+    assert json.loads((out / "checkpoint.json").read_text())["inputs"]["runs"][0][
+        "path"] == str(data)
 
 
 @pytest.mark.slow

@@ -39,6 +39,7 @@ from ..fitting._fit import FitResult, fit, output_error_at, standardized_innovat
 from ..fitting._side_by_side import side_by_side
 from ..fitting._solver import TruncatedGaussNewton
 from .._blas_threads import one_blas_thread
+from .._errors import InputError
 from .._json import json_safe
 from .._memory import release_compiled_if_crowded
 from ..model._model_file import dump_model, save_model
@@ -907,13 +908,15 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
     out = Path(out) if out is not None else None
-    fingerprint = _fingerprint(spec, runs, likelihood)
+    inputs = _inputs(spec, runs, likelihood)
     records: list[dict] = []
     start_spec = spec
     if out is not None and resume:
-        records, start_spec = _load_checkpoint(out, fingerprint, spec)
+        records, start_spec = _load_checkpoint(out, inputs, spec)
         if records:
             say(f"resuming after step {len(records) - 1} from {out / 'checkpoint.json'}")
+    if out is not None and not records and out.is_dir():
+        _clear_earlier_run(out)
     current = evaluate(start_spec, runs, likelihood, progress=None)
     if records:
         current.record["added"] = records[-1]["added"]
@@ -959,7 +962,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
             records.append(current.record)
             steps_traces.append(current.traces)
             if out is not None:
-                _save_checkpoint(out, fingerprint, records, current.spec)
+                _save_checkpoint(out, inputs, records, current.spec)
             release_compiled_if_crowded()  # rejected candidates' programs are not reused
         report = _report(records, stopped, likelihood, fdr, white_p,
                          time.perf_counter() - t0)
@@ -1004,27 +1007,60 @@ def _version() -> str:
     return __version__
 
 
-def _fingerprint(spec, runs, likelihood) -> str:
-    h = hashlib.sha256(dump_model(spec).encode())
-    h.update(likelihood.encode())
-    for t in runs:
-        h.update(str(t.path).encode())
-        h.update(np.ascontiguousarray(t.ts).tobytes())
-    return h.hexdigest()
+def _inputs(spec, runs, likelihood) -> dict:
+    """What an investigation's result depends on, by content: the model file's text, the
+    likelihood, and per run the SHA-256 of its times and every column's name and values
+    (a data file edited in place changes it; the same data moved elsewhere does not)."""
+    def digest(t: Telemetry) -> str:
+        h = hashlib.sha256(np.ascontiguousarray(t.ts, dtype=np.float64).tobytes())
+        for name, values in t.channels.items():
+            h.update(name.encode() + b"\0")
+            h.update(np.ascontiguousarray(values, dtype=np.float64).tobytes())
+        return h.hexdigest()
+
+    return {"model": hashlib.sha256(dump_model(spec).encode()).hexdigest(),
+            "likelihood": likelihood,
+            "runs": [{"path": str(t.path), "sha256": digest(t)} for t in runs]}
 
 
-def _save_checkpoint(out: Path, fingerprint: str, records, spec) -> None:
+def _fingerprint(inputs: dict) -> str:
+    return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()
+
+
+def _what_changed(old: dict, new: dict) -> str:
+    """The differences between two `_inputs`, in words."""
+    if not old:
+        return "the checkpoint was written by an earlier thermojax version"
+    out = []
+    if old.get("model") != new["model"]:
+        out.append("the model")
+    if old.get("likelihood") != new["likelihood"]:
+        out.append(f"the likelihood ({old.get('likelihood')} → {new['likelihood']})")
+    before, after = old.get("runs", []), new["runs"]
+    if len(before) != len(after):
+        out.append(f"the number of data files ({len(before)} → {len(after)})")
+    else:
+        out += [f"the data of {b['path']}" + (f" (now {a['path']})" if a["path"] != b["path"]
+                                              else "")
+                for b, a in zip(before, after) if b["sha256"] != a["sha256"]]
+    return ", ".join(out) or "the inputs"
+
+
+def _save_checkpoint(out: Path, inputs: dict, records, spec) -> None:
     out.mkdir(parents=True, exist_ok=True)
     i = len(records) - 1
     save_model(spec, out / f"step{i}_model.toml",
                header=f"thermojax investigate: model after step {i}")
     tmp = out / "checkpoint.json.tmp"
-    tmp.write_text(json.dumps(json_safe({"fingerprint": fingerprint, "steps": records,
-                                          "model": f"step{i}_model.toml"})))
+    tmp.write_text(json.dumps(json_safe({"fingerprint": _fingerprint(inputs), "inputs": inputs,
+                                          "steps": records, "model": f"step{i}_model.toml"})))
     tmp.replace(out / "checkpoint.json")
 
 
-def _load_checkpoint(out: Path, fingerprint: str, spec):
+def _load_checkpoint(out: Path, inputs: dict, spec):
+    """`(records, model)` to resume from `out`'s checkpoint, `([], spec)` when there is none.
+    A checkpoint of other inputs is refused (`InputError`, saying what changed): resuming
+    would mix steps of two investigations."""
     from ..model._model_file import load_model
 
     path = out / "checkpoint.json"
@@ -1032,11 +1068,34 @@ def _load_checkpoint(out: Path, fingerprint: str, spec):
         return [], spec
     try:
         doc = json.loads(path.read_text())
-        if doc.get("fingerprint") != fingerprint:
-            return [], spec
+        stored = doc.get("fingerprint")
+    except (OSError, ValueError) as err:
+        raise InputError(f"its checkpoint cannot be read ({err}); pass --restart to start "
+                         "afresh (the finished steps there are discarded).",
+                         file=str(path)) from None
+    if stored != _fingerprint(inputs):
+        raise InputError(
+            f"holds an investigation of other inputs: {_what_changed(doc.get('inputs'), inputs)} "
+            "changed since its steps were made. Resuming would mix the two; pass --restart to "
+            "start afresh from the given model (its finished steps are discarded), or choose "
+            "another --out.", file=str(out))
+    try:
         return doc["steps"], load_model(out / doc["model"])
-    except (OSError, ValueError, KeyError):
-        return [], spec
+    except (OSError, ValueError, KeyError) as err:
+        raise InputError(f"its checkpoint names a model that cannot be read ({err}); pass "
+                         "--restart to start afresh.", file=str(path)) from None
+
+
+STALE = ("checkpoint.json", "step*_*", "report.json", "report.md", "model_final.toml")
+
+
+def _clear_earlier_run(out: Path) -> None:
+    """Remove what an earlier investigation left in `out` (its steps, checkpoint, report),
+    so a fresh start leaves nothing of it beside the new report."""
+    for pattern in STALE:
+        for f in out.glob(pattern):
+            if f.is_file():
+                f.unlink()
 
 
 def _report_columns(spec: ModelSpec) -> tuple[list, list, list, dict]:
