@@ -150,3 +150,42 @@ def test_capacitance_factors_on_one_node_multiply():
         f[h] /= (1 + 0.004 * (x[h] - 25.0)) * (1 - 0.0015 * (x[h] - 25.0))
         got = np.asarray(model.nonlinear_rate(system, jnp.asarray(x), jnp.asarray(u)))
         np.testing.assert_allclose(got, f - A @ x - B @ u, rtol=1e-12, atol=1e-15)
+
+
+def test_an_extra_node_may_carry_its_own_process_noise():
+    # formats.md §3: an added mass's diffusion under the Kalman likelihood, estimated
+    # like any node's; absent, it is fixed at zero.
+    from thermojax import parse_model
+    from thermojax.model._model_file import dump_model
+    from thermojax.model.effects import lower_effects
+
+    text = """
+[[nodes]]
+name = "Ti"
+capacitance = 1e6
+process_noise = 0.002
+[[boundaries]]
+node = "Ti"
+input = "Ta"
+conductance = 200.0
+[[sensors]]
+node = "Ti"
+column = "yTi"
+noise = 0.01
+[[effects]]
+kind = "extra_node"
+where = ["Ti", "Ta"]
+name = "Te"
+capacitance = 1e7
+conductance = 400.0
+conductance_b = 400.0
+process_noise = 0.003
+"""
+    spec = parse_model(text)
+    te = next(n for n in lower_effects(spec).spec.nodes if n.name == "Te")
+    assert te.process_noise.value == 0.003 and not te.process_noise.fixed
+    again = parse_model(dump_model(spec))
+    assert again.effects[0].parameters["process_noise"].value == 0.003
+    plain = parse_model(text.replace("process_noise = 0.003\n", ""))
+    te = next(n for n in lower_effects(plain).spec.nodes if n.name == "Te")
+    assert te.process_noise.value == 0.0 and te.process_noise.fixed

@@ -42,6 +42,10 @@ def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool,
     from ..measurements._telemetry import Telemetry
 
     spec = io.load_model(model_path)
+    if not spec.sensor_columns and not write_states:
+        raise InputError("the model has no sensors, so the file would hold only its inputs; "
+                         "add a [[sensors]] table to the model file, or pass --states to write "
+                         "every node temperature.", file=str(model_path), field="sensors")
     source = io.load_profile(profile_arg, dt=dt)
     if isinstance(source, Telemetry):
         ts = source.ts
@@ -67,6 +71,7 @@ def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool,
     ts_uniform = ts[0] + np.median(steps) * np.arange(len(ts))
     sol = simulate(net, jnp.asarray(inputs), jnp.asarray(ts_uniform))
     states, outputs = np.asarray(sol.states), np.asarray(sol.outputs)
+    _check_finite_simulation(spec, model_path, inputs, ts_uniform, states, outputs)
     measured = outputs.copy()
     if noise:
         rng = np.random.default_rng(seed)
@@ -82,6 +87,43 @@ def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool,
     return spec, ts, inputs, states, outputs, measured
 
 
+def _check_finite_simulation(spec, model_path, inputs, ts, states, outputs) -> None:
+    """Refuse to write a simulation that went non-finite, naming the input or node and why."""
+    if np.isfinite(states).all() and np.isfinite(outputs).all():
+        return
+    from ..model._network import local_time_constants
+
+    bad_u = ~np.isfinite(inputs)
+    if bad_u.any():
+        k, j = np.argwhere(bad_u)[0]
+        raise InputError(f"the input {spec.input_columns[j]} is {inputs[k, j]} at t = "
+                         f"{ts[k]:g} s, so the simulation is not finite; nothing was written. "
+                         "Give finite inputs.", field=spec.input_columns[j])
+    dt = float(ts[1] - ts[0])
+    bad_x = ~np.isfinite(states)
+    if bad_x.any():
+        k, i = np.argwhere(bad_x)[0]  # the earliest time first
+        node = spec.node_names[i]
+    else:  # finite states, a non-finite reading: the sensor's own node
+        k, j = np.argwhere(~np.isfinite(outputs))[0]
+        node = spec.sensors[j].node
+    taus = local_time_constants(spec)
+    stiff = min(taus, key=taus.get) if taus else None
+    if stiff is not None and taus[stiff] < 1e-6 * dt:
+        why = (f"its time constant C/ΣG = {taus[stiff]:.3g} s, far below the "
+               f"sample period {dt:g} s, so the sampled model overflows; check its capacitance "
+               "and conductances (J/K and W/K)")
+        node = stiff
+    elif np.abs(inputs).max(initial=0.0) > 1e12:
+        why = (f"the inputs reach {np.abs(inputs).max():.3g}, far beyond any temperature (°C) "
+               "or power (W); check --power and the profile")
+    else:
+        why = "check the model's capacitances and conductances (J/K and W/K)"
+    raise InputError(f"the simulated temperature of node '{node}' is not finite from t = "
+                     f"{ts[k]:g} s: {why}. Nothing was written.", file=str(model_path),
+                     field=f"nodes.{node}")
+
+
 def cmd_simulate(args) -> int:
     out = Path(args.out)
     check_output_file(out, args.force)
@@ -89,7 +131,7 @@ def cmd_simulate(args) -> int:
         spec, ts, *_ = _simulate_to_csv(_resolve_model(args.model), args.profile, tmp,
                                         args.noise, args.seed, args.dt, args.power, args.states)
     print(f"wrote {out}: {len(ts)} samples x {len(spec.sensor_columns)} sensors "
-          f"({', '.join(spec.sensor_columns)})")
+          f"({', '.join(spec.sensor_columns) or 'node temperatures only'})")
     return 0
 
 
@@ -235,6 +277,16 @@ def _positive_float(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
     if not np.isfinite(value) or value <= 0:
         raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
     return value
 
 
@@ -420,7 +472,7 @@ def _add_simulate(sub):
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     p.add_argument("--dt", type=_positive_float, default=1.0,
                    help="sample period of a built-in profile, s (default 1)")
-    p.add_argument("--power", type=float, default=0.0,
+    p.add_argument("--power", type=_finite_float, default=0.0,
                    help="constant power added to every heat-input column of a built-in "
                    "profile, W (default 0)")
     p.add_argument("--states", action="store_true",

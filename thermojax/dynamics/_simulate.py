@@ -119,8 +119,10 @@ def _blocked_hold(disc, x0, inputs):
     states_readout = (jnp.eye(n, dtype=dtype), jnp.zeros((n, m), dtype))
     DL, N, (state_map, output_map) = block_maps(Phi, B0, B1, (states_readout, (C, D)))
     w = block_rows(DL, N, x0 - B1 @ u[0], u)
-    states = (w @ state_map.T).reshape(-1, n)[:T].at[0].set(x0)  # x0 exactly, not z0 + B1 u0
-    outputs = (w @ output_map.T).reshape(-1, C.shape[0])[:T]
+    states = (w @ state_map.T).reshape(-1, n)
+    # rows by the states' count, not -1: a model without sensors has outputs (times, 0)
+    outputs = (w @ output_map.T).reshape(states.shape[0], C.shape[0])[:T]
+    states = states[:T].at[0].set(x0)  # x0 exactly, not z0 + B1 u0
     return states, outputs
 
 

@@ -307,14 +307,15 @@ def _refit_starts(c: Candidate, step: Step, new_columns, initial, runs=(), neste
     tried with the column held each way, "zoh" and "foh" (`_refit`)."""
     spec, lowered = step.spec, step.result.lowered_spec
     brings = [w for w in c.where if w in new_columns]
+    diffusing = _with_process_noise(c, step)
     # A nonlinear effect starts at the score test's estimate (clipped to the data), not at
     # its null value: the fit chooses how finely to integrate it (`fitting._integration`).
     leading = _within_data(c, c.estimate, runs, spec) if KINDS[c.kind].nonlinear else None
     starts = []
     for hold in ("zoh", "foh") if brings else (None,):
         try:
-            effect = new_effect(spec, lowered, c.kind, c.where,
-                                {w: hold for w in brings}, None if nested else leading)
+            effect = diffusing(new_effect(spec, lowered, c.kind, c.where,
+                                          {w: hold for w in brings}, None if nested else leading))
             if nested:
                 starts.append((hold, START_NESTED,
                                spec.replace(effects=spec.effects + (_at_null(effect),))))
@@ -325,14 +326,30 @@ def _refit_starts(c: Candidate, step: Step, new_columns, initial, runs=(), neste
                 starts.append((hold, START_USER, with_spec_parameters(
                     extended, spec_parameters(initial))))
             if c.time_constant is not None:  # a mass or lag: also at the score's τ
-                timed = new_effect(spec, lowered, c.kind, c.where, {w: hold for w in brings},
-                                   None, c.time_constant)
+                timed = diffusing(new_effect(spec, lowered, c.kind, c.where,
+                                             {w: hold for w in brings}, None, c.time_constant))
                 if _far_from(timed, effect):
                     starts.append((hold, START_TAU,
                                    spec.replace(effects=spec.effects + (timed,))))
         except Exception as err:
             c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
     return starts
+
+
+def _with_process_noise(c: Candidate, step: Step):
+    """`f(effect)`: under the Kalman likelihood, an added mass gets a process noise of its
+    own to estimate, starting at the median of the model's free ones (every state of a
+    CTSM-R building model has one; without it the PRBS1 envelope and heater cannot carry
+    the weather's unmodelled heat); otherwise the effect unchanged."""
+    from ..model._spec import Parameter
+
+    free = [p["value"] for name, p in step.record["parameters"].items()
+            if name.endswith(".process_noise") and p.get("free") and p["value"] > 0]
+    if c.kind != "extra_node" or step.result.likelihood != "kalman" or not free:
+        return lambda effect: effect
+    q = float(np.median(free))
+    return lambda effect: dataclasses.replace(
+        effect, parameters={**effect.parameters, "process_noise": Parameter(q)})
 
 
 def _needs_retry(fits: list[tuple], step: Step) -> bool:

@@ -28,7 +28,16 @@ def model_inputs(spec: ModelSpec, telemetry: Telemetry) -> np.ndarray:
 
 
 def model_outputs(spec: ModelSpec, telemetry: Telemetry) -> np.ndarray:
-    """The measured sensor matrix (times, sensors); NaN marks a dropped sample."""
+    """The measured sensor matrix (times, sensors); NaN marks a dropped sample.
+
+    Raises `InputError` naming the model file when the model has no sensor: there is
+    nothing in the data to compare it with.
+    """
+    if not spec.sensor_columns:
+        raise InputError("the model has no sensors, so there is nothing in the data to fit "
+                         "or compare it with; add a [[sensors]] table (node = \"...\", "
+                         "column = \"...\") naming the node a data column measures.",
+                         file=spec.source, field="sensors")
     check_sensors(telemetry, spec.sensor_columns)
     return np.stack([telemetry.column(c) for c in spec.sensor_columns], axis=1)
 

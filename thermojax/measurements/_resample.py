@@ -17,6 +17,9 @@ from .._errors import InputError
 from ._telemetry import Telemetry
 
 
+MAX_SAMPLES = 50_000_000  # a resampled run longer than this is refused before allocating
+
+
 @dataclass
 class Resampled:
     """A uniformly sampled run and what resampling did to it.
@@ -90,7 +93,14 @@ def resample(telemetry: Telemetry, dt: float | None = None, *, max_gap: float | 
         raise InputError(f"the file has no column {unknown[0]!r} (its columns are "
                          f"{', '.join(telemetry.channels)}).", file=telemetry.path,
                          field=unknown[0])
-    grid = ts[0] + dt * np.arange(int(np.floor((ts[-1] - ts[0]) / dt * (1 + 1e-12))) + 1)
+    span = ts[-1] - ts[0]
+    n_grid = int(np.floor(span / dt * (1 + 1e-12))) + 1
+    if n_grid > MAX_SAMPLES:
+        raise InputError(f"a period of {dt:g} s over the file's {span:g} s gives {n_grid:,} "
+                         f"samples, more than the limit of {MAX_SAMPLES:,}; choose a period of "
+                         f"at least {span / (MAX_SAMPLES - 1):.3g} s.", file=telemetry.path,
+                         field="--dt")
+    grid = ts[0] + dt * np.arange(n_grid)
     out = Resampled(ts=grid, channels={}, source=str(telemetry.path), dt=dt,
                     median_period=median, largest_jitter=float(np.max(np.abs(steps - median))
                                                                / median),

@@ -198,7 +198,7 @@ class EffectKind:
 EFFECT_KINDS: dict[str, EffectKind] = {
     "extra_node": EffectKind(
         where=(("node", "node_or_input"), ("node",)),
-        parameters=("capacitance", "conductance", "conductance_b"),
+        parameters=("capacitance", "conductance", "conductance_b", "process_noise"),
         positive=("capacitance", "conductance", "conductance_b"),
     ),
     "radiation": EffectKind(where=(("node", "node_or_input"),), parameters=("coefficient",),

@@ -20,12 +20,17 @@ class ExtraNode(AbstractEffect):
         c = param(effect, "capacitance", 1.0)
         g = param(effect, "conductance", 1.0)
         g_b = param(effect, "conductance_b", 1.0)
-        nodes = spec.nodes + (Node(new, c, process_noise=Parameter(0.0, True)),)
+        # The mass's own diffusion (°C/√s, Kalman likelihood): fixed at zero unless given,
+        # as CTSM-R gives every state of a building model its own.
+        q = effect.parameters.get("process_noise", Parameter(0.0, True))
+        nodes = spec.nodes + (Node(new, c, process_noise=q),)
         links = list(spec.links)
         bounds = list(spec.boundaries)
         heats = list(spec.heat_inputs)
         pairs = [ParameterLink("capacitance", f"nodes.{new}.capacitance"),
                  ParameterLink("conductance", f"links.{a}-{new}.conductance")]
+        if "process_noise" in effect.parameters:
+            pairs.append(ParameterLink("process_noise", f"nodes.{new}.process_noise"))
         link_a = Link((a, new), g)
         if len(effect.where) == 1:
             links.append(link_a)
