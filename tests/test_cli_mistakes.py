@@ -92,6 +92,49 @@ def test_simulate_bad_dt_names_the_flag(capsys, tmp_path, value, message):
     assert listing(tmp_path) == []
 
 
+def without_sensors(tmp_path):
+    """rtd2 with its [[sensors]] table removed."""
+    text = (CONFIGS / "rtd2.toml").read_text()
+    path = tmp_path / "no_sensors.toml"
+    path.write_text(text[:text.index("[[sensors]]")])
+    return path
+
+
+def test_simulate_model_without_sensors_writes_states_only_when_asked(capsys, tmp_path):
+    model = without_sensors(tmp_path)
+    out = tmp_path / "sim.csv"
+    rc, _, err = run(capsys, "simulate", "--model", model, "--profile", "shock", "--out", out)
+    assert_refused(rc, err, str(model), "no sensors", "[[sensors]]", "--states")
+    assert not out.exists()
+    rc, _, err = run(capsys, "simulate", "--model", model, "--profile", "shock", "--out", out,
+                     "--states")
+    assert rc == 0, err
+    run_ = read_telemetry(out)
+    assert set(run_.channels) == {"T_fluid", "state_sheath", "state_core"}
+    assert len(run_) == 4201
+
+
+@pytest.mark.parametrize("value", ["nan", "inf"])
+def test_simulate_non_finite_power_names_the_flag(capsys, tmp_path, value):
+    rc, _, err = run(capsys, "simulate", "--model", RTD2, "--profile", "shock",
+                     "--out", tmp_path / "x.csv", "--power", value)
+    assert_refused(rc, err, "--power", "must be a finite number")
+    assert listing(tmp_path) == []
+
+
+def test_simulate_non_finite_result_is_not_written(capsys, tmp_path):
+    """A capacitance of 1e-100 J/K: a time constant of 1e-99 s at 1 s samples overflows
+    the sampled model; the file of empty cells it used to write is refused."""
+    model = tmp_path / "tiny.toml"
+    model.write_text((CONFIGS / "rtd2.toml").read_text().replace(
+        "capacitance = 0.1\n", "capacitance = 1e-100\n"))
+    out = tmp_path / "sim.csv"
+    rc, _, err = run(capsys, "simulate", "--model", model, "--profile", "shock", "--out", out)
+    assert_refused(rc, err, str(model), "node 'core'", "not finite", "time constant",
+                   "sample period", "Nothing was written")
+    assert listing(tmp_path) == ["tiny.toml"]
+
+
 def test_simulate_missing_output_folder(capsys, tmp_path):
     rc, _, err = run(capsys, "simulate", "--model", RTD2, "--profile", "shock",
                      "--out", tmp_path / "nope" / "x.csv")
@@ -161,6 +204,14 @@ def test_missing_data_file_is_named(capsys, tmp_path):
     assert not (tmp_path / "fit").exists()
 
 
+def test_fit_model_without_sensors_names_the_model_file(capsys, tmp_path, shock_csv):
+    model = without_sensors(tmp_path)
+    out = tmp_path / "fit"
+    rc, _, err = run(capsys, "fit", "--model", model, "--data", shock_csv, "--out", out)
+    assert_refused(rc, err, str(model), "no sensors", "add a [[sensors]] table")
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("command", ["diagnose", "investigate"])
 def test_loop_commands_refuse_foreign_folder(capsys, tmp_path, shock_csv, command):
     out = tmp_path / "work"
@@ -175,6 +226,42 @@ def test_investigate_negative_max_steps(capsys, tmp_path, shock_csv):
     rc, _, err = run(capsys, "investigate", "--model", RTD2, "--data", shock_csv,
                      "--out", tmp_path / "inv", "--max-steps", "-1")
     assert_refused(rc, err, "--max-steps", "must be 0 or more")
+
+
+# ---------------------------------------------------------------------------
+# resample
+
+
+def test_resample_refuses_a_huge_grid_before_allocating(capsys, tmp_path, shock_csv):
+    out = tmp_path / "fine.csv"
+    rc, _, err = run(capsys, "resample", "--data", shock_csv, "--out", out, "--dt", "1e-9")
+    assert_refused(rc, err, str(shock_csv), "--dt", "4,200,000,000,005 samples",
+                   "limit of 50,000,000")
+    assert not out.exists()
+
+
+# ---------------------------------------------------------------------------
+# export
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-300"])
+def test_export_refuses_an_impossible_operating_point(capsys, tmp_path, value):
+    model = ROOT / "thermojax" / "data" / "chain3_truth.toml"  # nonlinear: linearized at it
+    out = tmp_path / "obs"
+    rc, _, err = run(capsys, "export", "--model", model, "--rate", "10", "--out", out,
+                     "--operating-point", value)
+    assert_refused(rc, err, "--operating-point", "absolute zero")
+    assert not out.exists()
+
+
+def test_export_implausibly_high_rate_names_the_rate(capsys, tmp_path):
+    """At 1 GHz the imu6 observer's sampled matrices are the identity to within 1e-8:
+    the rate is at fault, not the sensors (which observe every state at 100 Hz)."""
+    out = tmp_path / "obs"
+    rc, _, err = run(capsys, "export", "--model", "imu6", "--rate", "1e9", "--out", out)
+    assert_refused(rc, err, "--rate", "implausibly high", "lower --rate")
+    assert "--sensor" not in err
+    assert not out.exists()
 
 
 # ---------------------------------------------------------------------------
@@ -194,6 +281,19 @@ def interrupt_after(argv, seconds, tmp_path, until=None):
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=120)
     return proc.returncode, out, err
+
+
+@pytest.mark.parametrize("command, says, not_says", [
+    ("fit", "nothing was written", "resume"),
+    ("montecarlo", "--resume", "investigation"),
+    ("investigate", "resumes after the last", "nothing was written"),
+])
+def test_interrupted_message_matches_the_command(command, says, not_says):
+    from thermojax.cli._main import interrupted_message
+
+    message = interrupted_message(command)
+    assert message.startswith(f"thermojax {command}: interrupted; ")
+    assert says in message and not_says not in message
 
 
 @pytest.mark.slow

@@ -566,6 +566,28 @@ def _version() -> str:
     return __version__
 
 
+_STAGED = ("nothing was written: the output is put in place only when complete; run the "
+           "command again to start over")
+_INTERRUPTED = {
+    "simulate": _STAGED, "resample": _STAGED, "fit": _STAGED, "diagnose": _STAGED,
+    "export": _STAGED, "calibrate": _STAGED,
+    "investigate": "the finished steps are kept in the output folder; started again with "
+                   "the same model and data it resumes after the last one (--restart starts "
+                   "afresh)",
+    "montecarlo": "the finished chunks are kept; run the same command again with --resume "
+                  "to compute only the rest",
+    "run": "the run folder keeps what was written before the interrupt; running the config "
+           "again starts a new folder",
+    "demo": "the files written so far are kept; run the demo again to start over",
+}
+
+
+def interrupted_message(command: str) -> str:
+    """What Ctrl-C left behind for `command`, in one line (printed to stderr, exit 130)."""
+    return f"thermojax {command}: interrupted; " + _INTERRUPTED.get(
+        command, "nothing more was written") + "."
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one command; returns its exit status (0, 2 for a user's mistake, 130 on Ctrl-C).
 
@@ -591,8 +613,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"thermojax {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"thermojax {args.command}: interrupted; finished work is kept (an "
-              "interrupted investigation resumes when started again).", file=sys.stderr)
+        print(interrupted_message(args.command), file=sys.stderr)
         if argv is None:
             sys.stdout.flush()
             sys.stderr.flush()

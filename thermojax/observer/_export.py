@@ -36,6 +36,7 @@ from .._errors import InputError
 
 SCHEMA = 1
 LIMITS = (-55.0, 125.0)       # °C, plausibility limits (the seed)
+ABSOLUTE_ZERO_C = -273.15      # °C, the lowest operating point accepted
 T_REF = 35.0                  # °C, fixed-point reference: middle of −55…+125 °C
 FLOAT_PREFIX = "tj_observer"
 
@@ -168,6 +169,15 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
         raise InputError(f"the observer rate must be a positive number of Hz, got {rate_hz}.",
                          field="--rate")
     dt = 1.0 / rate_hz
+    try:
+        operating_point = float(operating_point)
+    except (TypeError, ValueError):
+        raise InputError(f"expected a temperature in °C, got {operating_point!r}.",
+                         field="--operating-point") from None
+    if not np.isfinite(operating_point) or operating_point < ABSOLUTE_ZERO_C:
+        raise InputError(f"the operating point must be a finite temperature in °C at or above "
+                         f"absolute zero ({ABSOLUTE_ZERO_C} °C), got {operating_point:g}.",
+                         field="--operating-point")
     spec, model, where = _load_spec(spec_or_model)
     faults = ref.FaultConfig(limits=LIMITS) if faults is None else faults
     fmt = None if fixed is None else _format(fixed)
@@ -212,11 +222,23 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     A_c = np.asarray(system.A, float)
     tau = np.sort(-1.0 / np.linalg.eigvals(A_c).real)
     if observability_rank(discrete) < len(names):
-        fast = discretize(system, min(dt, tau[0] / 10))
+        fast = discretize(system, tau[0] / 10)   # a period that resolves every mode
         try:
             check_observable(fast, names, call)          # the sensors themselves
         except InputError as err:
             raise InputError(str(err), file=where, field="--sensor") from None
+        if dt < tau[0] / 10:
+            # observable at a moderate rate, not at this one: a sample moves the state so
+            # little that the blocks C Phi^k of the observability test agree to roundoff
+            raise InputError(f"the rate {rate_hz:g} Hz is implausibly high: one sample (dt "
+                             f"{dt:g} s) is {dt / tau[0]:.2g} of the fastest time constant "
+                             f"({tau[0]:.3g} s) and {dt / tau[-1]:.2g} of the slowest "
+                             f"({tau[-1]:.3g} s), so the sampled state matrix is the "
+                             "identity to within that and successive samples differ by less "
+                             "than float64 arithmetic resolves: the states cannot be told "
+                             "apart from the sensors. The same sensors observe every state "
+                             f"at {10 / tau[0]:.3g} Hz; lower --rate.",
+                             file=where, field="--rate")
         # observable at a fast rate: the sampling loses the modes
         raise InputError(f"at {rate_hz:g} Hz (dt {dt:g} s) the sampled observer cannot see "
                          f"every state: the fastest time constants ({', '.join(f'{v:.3g}' for v in tau[:3])} s) "
