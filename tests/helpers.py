@@ -12,6 +12,32 @@ import thermojax as tj
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
 
+# A one-room building (Bacher & Madsen's Ti) with an envelope mass added by an effect.
+ROOM_WITH_ENVELOPE = """
+[[nodes]]
+name = "Ti"
+capacitance = 1e6
+[[boundaries]]
+node = "Ti"
+input = "Ta"
+conductance = 200.0
+[[heat_inputs]]
+node = "Ti"
+input = "Ps"
+gain = 5.0
+[[sensors]]
+node = "Ti"
+column = "yTi"
+noise = 0.01
+[[effects]]
+kind = "extra_node"
+where = ["Ti", "Ta"]
+name = "Te"
+capacitance = 1e7
+conductance = 400.0
+conductance_b = 400.0
+"""
+
 
 def tree_allclose(x, y, *, rtol=1e-5, atol=1e-8):
     return eqx.tree_equal(x, y, typematch=True, rtol=rtol, atol=atol)

@@ -70,30 +70,10 @@ def test_places_cover_every_kind_and_unused_columns():
 def test_a_used_heat_input_may_be_routed_to_another_node():
     # Bacher & Madsen's last step: solar radiation that already heats the interior heats
     # the envelope (a node an extra_node effect made) too. Never proposed where it heats.
-    spec = parse_model("""
-[[nodes]]
-name = "Ti"
-capacitance = 1e6
-[[boundaries]]
-node = "Ti"
-input = "Ta"
-conductance = 200.0
-[[heat_inputs]]
-node = "Ti"
-input = "Ps"
-gain = 5.0
-[[sensors]]
-node = "Ti"
-column = "yTi"
-noise = 0.01
-[[effects]]
-kind = "extra_node"
-where = ["Ti", "Ta"]
-name = "Te"
-capacitance = 1e7
-conductance = 400.0
-conductance_b = 400.0
-""")
+    from helpers import ROOM_WITH_ENVELOPE
+
+    spec = parse_model(ROOM_WITH_ENVELOPE)
+
     places = enumerate_places(spec, lower_effects(spec).spec, {})
     assert ("heat_source", ("Ps", "Te")) in places
     assert ("heat_source", ("Ps", "Ti")) not in places

@@ -159,28 +159,9 @@ def test_an_extra_node_may_carry_its_own_process_noise():
     from thermojax.model._model_file import dump_model
     from thermojax.model.effects import lower_effects
 
-    text = """
-[[nodes]]
-name = "Ti"
-capacitance = 1e6
-process_noise = 0.002
-[[boundaries]]
-node = "Ti"
-input = "Ta"
-conductance = 200.0
-[[sensors]]
-node = "Ti"
-column = "yTi"
-noise = 0.01
-[[effects]]
-kind = "extra_node"
-where = ["Ti", "Ta"]
-name = "Te"
-capacitance = 1e7
-conductance = 400.0
-conductance_b = 400.0
-process_noise = 0.003
-"""
+    from helpers import ROOM_WITH_ENVELOPE
+
+    text = ROOM_WITH_ENVELOPE.rstrip() + "\nprocess_noise = 0.003\n"
     spec = parse_model(text)
     te = next(n for n in lower_effects(spec).spec.nodes if n.name == "Te")
     assert te.process_noise.value == 0.003 and not te.process_noise.fixed
