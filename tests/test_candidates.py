@@ -77,6 +77,9 @@ def test_a_used_heat_input_may_be_routed_to_another_node():
     places = enumerate_places(spec, lower_effects(spec).spec, {})
     assert ("heat_source", ("Ps", "Te")) in places
     assert ("heat_source", ("Ps", "Ti")) not in places
+    # the paths the envelope's mass made are its own parameters: not split again
+    assert ("extra_node", ("Ti", "Te")) not in places and ("extra_node", ("Te", "Ta")) not in \
+        places and ("extra_node", ("Te",)) in places
     assert not any(k == "heat_source" and w[0] == "Ta" for k, w in places)  # a temperature
 
 

@@ -20,7 +20,7 @@ from thermojax.cli import main
 from . import buildings as b
 from .test_investigate import _check_report_keys
 
-DAYS = 14  # 1,344 samples: scaled down from the 30-day default to keep the suite fast
+DAYS = 10  # 960 samples: scaled down from the 30-day default to keep the suite fast
 
 
 def _investigate(name, tmp_path, max_steps):
@@ -40,7 +40,7 @@ def _states_added(report) -> int:
 
 @pytest.mark.slow
 def test_the_loop_recovers_a_four_state_building_from_one_node(tmp_path):
-    files, report = _investigate("building_4state", tmp_path, max_steps=5)
+    files, report = _investigate("building_4state", tmp_path, max_steps=3)
     _check_report_keys(report)
     added = [(s["added"]["kind"], s["added"]["where"]) for s in report["steps"][1:]]
     assert 1 + _states_added(report) >= 3, added  # Ti plus at least two more states

@@ -118,6 +118,10 @@ def enumerate_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str]
     helpers = set(lowered.node_names) - set(spec.node_names) - {
         e.name for e in spec.effects if e.kind == "extra_node"}
     have = {(e.kind, tuple(e.where)) for e in spec.effects}
+    # Paths an extra_node effect made (its mass to its ends): their conductances are that
+    # effect's parameters, so a second mass cannot split them; it may go on the far side.
+    made = {frozenset((e.name, w)) for e in spec.effects if e.kind == "extra_node"
+            for w in e.where}
     lagged = {e.where[0] for e in spec.effects if e.kind == "sensor_lag"}
     out = []
     for kind, impl in KINDS.items():
@@ -126,6 +130,8 @@ def enumerate_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str]
             if helpers & set(where) or (kind, where) in have:
                 continue
             if kind == "sensor_lag" and where[0] in lagged:
+                continue
+            if kind == "extra_node" and frozenset(where) in made:
                 continue
             if kind in ("radiation", "conductance_temperature") and len(where) == 2 and \
                     (kind, where[::-1]) in have:

@@ -271,14 +271,17 @@ def _within_data(c: Candidate, leading: float | None, runs: list[Telemetry],
 
 def _at_null(effect):
     """`effect` with its leading parameter at the null (zero, or a thousandth of its first
-    guess for a positive one): the extended model then predicts as the nested one."""
+    guess for a positive one) and an added mass's process noise a thousandth of its start:
+    the extended model then predicts as the nested one."""
     from ..model._spec import Parameter
 
     lead = EFFECT_KINDS[effect.kind].parameters[0]
     value = effect.parameters[lead].value
     value = 1e-3 * value if lead in EFFECT_KINDS[effect.kind].positive else 0.0
-    return dataclasses.replace(effect, parameters={**effect.parameters,
-                                                   lead: Parameter(float(value))})
+    params = {**effect.parameters, lead: Parameter(float(value))}
+    if "process_noise" in params:  # an added mass's own diffusion, near zero too
+        params["process_noise"] = Parameter(1e-3 * params["process_noise"].value)
+    return dataclasses.replace(effect, parameters=params)
 
 
 START_FITTED = "the fitted model with the effect's first guess"
@@ -359,7 +362,9 @@ def _needs_retry(fits: list[tuple], step: Step) -> bool:
     return not nlls or min(nlls) > step.record["nll"] + NESTED_TOL
 
 
-NESTED_TOL = 1e-6  # −log L a refit may end above its nested model (round-off)
+# −log L a refit may end above its nested model and still be at it: the solvers stop
+# when a step would gain less than about this (an absent effect's refit ends at the null)
+NESTED_TOL = 1e-3
 
 
 def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
@@ -399,6 +404,8 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
             f"{other!r} is {lr_other:.1f}"))))
         say(c.note)
     lr = 2 * (step.record["nll"] - ext.record["nll"])
+    if lr < 0 and lr >= -2 * NESTED_TOL:  # at the nested optimum, to the solver's tolerance
+        lr = 0.0
     if lr < 0:
         c.note = "; ".join(filter(None, (c.note, (
             f"every refit ended below the nested model (−log L {-lr / 2:.3g} higher): the "
