@@ -404,7 +404,17 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
             f"{other!r} is {lr_other:.1f}"))))
         say(c.note)
     lr = 2 * (step.record["nll"] - ext.record["nll"])
-    if lr < 0 and lr >= -2 * NESTED_TOL:  # at the nested optimum, to the solver's tolerance
+    c.result = ext
+    added = next(e for e in ext.spec.effects if (e.kind, tuple(e.where)) == c.key)
+    c.parameters = {k: p.value for k, p in added.parameters.items()}
+    first = KINDS[c.kind].initial_parameters(step.result.lowered_spec, c.where)
+    c.duplicate = duplicate_reason(c, first, sample_period(runs))
+    if c.duplicate:
+        say(c.duplicate)
+    if lr < 0 and (lr >= -2 * NESTED_TOL or c.duplicate):
+        # At the nested optimum to the solver's tolerance, or run to the effect's own
+        # boundary (a mass or lag far faster than a sample, a positive parameter at zero:
+        # the null, which a log parameter reaches only in the limit): the effect is absent.
         lr = 0.0
     if lr < 0:
         c.note = "; ".join(filter(None, (c.note, (
@@ -418,9 +428,6 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
     c.p_value = rule_p_value(c.kind, lr / c.lr_deflation, n_new, runs)
     c.delta_bic = -lr + n_new * math.log(step.record["n_samples"]) if lr == 0.0 else \
         ext.record["bic"] - step.record["bic"]
-    c.result = ext
-    added = next(e for e in ext.spec.effects if (e.kind, tuple(e.where)) == c.key)
-    c.parameters = {k: p.value for k, p in added.parameters.items()}
     c.absorbed_by = absorbing_nodes(step, ext)
     if c.absorbed_by:
         moved = "; ".join(f"{n} ({', '.join(ps)})" for n, ps in c.absorbed_by.items())
@@ -428,10 +435,6 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
             f"near-tie with the unmeasured node {moved}: its parameters moved to mimic "
             f"the effect when it was absent; a sensor on "
             f"{' or '.join(c.absorbed_by)} would separate them"))))
-    first = KINDS[c.kind].initial_parameters(step.result.lowered_spec, c.where)
-    c.duplicate = duplicate_reason(c, first, sample_period(runs))
-    if c.duplicate:
-        say(c.duplicate)
     return True
 
 
