@@ -128,9 +128,11 @@ def test_a_refit_gone_non_finite_fails_softly(tmp_path, monkeypatch):
     report = inv.investigate(spec, runs, max_steps=1, refits=1, out=tmp_path / "out")
     assert report["stopped_because"] == "no_supported_candidate"
     cands = report["steps"][0]["candidates"]
-    failed = [c for c in cands if c["note"].startswith("refit failed")]
+    failed = [c for c in cands if c["note"].startswith("refit from")]
     assert len(failed) == 2 and not any(c["supported"] for c in cands)
-    assert "not finite" in failed[0]["note"]
+    # every start failed, the retry from the nested optimum (the effect at zero) last
+    assert all(c["method"] == "score" for c in failed)
+    assert "not finite" in failed[0]["note"] and "nested model's optimum" in failed[0]["note"]
     assert (tmp_path / "out" / "report.json").is_file()
 
 
