@@ -112,6 +112,11 @@ class _Network:
             self.holds.setdefault(k, v)
         for effect in doc.get("effects", []):
             self._apply(effect)
+        # Truth-only laws outside the vocabulary (`[[truth.laws]]`, see `_law_heat`).
+        self.laws = [dict(law) for law in doc.get("laws", [])]
+        for law in self.laws:
+            if law["law"] not in ("power_law", "quadratic_exp"):
+                raise ValueError(f"unknown law {law['law']!r}")
         self._compile()
 
     @staticmethod
@@ -248,6 +253,10 @@ class _Network:
                 cols.append(c)
             return cols.index(c)
 
+        for law in self.laws:
+            far = law.get("column", law.get("b"))
+            if far not in idx:
+                col(far)
         # Conduction: links and boundaries as one list of paths a→(node b | column b).
         paths = [(idx[lk["a"]], idx[lk["b"]], -1, lk) for lk in self.links] + \
                 [(idx[bd["a"]], -1, col(bd["col"]), bd) for bd in self.bounds]
@@ -332,10 +341,41 @@ class _Network:
     def _radiation_far(self, T, u):
         return np.concatenate((T, u, (0.0,)))[self.rb_ext]
 
+    def _end(self, name, T, u):
+        return T[self.idx[name]] if name in self.idx else u[self.cols.index(name)]
+
+    def _law_heat(self, T, u):
+        """Heat (W) into each node from the truth-only laws, and its Jacobian in T:
+        `power_law`: `h |Tb − Ta|^n (Tb − Ta)` into a, out of node b;
+        `quadratic_exp`: `c · column² · exp(k (Ta − 25 °C))` into a."""
+        q, J = np.zeros(self.n), np.zeros((self.n, self.n))
+        for law in self.laws:
+            a = self.idx[law["a"]]
+            if law["law"] == "power_law":
+                d = self._end(law["b"], T, u) - T[a]
+                flow = law["h"] * abs(d) ** law["n"] * d
+                slope = law["h"] * (law["n"] + 1) * abs(d) ** law["n"]  # d flow / d d
+                q[a] += flow
+                J[a, a] -= slope
+                if law["b"] in self.idx:
+                    b = self.idx[law["b"]]
+                    q[b] -= flow
+                    J[a, b] += slope
+                    J[b, b] -= slope
+                    J[b, a] += slope
+            else:
+                flow = law["c"] * u[self.cols.index(law["column"])] ** 2 * np.exp(
+                    law["k"] * (T[a] - T_REF))
+                q[a] += flow
+                J[a, a] += law["k"] * flow
+        return q, J
+
     def heat(self, T, u):
         """Net heat flow into each node (W)."""
         Ta, Tb, G, _ = self._path_state(T, u)
         q = self.Pin @ (G * (Tb - Ta))
+        if self.laws:
+            q = q + self._law_heat(T, u)[0]
         if self.hcol.size:
             q = q + self.Hm @ u[self.hcol]
         if self.rk.size:
@@ -350,6 +390,8 @@ class _Network:
         else:
             d = Tb - Ta
             J = self.Pin @ ((dG * d - G)[:, None] * self.Ea + (dG * d + G)[:, None] * self.Eb)
+        if self.laws:
+            J = J + self._law_heat(T, u)[1]
         if self.rk.size:
             J = J + self.Rm @ ((4 * self.rk * (T[self.ra] + KELVIN) ** 3)[:, None] * self.REa
                                - (4 * self.rk * (self._radiation_far(T, u) + KELVIN) ** 3)[:, None]
@@ -687,6 +729,11 @@ def chamber_inputs(ts, kind: str = "ramp5", seed=0, *, top: float = 85.0, bottom
 # ---------------------------------------------------------------------------------------------
 
 
+def law_case_names() -> list[str]:
+    """Cases whose truth holds `[[truth.laws]]`: physics outside the vocabulary."""
+    return [c for c in case_names() if load_case(c)["truth"].get("laws")]
+
+
 def case_names() -> list[str]:
     return sorted(p.stem for p in CASES.glob("*.toml"))
 
@@ -721,7 +768,7 @@ def load_case(name) -> dict:
     case["believed"] = believed
     truth = copy.deepcopy(believed)
     spec = doc.get("truth", {})
-    for table in ("nodes", "links", "boundaries", "heat_inputs", "effects"):
+    for table in ("nodes", "links", "boundaries", "heat_inputs", "effects", "laws"):
         truth.setdefault(table, [])
         truth[table] = truth[table] + copy.deepcopy(spec.get(table, []))
     for col, coefs in spec.get("bias_coefficients", {}).items():

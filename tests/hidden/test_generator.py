@@ -566,7 +566,9 @@ def test_case_loads_and_generates(name):
     assert case["header"] and "etect" in case["header"]  # every case says why it shows
     assert len(case["runs"]) == (1 if name == "one_run" else 3)
     assert all(s.get("noise") == 0.01 for s in case["truth"]["sensors"])
-    if case["hidden"] not in ("none", "out_of_vocabulary"):
+    if case["truth"]["laws"]:  # physics outside the vocabulary, by the generator's laws
+        assert not case["truth"]["effects"] and "law" in case["expected"]
+    elif case["hidden"] not in ("none", "out_of_vocabulary"):
         assert case["hidden"] in {e["kind"] for e in case["truth"]["effects"]}
         assert case["expected"]["kind"] == case["hidden"]
     runs = g.generate_case(name, seed=5, horizon_s=120.0)
@@ -715,3 +717,20 @@ def test_lag_vs_mass_tie_is_exact():
         assert np.max(np.abs(y - truth)) < 1e-6, where
     believed = g.simulate_truth(case["believed"], ts, u, noise=False)["T_core"]
     assert np.sqrt(np.mean((believed - truth) ** 2)) > 10 * case["noise"]
+
+
+@pytest.mark.parametrize("name", g.law_case_names())
+def test_law_heat_jacobian_matches_finite_differences(name):
+    """The truth-only laws' analytic Jacobian (which Radau uses) against central
+    differences of their heat, at a state with every temperature different."""
+    case = g.load_case(name)
+    net = g._Network(case["truth"])
+    rng = np.random.default_rng(0)
+    T = 25 + 30 * rng.random(net.n)
+    u = 0.5 + 2 * rng.random(len(net.cols))
+    q, J = net._law_heat(T, u)
+    assert np.any(q != 0)
+    h = 1e-6
+    fd = np.stack([(net._law_heat(T + h * e, u)[0] - net._law_heat(T - h * e, u)[0]) / (2 * h)
+                   for e in np.eye(net.n)], 1)
+    np.testing.assert_allclose(J, fd, rtol=1e-6, atol=1e-9)

@@ -375,7 +375,8 @@ def refit_p_value(kind: str, lr: float, n_new: int) -> float:
     """p-value of a likelihood-ratio statistic for `n_new` added parameters, the leading
     one on its boundary for positive kinds (½χ²(k−1) + ½χ²(k) mixture)."""
     lr = max(lr, 0.0)
-    if EFFECT_KINDS[kind].parameters[0] in EFFECT_KINDS[kind].positive:
+    params = EFFECT_KINDS[kind].parameters
+    if params and params[0] in EFFECT_KINDS[kind].positive:
         lo = stats.chi2.sf(lr, n_new - 1) if n_new > 1 else float(lr <= 0)
         return float(0.5 * lo + 0.5 * stats.chi2.sf(lr, n_new))
     return float(stats.chi2.sf(lr, n_new))

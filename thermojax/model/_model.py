@@ -218,11 +218,10 @@ def model_to_spec(model: ThermalModel, spec: ModelSpec, process_noise: bool = Fa
     sensors = tuple(dataclasses.replace(s, noise=upd(s.noise, sd))
                     for s, sd in zip(spec.sensors, values(model.log_noise)))
     values = iter(model.effect_parameter_values())
-    by_place = {(e.kind, e.where): t for e, t in zip(term_effects(spec), model.effect_terms,
-                                                     strict=True)}
+    by_effect = {id(e): t for e, t in zip(term_effects(spec), model.effect_terms, strict=True)}
     effects = []
     for e in spec.effects:
-        term = by_place.get((e.kind, e.where))
+        term = by_effect.get(id(e))
         if term is not None:
             e = dataclasses.replace(e, parameters={
                 **e.parameters, **{p: upd(e.parameters.get(p), next(values))

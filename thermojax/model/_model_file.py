@@ -174,6 +174,8 @@ class _Reader:
             self.fail("missing required key 'kind'.", "effects", i, "kind")
         if "where" not in e:
             self.fail("missing required key 'where'.", "effects", i, "where")
+        if e.get("kind") == "expression":
+            return self.expression(e, i)
         params = {k: self.param(v, "effects", i, k) for k, v in e.items()
                   if k not in ("kind", "where", "name", "hold")}
         name = e.get("name")
@@ -185,6 +187,22 @@ class _Reader:
                       parameters=params,
                       name=None if name is None else self.string(name, "effects", i, "name"),
                       hold=hold)
+
+    def expression(self, e: dict, i: int) -> Effect:
+        """An `expression` effect (§3a): `expression` and a `parameters` table."""
+        self.keys(e, "effects", i, ("kind", "where", "expression"), ("parameters", "hold"))
+        table = e.get("parameters", {})
+        if not isinstance(table, dict):
+            self.fail("parameters is a table, parameters = { h = 0.31 }.", "effects", i,
+                      "parameters")
+        hold = e.get("hold")
+        if hold is not None and hold not in ("foh", "zoh"):
+            self.fail(f"hold must be \"foh\" or \"zoh\", got {hold!r}.", "effects", i, "hold")
+        return Effect(kind="expression", where=self.names(e["where"], "effects", i, "where"),
+                      parameters={k: self.param(v, "effects", i, f"parameters.{k}")
+                                  for k, v in table.items()},
+                      hold=hold,
+                      expression=self.string(e["expression"], "effects", i, "expression"))
 
     def bias(self, e: dict, i: int) -> Bias:
         self.keys(e, "biases", i, ("column", "temperature"),
@@ -252,6 +270,10 @@ def dump_model(spec: ModelSpec, header: str = "") -> str:
             out.append(f"name = {_str(e.name)}")
         if e.hold is not None:
             out.append(f"hold = {_str(e.hold)}")
+        if e.kind == "expression":
+            out += [f"expression = {_str(e.expression)}", "parameters = { " + ", ".join(
+                f"{k} = {_param(p)}" for k, p in e.parameters.items()) + " }"]
+            continue
         out += [f"{k} = {_param(p)}" for k, p in e.parameters.items()]
     for b in spec.biases:
         out += ["", "[[biases]]", f"column = {_str(b.column)}",

@@ -83,6 +83,7 @@ class Effect:
     parameters: dict[str, Parameter] = field(default_factory=dict)
     name: str | None = None  # the new node's name (extra_node only)
     hold: str | None = None  # hold of a column the effect brings in ("foh" when None)
+    expression: str | None = None  # the law of an `expression` effect (§3a)
 
     @property
     def key(self) -> str:
@@ -157,7 +158,7 @@ class ModelSpec:
         sensors = set(self.sensor_columns) | {b.column for b in self.biases}
         for e in self.effects:
             if e.kind in _READS_COLUMNS:
-                for w in e.where:
+                for w in (*e.where, *expression_columns(e, nodes)):
                     if w not in nodes and w not in sensors:
                         holds.setdefault(w, e.hold or "foh")
         return holds
@@ -180,7 +181,21 @@ class ModelSpec:
 
 # Kinds whose `where` may name an input column beyond the first place.
 _READS_COLUMNS = ("extra_node", "radiation", "conductance_temperature", "heat_source",
-                  "boundary", "conductance_input")
+                  "boundary", "conductance_input", "expression")
+
+
+def expression_columns(effect: Effect, nodes) -> tuple[str, ...]:
+    """The names an `expression` effect reads that are neither nodes nor its parameters:
+    its input columns (none for another kind, or an expression that does not parse)."""
+    if effect.kind != "expression" or effect.expression is None:
+        return ()
+    from ._expression import ExpressionError, names, parse
+
+    try:
+        used = names(parse(effect.expression))
+    except ExpressionError:
+        return ()
+    return tuple(n for n in used if n not in nodes and n not in effect.parameters)
 
 
 # ---------------------------------------------------------------------------
@@ -218,6 +233,9 @@ EFFECT_KINDS: dict[str, EffectKind] = {
     "sensor_gain": EffectKind(where=(("column",),), parameters=("gain",), positive=()),
     "viscoelastic": EffectKind(where=(("node", "column"),), parameters=("time_constant", "k"),
                                positive=("time_constant",)),
+    # §3a: a learned law; its parameters are the ones it declares
+    "expression": EffectKind(where=(("node",), ("node", "node_or_input")), parameters=(),
+                             positive=()),
 }
 
 
@@ -373,8 +391,10 @@ def _validate_effects(spec, fail, nodes: set[str], inputs: set[str], sensors: se
                         "input": "a data column (not a node or sensor)",
                         "column": "a sensor or bias column"}[role]
                 fail(f"'{name}' should be {what} for '{e.kind}'.", "effects", i, "where")
+        if e.kind == "expression":
+            _validate_expression(e, fail, i, all_nodes, sensors)
         for pname, p in e.parameters.items():
-            if pname not in kind.parameters:
+            if pname not in kind.parameters and e.kind != "expression":
                 fail(f"'{e.kind}' has no parameter '{pname}'; its parameters are "
                      f"{list(kind.parameters)}.", "effects", i, pname)
             if pname in kind.positive and not p.value > 0:
@@ -385,6 +405,31 @@ def _validate_effects(spec, fail, nodes: set[str], inputs: set[str], sensors: se
             if e.name in all_nodes:
                 fail(f"extra_node name '{e.name}' is already a node.", "effects", i, "name")
             new_nodes.add(e.name)
+
+
+def _validate_expression(e: Effect, fail, i: int, nodes: set[str], sensors: set[str]) -> None:
+    from ._expression import ExpressionError, names, parse
+
+    if e.expression is None:
+        fail("an expression effect needs `expression`, a formula of node temperatures, "
+             "input columns and its parameters, e.g. \"h * (T_fluid - housing)\".",
+             "effects", i, "expression")
+    try:
+        used = names(parse(e.expression))
+    except ExpressionError as err:
+        fail(f"cannot read the expression {e.expression!r}: {err}.", "effects", i, "expression")
+    for name in used:
+        if name in sensors and name not in nodes and name not in e.parameters:
+            fail(f"'{name}' is a sensor column, a measurement the model explains; an "
+                 "expression may read node temperatures, input columns and its parameters.",
+                 "effects", i, "expression")
+    for pname in e.parameters:
+        if pname in nodes:
+            fail(f"parameter '{pname}' has the name of a node; rename it.", "effects", i,
+                 f"parameters.{pname}")
+        if pname not in used:
+            fail(f"parameter '{pname}' does not appear in the expression, so no data can "
+                 "determine it; remove it or use it.", "effects", i, f"parameters.{pname}")
 
 
 def _validate_biases(spec, fail, nodes: set[str], used: set[str]) -> None:

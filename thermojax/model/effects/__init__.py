@@ -14,6 +14,7 @@ from .boundary import Boundary
 from .capacitance_temperature import CapacitanceTemperature
 from .conductance_input import ConductanceInput
 from .conductance_temperature import ConductanceTemperature
+from .expression import Expression
 from .extra_node import ExtraNode
 from .heat_source import HeatSource
 from .radiation import Radiation
@@ -24,7 +25,7 @@ from .viscoelastic import Viscoelastic
 
 KINDS: dict[str, AbstractEffect] = {k.kind: k for k in (
     ExtraNode(), Radiation(), ConductanceTemperature(), CapacitanceTemperature(), HeatSource(),
-    Boundary(), ConductanceInput(), SensorLag(), SensorOffset(), SensorGain(), Viscoelastic())}
+    Boundary(), ConductanceInput(), SensorLag(), SensorOffset(), SensorGain(), Viscoelastic(), Expression())}
 
 __all__ = ["KINDS", "AbstractEffect", "Lowered", "ParameterLink", "Term", "lower_effects",
            "raise_effects", "effect_parameter_name"]

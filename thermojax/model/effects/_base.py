@@ -64,6 +64,7 @@ class Term:
     column_b: int = -1
     column: int = -1
     path: tuple[str, int] = ("", -1)
+    program: tuple = ()  # an `expression` effect's resolved tree (`model._expression`)
 
 
 class AbstractEffect:
