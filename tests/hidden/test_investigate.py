@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 import pytest
 
 from thermojax.cli import main
@@ -112,8 +114,22 @@ def test_null_case_adds_nothing(tmp_path):
 
 @pytest.mark.slow
 def test_out_of_vocabulary_residual_is_not_reported_white(tmp_path):
-    info, report, _ = _run("out_of_vocabulary", tmp_path, max_steps=1)
+    info, report, out = _run("out_of_vocabulary", tmp_path, max_steps=1)
     _check_report_keys(report)
     assert report["stopped_because"] != "residuals_white"
     assert min(report["steps"][-1]["whiteness_p"].values()) < 0.01
     assert report["unexplained"]
+    # The missing heat as data (spec §3a): every step that is not white writes it, and
+    # the unrecorded pulses into the pcb (an unmeasured node) come back at the pcb.
+    summary = report["steps"][0]["missing_heat"]
+    assert summary["file"] == "step0_missing_heat.csv" and "pcb" in summary["nodes_carrying"]
+    with (out / "step0_missing_heat.csv").open() as f:
+        header = f.readline().strip().split(",")
+    nodes = ["housing", "pcb", "die"]
+    assert header == ["time_s", "run", *(c for n in nodes for c in (f"q_{n}_W", f"q_{n}_W_std"))]
+    table = np.loadtxt(out / "step0_missing_heat.csv", delimiter=",", skiprows=1)
+    for r in range(3):
+        ts, inputs = g.run_inputs(info, r, 0, HORIZON_S)
+        rows = table[table[:, 1] == r]
+        np.testing.assert_array_equal(rows[:, 0], ts)
+        assert np.corrcoef(rows[:, 4], inputs["Q_unrecorded"])[0, 1] > 0.8

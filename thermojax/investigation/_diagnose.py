@@ -8,6 +8,7 @@ from pathlib import Path
 from ._diagnostic_plots import PLOT_KEYS
 from ._diagnostics import diagnose_traces, slowest_time_constant
 from ._investigate import (N_BLOCKS, HeldOutFits, check_holdout, diagnose_step, evaluate,
+                           record_missing_heat,
                            _noise, _version)
 from ._selection import significance_rule
 from .._json import json_safe
@@ -28,6 +29,9 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
     """
     say = progress or (lambda _m: None)
     step = evaluate(spec, runs, likelihood)
+    if out is not None:
+        Path(out).mkdir(parents=True, exist_ok=True)
+    record_missing_heat(step, runs, out, 0, 0.01, say)
     cands = diagnose_step(step, runs, likelihood, refits=refits, fdr=fdr, say=say,
                           initial=spec)
     fits = HeldOutFits()  # the same rule as `investigate`: every supported one checked
@@ -54,6 +58,7 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
                                        time_scale=time_scale),
         "noise": _noise(step),
         "significance_rule": significance_rule(fdr, N_BLOCKS),
+        **({"missing_heat": rec["missing_heat"]} if "missing_heat" in rec else {}),
     }
     report = json_safe(report)
     if out is not None:

@@ -1,0 +1,94 @@
+"""The missing heat (spec §3a) against heat known because the test generated it."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+import thermojax as tj
+from thermojax import Experiment, parse_model
+from thermojax.discovery import missing_heat, write_missing_heat
+
+from hidden import generator as g
+
+HORIZON_S = 2400.0
+
+
+def _fit_at_truth(case_name, runs_idx=(0, 1)):
+    """The believed model with its parameters fixed at the truth's (the generator's own
+    values: only the hidden heat is missing), but the boundary conductance (a fit needs
+    one free parameter) and the noise."""
+    case = g.load_case(case_name)
+    spec = parse_model(g.dump_toml(case["believed"]))
+    fix = lambda p: tj.Parameter(p.value, True)  # noqa: E731
+    spec = spec.replace(
+        nodes=tuple(dataclasses.replace(n, capacitance=fix(n.capacitance)) for n in spec.nodes),
+        links=tuple(dataclasses.replace(k, conductance=fix(k.conductance)) for k in spec.links),
+        heat_inputs=tuple(dataclasses.replace(h, gain=fix(h.gain)) for h in spec.heat_inputs))
+    runs = g.generate_case(case_name, seed=2, horizon_s=HORIZON_S, runs=list(runs_idx))
+    exps = [Experiment(ts, np.stack([c[k] for k in spec.input_columns], 1),
+                       np.stack([c[k] for k in spec.sensor_columns], 1)) for ts, c in runs]
+    return case, tj.fit(spec, exps)
+
+
+def test_unrecorded_pulses_come_back_within_their_uncertainty():
+    """0.3 W pulses into the unmeasured pcb, recorded by no column: the reconstruction
+    puts them at the pcb, correlates with them, and covers them with its 3-std band
+    (outside the samples at a pulse's edges, which a random walk cannot follow)."""
+    case, res = _fit_at_truth("out_of_vocabulary")
+    mh = missing_heat(res)
+    assert mh.carriers[0] == "pcb" and mh.log_likelihood_gain > 100
+    j = mh.nodes.index("pcb")
+    for r, run in enumerate((0, 1)):
+        truth = g.run_inputs(case, run, 2, HORIZON_S)[1]["Q_unrecorded"]
+        q, s = mh.heat[r][:, j], mh.heat_std[r][:, j]
+        assert np.corrcoef(q, truth)[0, 1] > 0.9
+        edges = np.convolve(np.abs(np.diff(truth, prepend=truth[0])) > 0, np.ones(121),
+                            "same") > 0  # within 60 s of a switch
+        inside = np.abs(q - truth) <= 3 * s
+        assert inside[~edges].mean() > 0.95, inside[~edges].mean()
+        assert np.all(s > 0)
+
+
+def test_no_missing_physics_gives_zero_within_uncertainty(tmp_path):
+    """The null case (the believed model is the truth): the heat is zero within its
+    stated uncertainty, the likelihood barely gains, and the file holds it as §3a says."""
+    case, res = _fit_at_truth("null")
+    mh = missing_heat(res)
+    assert mh.log_likelihood_gain < 10
+    for q, s in zip(mh.heat, mh.heat_std):
+        carried = s > 0
+        assert np.mean(np.abs(q[carried]) <= 3 * s[carried]) > 0.99
+    path = tmp_path / "step0_missing_heat.csv"
+    write_missing_heat(mh, path)
+    header = path.read_text().splitlines()[0].split(",")
+    assert header == ["time_s", "run", *(c for n in ("housing", "pcb", "die")
+                                         for c in (f"q_{n}_W", f"q_{n}_W_std"))]
+    table = np.loadtxt(path, delimiter=",", skiprows=1)
+    assert len(table) == sum(len(t) for t in mh.ts)
+    np.testing.assert_array_equal(table[table[:, 1] == 1][:, 0], mh.ts[1])
+    np.testing.assert_array_equal(table[table[:, 1] == 0][:, 2:].reshape(-1, 3, 2)[..., 0],
+                                  mh.heat[0])
+
+
+def test_library_law_and_description_on_known_series():
+    """The library regression finds a power law it holds (known coefficient), and the
+    description names pulses, a drift and a period for series built to be each."""
+    from thermojax.discovery._describe import best_law, describe
+    from thermojax.discovery._library import library_columns
+
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 7200.0, 1.0)
+    a = 25 + 30 * np.sin(t / 900) ** 2
+    b = 25 + 60 * (t % 3600 < 1800)
+    u = 0.5 + 2.5 * rng.random(t.size)
+    d = b - a
+    q = 0.04 * np.abs(d) ** 0.25 * d + 0.001 * rng.standard_normal(t.size)
+    lib = library_columns("a", ["b"], ["u"], {"a": a}, {"b": b, "u": u})
+    terms, coef, r2 = best_law(q, np.ones_like(q), lib)
+    assert terms == ["abs(b - a)^0.25 * (b - a)"] and abs(coef[0] - 0.04) < 1e-3 and r2 > 0.99
+    pulses = 0.3 * ((t % 1500) < 300)
+    assert describe([t], [pulses]).startswith("pulses: 5 episodes of about 300 s")
+    assert describe([t], [1e-4 * t]).startswith("a drift of 0.36 W per hour")
+    assert describe([t], [np.sin(2 * np.pi * t / 600)]) == "a periodic component of period 600 s"
