@@ -14,6 +14,7 @@ import numpy as np
 
 import pytest
 
+import thermojax as tj
 from thermojax.cli import main
 
 from . import generator as g
@@ -133,3 +134,32 @@ def test_out_of_vocabulary_residual_is_not_reported_white(tmp_path):
         rows = table[table[:, 1] == r]
         np.testing.assert_array_equal(rows[:, 0], ts)
         assert np.corrcoef(rows[:, 4], inputs["Q_unrecorded"])[0, 1] > 0.8
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", g.law_case_names())
+def test_law_outside_the_vocabulary_is_learned(case, tmp_path):
+    """Truth outside the vocabulary (the generator's own laws): the loop adds a learned
+    `expression` at the truth's place, reading the truth's variables, with every
+    parameter within three reported stds of the truth (the form is in the library), and
+    brings the free-run RMSE within 1.5x the noise with white residuals."""
+    from thermojax.model._expression import names, parse
+
+    info, report, out = _run(case, tmp_path, max_steps=2)
+    _check_report_keys(report)
+    expected = info["expected"]
+    added = [s["added"] for s in report["steps"][1:]]
+    assert added[0]["kind"] == "expression" and added[0]["where"] == expected["law"]
+    used = set(names(parse(added[0]["expression"])))
+    assert set(expected["variables"]) <= used
+    final = report["steps"][-1]
+    label = "-".join(expected["law"])
+    for name, truth in expected["parameters"].items():
+        p = final["parameters"][f"effects.expression.{label}.{name}"]
+        assert abs(p["value"] - truth) < 3 * p["std"], (name, p, truth)
+    noise = _noise(info)
+    for c, rmse in final["rmse"].items():
+        assert rmse < 1.5 * noise[c], (c, rmse)
+    assert report["stopped_because"] == "residuals_white"
+    again = tj.load_model(out / "model_final.toml")
+    assert any(e.kind == "expression" for e in again.effects)

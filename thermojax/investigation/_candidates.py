@@ -64,6 +64,10 @@ class Candidate:
     # For a kind with a time constant of its own (a mass, a lag): the trial time constant
     # (s) of the best score direction, where a refit also starts (`_investigate`).
     time_constant: float | None = None
+    # A learned law of the library (`discovery.LearnedLaw`) and the shape values (an
+    # exponent, a temperature rate) of its best score direction; None for a kind.
+    learned: object = field(default=None, repr=False)
+    shape: tuple | None = None
 
     def __post_init__(self):
         if self.score_test is None and self.method == "score":
@@ -90,7 +94,20 @@ class Candidate:
                 "holdout_gain": _finite(self.holdout_gain),
                 "holdout_folds": [v.as_json() for v in self.holdout_votes],
                 "refit_start": self.refit_start, "parameters": self.parameters,
-                "hold": self.hold, "absorbed_by": self.absorbed_by, "note": self.note}
+                "hold": self.hold, "absorbed_by": self.absorbed_by, "note": self.note,
+                **({"expression": self.expression, "law": self.learned.term.name}
+                   if self.learned is not None else {})}
+
+    @property
+    def expression(self) -> str | None:
+        """A learned law's expression at its place (None for a kind)."""
+        return self.learned.text(self.where) if self.learned is not None else None
+
+    def columns(self) -> list[str]:
+        """The names of `where`, and the data columns a learned law reads."""
+        extra = [self.learned.column] if self.learned is not None and \
+            self.learned.column is not None else []
+        return list(dict.fromkeys([*self.where, *extra]))
 
 
 def _finite(x):
@@ -314,7 +331,7 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
 
     raw = []
     for kind, where in places:
-        impl = KINDS[kind]
+        impl = KINDS[kind] if isinstance(kind, str) else kind  # a kind, or a learned law
         try:
             how, dirs = impl.score_direction(ctx, where)
         except (KeyError, ValueError, NotImplementedError, TypeError):
@@ -342,7 +359,9 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
         directions = {k: (d * weights).reshape(-1) for k, d in directions.items()}
     cands = []
     for i, (kind, where, how, dirs) in enumerate(raw):
-        one_sided = EFFECT_KINDS[kind].parameters[0] in EFFECT_KINDS[kind].positive
+        impl = KINDS[kind] if isinstance(kind, str) else kind
+        lead = EFFECT_KINDS[impl.kind].parameters
+        one_sided = bool(lead) and lead[0] in EFFECT_KINDS[impl.kind].positive
         scores, estimates = [], []
         for j in range(len(dirs)):
             dw = directions.get((i, j))
@@ -363,10 +382,13 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
         stat = scores[best]
         p = stats.chi2.sf(stat / max(deflation, 1.0), 1) * (0.5 if one_sided else 1.0) \
             * len(dirs)
-        cands.append(Candidate(kind, tuple(where), float(stat), float(min(1.0, p)),
+        learned = None if isinstance(kind, str) else impl
+        cands.append(Candidate(impl.kind, tuple(where), float(stat), float(min(1.0, p)),
                                lr_deflation=float(max(deflation, 1.0)),
                                estimate=float(estimates[best]),
-                               time_constant=impl.direction_time_constant(ctx, best)))
+                               time_constant=impl.direction_time_constant(ctx, best),
+                               learned=learned,
+                               shape=learned.shape_of(best) if learned else None))
     cands.sort(key=lambda c: -c.score)
     return cands
 

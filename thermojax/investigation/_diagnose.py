@@ -8,7 +8,7 @@ from pathlib import Path
 from ._diagnostic_plots import PLOT_KEYS
 from ._diagnostics import diagnose_traces, slowest_time_constant
 from ._investigate import (N_BLOCKS, HeldOutFits, check_holdout, diagnose_step, evaluate,
-                           record_missing_heat,
+                           record_missing_heat, record_unexplained,
                            _noise, _version)
 from ._selection import significance_rule
 from .._json import json_safe
@@ -31,7 +31,7 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
     step = evaluate(spec, runs, likelihood)
     if out is not None:
         Path(out).mkdir(parents=True, exist_ok=True)
-    record_missing_heat(step, runs, out, 0, 0.01, say)
+    missing = record_missing_heat(step, out, 0, 0.01, say)
     cands = diagnose_step(step, runs, likelihood, refits=refits, fdr=fdr, say=say,
                           initial=spec)
     fits = HeldOutFits()  # the same rule as `investigate`: every supported one checked
@@ -43,6 +43,8 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
                 c.note = "; ".join(filter(None, (
                     f"held-out check could not run: {type(err).__name__}: {err}"[:200],
                     c.note)))
+    if not any(c.supported for c in cands):
+        record_unexplained(step, missing, say)
     columns = list(spec.sensor_columns) + [b.column for b in spec.biases]
     inputs = list(spec.input_columns)
     boundary = list(spec.boundary_columns)
@@ -58,7 +60,7 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
                                        time_scale=time_scale),
         "noise": _noise(step),
         "significance_rule": significance_rule(fdr, N_BLOCKS),
-        **({"missing_heat": rec["missing_heat"]} if "missing_heat" in rec else {}),
+        **{k: rec[k] for k in ("missing_heat", "unexplained") if k in rec},
     }
     report = json_safe(report)
     if out is not None:

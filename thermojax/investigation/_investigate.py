@@ -46,7 +46,9 @@ from ..model._model_file import dump_model, save_model
 from ..model._parameters_by_name import spec_parameters, with_spec_parameters
 from .._residual_analysis import ljung_box, long_run_variance_ratio
 from ._diagnostics import davies_p_value, davies_variation
-from ._selection import FoldVote, fold_vote, holdout_verdict, judge, significance_rule
+from ._selection import (FoldVote, fold_vote, holdout_verdict, judge, prefer_vocabulary,
+                         significance_rule)
+from ..discovery import learned_places
 from ..model._spec import EFFECT_KINDS, ModelSpec
 from ..model.effects import KINDS
 from ..model.effects._base import T_REF
@@ -269,13 +271,30 @@ def _within_data(c: Candidate, leading: float | None, runs: list[Telemetry],
     return leading
 
 
+def added_effect(spec: ModelSpec, c: Candidate):
+    """The effect candidate `c` added to `spec` (the last of its kind at its place: a
+    learned law may join another expression there)."""
+    return [e for e in spec.effects if (e.kind, tuple(e.where)) == c.key][-1]
+
+
+def _candidate_effect(c: Candidate, spec, lowered, holds: dict, leading=None,
+                      time_constant=None):
+    """The effect to add for `c`: a kind's first guess, or a learned law with its
+    coefficient at `leading` (the score test's estimate; else zero) and its best shape."""
+    if c.learned is not None:
+        hold = next((holds[w] for w in c.columns() if w in holds), None)
+        c0 = leading if leading is not None and np.isfinite(leading) else 0.0
+        return c.learned.effect(c.where, c0, c.shape, hold)
+    return new_effect(spec, lowered, c.kind, c.where, holds, leading, time_constant)
+
+
 def _at_null(effect):
     """`effect` with its leading parameter at the null (zero, or a thousandth of its first
     guess for a positive one) and an added mass's process noise a thousandth of its start:
     the extended model then predicts as the nested one."""
     from ..model._spec import Parameter
 
-    lead = EFFECT_KINDS[effect.kind].parameters[0]
+    lead = "c" if effect.kind == "expression" else EFFECT_KINDS[effect.kind].parameters[0]
     value = effect.parameters[lead].value
     value = 1e-3 * value if lead in EFFECT_KINDS[effect.kind].positive else 0.0
     params = {**effect.parameters, lead: Parameter(float(value))}
@@ -309,7 +328,7 @@ def _refit_starts(c: Candidate, step: Step, new_columns, initial, runs=(), neste
     model). An effect that brings a data column into the model (one of `new_columns`) is
     tried with the column held each way, "zoh" and "foh" (`_refit`)."""
     spec, lowered = step.spec, step.result.lowered_spec
-    brings = [w for w in c.where if w in new_columns]
+    brings = [w for w in c.columns() if w in new_columns]
     diffusing = _with_process_noise(c, step)
     # A nonlinear effect starts at the score test's estimate (clipped to the data), not at
     # its null value: the fit chooses how finely to integrate it (`fitting._integration`).
@@ -317,8 +336,8 @@ def _refit_starts(c: Candidate, step: Step, new_columns, initial, runs=(), neste
     starts = []
     for hold in ("zoh", "foh") if brings else (None,):
         try:
-            effect = diffusing(new_effect(spec, lowered, c.kind, c.where,
-                                          {w: hold for w in brings}, None if nested else leading))
+            effect = diffusing(_candidate_effect(c, spec, lowered, {w: hold for w in brings},
+                                                 None if nested else leading))
             if nested:
                 starts.append((hold, START_NESTED,
                                spec.replace(effects=spec.effects + (_at_null(effect),))))
@@ -329,8 +348,9 @@ def _refit_starts(c: Candidate, step: Step, new_columns, initial, runs=(), neste
                 starts.append((hold, START_USER, with_spec_parameters(
                     extended, spec_parameters(initial))))
             if c.time_constant is not None:  # a mass or lag: also at the score's τ
-                timed = diffusing(new_effect(spec, lowered, c.kind, c.where,
-                                             {w: hold for w in brings}, None, c.time_constant))
+                timed = diffusing(_candidate_effect(c, spec, lowered,
+                                                    {w: hold for w in brings}, None,
+                                                    c.time_constant))
                 if _far_from(timed, effect):
                     starts.append((hold, START_TAU,
                                    spec.replace(effects=spec.effects + (timed,))))
@@ -386,7 +406,7 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
             continue
         if hold not in by_hold or got.record["nll"] < by_hold[hold][1].record["nll"]:
             by_hold[hold] = (start, got)
-    brings = [w for w in c.where if w in new_columns]
+    brings = [w for w in c.columns() if w in new_columns]
     for hold, (start, got) in by_hold.items():
         if ext is None or got.record["nll"] < ext.record["nll"]:
             ext, c.hold, c.refit_start = got, hold, start
@@ -405,7 +425,7 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
         say(c.note)
     lr = 2 * (step.record["nll"] - ext.record["nll"])
     c.result = ext
-    added = next(e for e in ext.spec.effects if (e.kind, tuple(e.where)) == c.key)
+    added = added_effect(ext.spec, c)
     c.parameters = {k: p.value for k, p in added.parameters.items()}
     first = KINDS[c.kind].initial_parameters(step.result.lowered_spec, c.where)
     c.duplicate = duplicate_reason(c, first, sample_period(runs))
@@ -512,7 +532,7 @@ def duplicate_reason(c: Candidate, first_guess: dict, period: float) -> str:
     p = c.parameters or {}
     if c.kind == "extra_node" and c.result is not None:
         lowered = c.result.result.lowered_spec
-        new = next(e.name for e in c.result.spec.effects if (e.kind, tuple(e.where)) == c.key)
+        new = added_effect(c.result.spec, c).name
         g = sum(k.conductance.value for k in lowered.links if new in k.between) + sum(
             b.conductance.value for b in lowered.boundaries if b.node == new)
         tau = p["capacitance"] / g if g > 0 else math.inf
@@ -607,9 +627,10 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
         r = whiten((r.reshape(weights.shape) * scale)[..., None]).reshape(-1)
         J = whiten(J.reshape(*weights.shape, -1) * scale[..., None]).reshape(r.size, -1)
     columns = _padded_columns(runs, set(unused) | set(spec.input_columns), data.ts.shape[1])
-    say(f"scoring {len(places)} candidate effects")
+    laws = _learned_places(spec, lowered, unused)
+    say(f"scoring {len(places)} candidate effects and {len(laws)} learned laws")
     try:
-        cands = score_candidates(result, data, thermal, columns, weights, r, J,
+        cands = score_candidates(result, data, thermal + laws, columns, weights, r, J,
                                  deflation=step.deflation(white_p if white_p is not None
                                                           else 0.01), whiten=whiten,
                                  states=states)
@@ -619,13 +640,33 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     cands += _viscoelastic_candidates(step, runs, places,
                                       white_p if white_p is not None else 0.01)
     cands.sort(key=lambda c: -c.score if np.isfinite(c.score) else math.inf)
-    refit_best(cands, refits, lambda wave: _refit_side_by_side(
-        wave, step, runs, likelihood, set(unused), initial, say,
-        white_p if white_p is not None else 0.01))
+
+    def wave(w):
+        return _refit_side_by_side(w, step, runs, likelihood, set(unused), initial, say,
+                                   white_p if white_p is not None else 0.01)
+
+    refit_best([c for c in cands if c.learned is None], refits, wave)
+    # The best learned law significant by its score is refitted too, beside the kinds
+    # (never instead of them: a law may mimic a kind, and the kind is the simpler form).
+    best_law = [c for c in cands if c.learned is not None and c.p_value < fdr][:1]
+    if refits:
+        refit_best(best_law, 1, wave)
     cands.sort(key=lambda c: (c.method != "refit",
                               -c.score if np.isfinite(c.score) else math.inf))
     judge(cands, fdr, separation_advice)
+    prefer_vocabulary(cands)
     return cands
+
+
+def _learned_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str]) -> list:
+    """The library's laws at every place (`discovery.learned_places`): the unused columns
+    and the model's own power columns as inputs, except a law the model already holds."""
+    roles = {**unused, **{h.input: "power" for h in spec.heat_inputs}}
+    have = {(tuple(e.where), e.expression) for e in spec.effects if e.kind == "expression"}
+    return [(law, where) for law, where in learned_places(lowered, roles)
+            if (tuple(where), law.text(where)) not in have
+            and not any(w in set(lowered.node_names) - set(spec.node_names) - {
+                e.name for e in spec.effects if e.kind == "extra_node"} for w in where)]
 
 
 SEPARATION = {
@@ -901,8 +942,9 @@ def confirmed_optimum(step: Step, runs, likelihood, say) -> Step:
 
 def _added(c: Candidate) -> dict:
     """The `added` entry of the record of the step that adds `c` (`c.result`)."""
-    added = next(e for e in c.result.spec.effects if (e.kind, tuple(e.where)) == c.key)
+    added = added_effect(c.result.spec, c)
     return {"kind": added.kind, "where": list(added.where),
+            **({"expression": added.expression} if added.expression else {}),
             "parameters": {k: p.value for k, p in added.parameters.items()},
             **({"name": added.name} if added.name else {}),
             **({"hold": added.hold} if added.hold else {})}
@@ -916,40 +958,43 @@ def _extend(current: Step, chosen: Candidate, runs, likelihood) -> Step:
     return nxt
 
 
-def record_missing_heat(step: Step, runs, out: Path | None, i: int, white_p: float,
-                        say) -> None:
+def record_missing_heat(step: Step, out: Path | None, i: int, white_p: float, say):
     """When a column of `step` is not white, reconstruct the missing heat
     (`discovery.missing_heat`), write it as `step<i>_missing_heat.csv` in `out` and put
-    its summary in the step's record (`missing_heat`, with each carrying node's best law
-    of the library), and the nodes no law explains in `unexplained`. A failure is a
-    note, not the end of the loop."""
-    from ..discovery import explain, missing_heat, write_missing_heat
+    its summary in the step's record (`missing_heat`). A failure is a note, not the end
+    of the loop.
+
+    **Returns:** the `MissingHeat`, or None (white, or the reconstruction failed)."""
+    from ..discovery import missing_heat, write_missing_heat
 
     rec = step.record
     if all(p is not None and p > white_p for p in rec["whiteness_p"].values()):
-        return
+        return None
     say(f"step {i}: reconstructing the missing heat")
     try:
         mh = missing_heat(step.result, say=say)
         name = f"step{i}_missing_heat.csv"
         if out is not None:
             write_missing_heat(mh, Path(out) / name)
-        file = name if out is not None else None
-        rec["missing_heat"] = mh.summary(file)
-        # Preliminary (issue 33): the library's best law per node and the nodes it leaves
-        # unexplained. Not yet the contract's `unexplained` list nor `expression`
-        # candidates: on generated cases the regression on the smoothed heat still
-        # misses a power law the library holds (docs/formats.md §3a status).
-        unexplained, laws = explain(mh, step.result.lowered_spec, runs, file)
-        rec["missing_heat"]["unexplained_by_library"] = unexplained
-        for node, law in laws.items():
-            rec["missing_heat"]["per_node"][node].update(law)
-            say(f"missing heat at {node}: best law {law['law'] or '(none)'} "
-                f"(R² {law['law_r2']:.2f})")
+        rec["missing_heat"] = mh.summary(name if out is not None else None)
+        return mh
     except Exception as err:  # the reconstruction could not run: say why
         rec["missing_heat"] = {"file": None,
                                "note": f"could not reconstruct: {type(err).__name__}: {err}"[:300]}
         say(rec["missing_heat"]["note"])
+        return None
+
+
+def record_unexplained(step: Step, mh, say) -> None:
+    """The step's `unexplained` list (spec §3a) when no candidate, of the vocabulary or
+    the library, explained its non-white residuals: the missing heat described."""
+    from ..discovery import unexplained
+
+    if mh is None:
+        return
+    step.record["unexplained"] = unexplained(mh, step.record["missing_heat"]["file"])
+    for u in step.record["unexplained"]:
+        say(f"unexplained at {u['where'][0]}: {u['what']}")
 
 
 def _unexplained(record: dict, white_p: float) -> str:
@@ -1010,7 +1055,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
             _plot_ahead(plots, out, i, current)
             if out is not None:
                 out.mkdir(parents=True, exist_ok=True)
-            record_missing_heat(current, runs, out, i, white_p, say)
+            missing = record_missing_heat(current, out, i, white_p, say)
             cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say,
                                   white_p=white_p, initial=spec)
             chosen = _choose(cands, current, runs, likelihood, holdout_check, say, held_out,
@@ -1021,6 +1066,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
                 rec["separation"] = separation_advice({chosen.kind, *(k for k, _ in
                                                                        chosen.tied_with)})
             if chosen is None:
+                record_unexplained(current, missing, say)
                 stopped = "no_supported_candidate"
                 break
             current = _extend(current, chosen, runs, likelihood)

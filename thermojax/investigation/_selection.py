@@ -92,6 +92,22 @@ def judge(cands: list[Candidate], fdr: float, separation_advice) -> None:
             c.note = "; ".join(filter(None, (tie, c.note)))
 
 
+def prefer_vocabulary(cands: list[Candidate]) -> None:
+    """A learned law (`expression` candidate) stays supported only if its Δ BIC is at
+    least `MIN_BIC_DROP` below that of every supported kind of the vocabulary: where a
+    named kind explains the data as well, the simpler, named form is kept."""
+    kinds = [c for c in cands if c.supported and c.learned is None]
+    for c in cands:
+        if c.learned is None or not c.supported:
+            continue
+        rival = min(kinds, key=lambda k: k.delta_bic, default=None)
+        if rival is not None and c.delta_bic > rival.delta_bic - MIN_BIC_DROP:
+            c.supported = False
+            c.note = "; ".join(filter(None, (
+                f"{rival.kind} {list(rival.where)} explains as much (Δ BIC {rival.delta_bic:.1f} "
+                f"against {c.delta_bic:.1f}): the named kind is kept", c.note)))
+
+
 @dataclass
 class FoldVote:
     """One held-out fold: its gain (−log L of the held-out samples without the effect
