@@ -222,3 +222,34 @@ def test_an_unmeasured_node_that_mimicked_the_effect_is_named():
     assert moved == {"pcb": ["nodes.pcb.capacitance"]}  # housing is measured: not named
     # shifts within their noise, or large in std but tiny in share, name nothing
     assert absorbing_nodes(before, step(6.2, 0.41, 25.0)) == {}
+
+
+def test_a_learned_law_must_beat_every_supported_kind_after_deflation():
+    """The simpler, named form wins unless the law's deflated Δ BIC is 10 lower: the
+    numbers of the generated heat source beside a missing mass (LR 8854.7 for the law
+    with 2 parameters more, 8818.1 for heat_source, N = 1440, deflation 3)."""
+    from thermojax.discovery import LIBRARY, LearnedLaw
+    from thermojax.investigation._candidates import Candidate
+    from thermojax.investigation._selection import prefer_vocabulary
+
+    ln_n = math.log(1440)
+
+    def cand(kind, lr, k, deflation, learned=None):
+        return Candidate(kind, ("pcb",), lr, 0.0, method="refit", supported=True,
+                         delta_bic=-lr + k * ln_n, lr_deflation=deflation, learned=learned)
+
+    law = LearnedLaw(LIBRARY[1], "P_aux")
+    for deflation, kept in ((3.0, False), (1.0, True)):
+        # by hand: -LR/D + k ln N, law minus kind, against -10
+        gap = (-8854.7 / deflation + 3 * ln_n) - (-8818.1 / deflation + 1 * ln_n)
+        assert (gap <= -10) == kept
+        c, k = cand("expression", 8854.7, 3, deflation, law), cand("heat_source", 8818.1, 1,
+                                                                     deflation)
+        prefer_vocabulary([c, k])
+        assert c.supported == kept and k.supported
+        assert kept or "heat_source" in c.note
+    # an unsupported kind is no rival
+    c, k = cand("expression", 8854.7, 3, 3.0, law), cand("heat_source", 8818.1, 1, 3.0)
+    k.supported = False
+    prefer_vocabulary([c, k])
+    assert c.supported

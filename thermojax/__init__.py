@@ -2,7 +2,7 @@
 
 The everyday API is re-exported lazily (module-level `__getattr__`) from the stage
 subpackages, in the order data flows through them: `model` -> `measurements` ->
-`dynamics` -> `fitting` -> `investigation`, with `cli` on top. `import thermojax`
+`dynamics` -> `fitting` -> `discovery` -> `investigation`, with `cli` on top. `import thermojax`
 alone loads no JAX. Importing any stage switches JAX to float64 (`jax_enable_x64`):
 stiff thermal networks need it.
 """
@@ -26,6 +26,8 @@ _STAGES = {
     "fitting": ["fit", "FitResult", "profile_interval", "TruncatedGaussNewton", "kalman_nll",
                 "simulate_dataset", "identifiability", "comparison_table", "write_fit_outputs",
                 "fit_bias"],
+    "discovery": ["missing_heat", "write_missing_heat", "MissingHeat", "LIBRARY",
+                  "LibraryTerm"],
     "investigation": ["investigate", "diagnose", "evaluate"],
     "observer": ["Observer", "run_observer", "design_observer", "observability",
                  "sensor_placement", "observer_poles", "place_observer_gain",

@@ -31,6 +31,9 @@ class LibraryTerm:
     places: str  # "pair" ({a}, {b}), "input" ({a}, {u}) or "node" ({a})
     shape: tuple[str, ...] = ()  # the shape parameters' names in the template
     trials: tuple[tuple[float, ...], ...] = ()  # their values tried by the score test
+    # the kind of the vocabulary the law reduces to at some shape (where as a template of
+    # {a}, {b}, {u}); the loop refits it beside the law, the simpler form
+    nested: tuple[str, tuple[str, ...]] | None = None
 
 
 def _grid(*axes):
@@ -48,7 +51,8 @@ LIBRARY: list[LibraryTerm] = [
     # grows with the node's temperature (a resistance or leakage rising with T)
     LibraryTerm("power of a column growing exponentially with temperature",
                 "c * {u}^p * exp(k * ({a} - 25))", "input", ("p", "k"),
-                _grid((1.0, 2.0, 3.0), (0.0, 0.01, 0.02, 0.05))),
+                _grid((1.0, 2.0, 3.0), (0.0, 0.01, 0.02, 0.05)),
+                nested=("heat_source", ("{u}", "{a}"))),  # p = 1, k = 0
     # self-heating that grows with the node's own temperature (leakage current)
     LibraryTerm("exponential of a temperature", "c * exp(k * ({a} - 25))", "node", ("k",),
                 _grid((0.02, 0.05, 0.1))),
@@ -104,6 +108,13 @@ class LearnedLaw:
                 w[..., ctx.node(where[1])] -= flow
             out.append(w)
         return "heat", out
+
+    def nested_kind(self, where) -> tuple[str, tuple[str, ...]] | None:
+        """`(kind, where)` of the kind of the vocabulary this law reduces to, or None."""
+        if self.term.nested is None:
+            return None
+        fill = {"a": where[0], "b": where[-1], "u": self.column}
+        return self.term.nested[0], tuple(w.format(**fill) for w in self.term.nested[1])
 
     def columns(self, where, is_node) -> list[str]:
         """The data columns the law reads at `where`."""

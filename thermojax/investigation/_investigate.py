@@ -649,8 +649,12 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     # The best learned law significant by its score is refitted too, beside the kinds
     # (never instead of them: a law may mimic a kind, and the kind is the simpler form).
     best_law = [c for c in cands if c.learned is not None and c.p_value < fdr][:1]
-    if refits:
+    if refits and best_law:
         refit_best(best_law, 1, wave)
+        # the kind the law reduces to (a column's heat_source), refitted too if it was
+        # not: the law must beat the simpler form it nests (`prefer_vocabulary`)
+        nested = best_law[0].learned.nested_kind(best_law[0].where)
+        refit_best([c for c in cands if c.learned is None and c.key == nested], 1, wave)
     cands.sort(key=lambda c: (c.method != "refit",
                               -c.score if np.isfinite(c.score) else math.inf))
     judge(cands, fdr, separation_advice)
