@@ -16,6 +16,7 @@ import numpy as np
 
 from .._errors import InputError
 from ._progress import Progress
+from ._compensate import add_compensate
 from ._export import add_export
 from ._calibrate import add_calibrate
 from ._montecarlo import add_montecarlo
@@ -555,6 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_resample(sub)
     _add_demo(sub)
     add_export(sub)
+    add_compensate(sub)
     add_calibrate(sub)
     add_montecarlo(sub)
     return parser
@@ -570,7 +572,7 @@ _STAGED = ("nothing was written: the output is put in place only when complete; 
            "command again to start over")
 _INTERRUPTED = {
     "simulate": _STAGED, "resample": _STAGED, "fit": _STAGED, "diagnose": _STAGED,
-    "export": _STAGED, "calibrate": _STAGED,
+    "export": _STAGED, "calibrate": _STAGED, "compensate": _STAGED,
     "investigate": "the finished steps are kept in the output folder; started again with "
                    "the same model and data it resumes after the last one (--restart starts "
                    "afresh)",

@@ -1,0 +1,53 @@
+"""`thermojax compensate` (docs/formats.md §5): one input reconstructed from a log's
+sensor columns, written as `time_s`, `COLUMN`, `COLUMN_std`. Edges only."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ._outputs import check_output_file, staged_file
+
+
+def cmd_compensate(args) -> int:
+    from .. import io
+    from ..observer._compensate import compensate
+    from ._main import _resolve_model
+
+    out = Path(args.out)
+    check_output_file(out, args.force)
+    spec = io.load_model(_resolve_model(args.model))
+    telemetry = io.read_telemetry(args.data)
+    args.progress(f"reconstructing {args.input} from {', '.join(spec.sensor_columns)}")
+    result = compensate(spec, telemetry, args.input, args.input_noise, say=args.progress)
+    how = "chosen by maximum likelihood" if result.chosen else "given"
+    with staged_file(out) as tmp:
+        io.write_telemetry(tmp, result.ts, {args.input: result.estimate,
+                                            f"{args.input}_std": result.std}, comments=[
+            f"written by thermojax compensate from {args.data} with {args.model}",
+            f"{args.input} reconstructed by the steady-state Kalman observer (causal, as "
+            f"firmware runs it); input noise {result.input_noise:.4g} °C/√s ({how}); "
+            f"{args.input}_std is its steady-state std"])
+    print(f"{args.input}: input noise {result.input_noise:.4g} °C/√s ({how}), steady-state "
+          f"std {result.std[-1]:.4g}; wrote {out}")
+    return 0
+
+
+def add_compensate(sub) -> None:
+    from ._main import _add_force, _add_quiet, _positive_float
+
+    p = sub.add_parser(
+        "compensate", help="reconstruct an input (the fluid a lagging sensor sees) from a log",
+        description="Reconstruct one input of the model (the fast temperature a lagging "
+        "sensor sees) from the sensor columns of a log, by the observer firmware runs: the "
+        "input as a random-walk state, a steady-state Kalman gain, at the log's sample "
+        "period. Writes time_s, COLUMN and COLUMN_std. The input's diffusion (the speed / "
+        "noise trade-off) is chosen by maximum likelihood unless --input-noise is given.")
+    p.add_argument("--model", required=True, help="model TOML file or built-in model name")
+    p.add_argument("--data", required=True, help="the log (telemetry CSV, uniform samples)")
+    p.add_argument("--input", required=True, help="the input column to reconstruct")
+    p.add_argument("--out", required=True, help="CSV to write")
+    p.add_argument("--input-noise", type=_positive_float, default=None,
+                   help="the input's diffusion std, °C/√s (default: maximum likelihood)")
+    _add_force(p, "an existing --out file")
+    _add_quiet(p)
+    p.set_defaults(func=cmd_compensate)
