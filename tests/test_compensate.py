@@ -49,6 +49,7 @@ def test_compensate_recovers_the_fluid_far_faster_than_the_sensor(tmp_path, caps
     # between steps (10 s after one) the reconstruction sits within its 3-std band
     calm = (ts % 60 > 10.0) & settled
     assert np.mean(np.abs(est - fluid)[calm] <= 3 * std[calm]) > 0.95
+    assert out.with_suffix(".png").stat().st_size > 10_000  # sensor, estimate and band
     # written by thermojax: a second run may replace it
     assert main(["compensate", "--model", str(CONFIGS / "rtd2.toml"), "--data", str(path),
                  "--input", "T_fluid", "--out", str(out), "--input-noise", "0.5",

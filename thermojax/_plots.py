@@ -78,7 +78,7 @@ def save_figure(fig, path: str | Path, tight: bool = True) -> Path:
     if tight:
         fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=DPI)
+    fig.savefig(path, dpi=DPI, metadata={"Software": "thermojax"})
     return path
 
 

@@ -15,6 +15,13 @@ def cmd_compensate(args) -> int:
 
     out = Path(args.out)
     check_output_file(out, args.force)
+    figure = out.with_suffix(".png")
+    if figure.exists() and not args.force and b"thermojax" not in figure.read_bytes()[:4096]:
+        from .._errors import InputError
+
+        raise InputError("the plot beside --out exists and was not written by thermojax; "
+                         "choose another --out, or pass --force to replace it.",
+                         file=str(figure), field="--out")
     spec = io.load_model(_resolve_model(args.model))
     telemetry = io.read_telemetry(args.data)
     args.progress(f"reconstructing {args.input} from {', '.join(spec.sensor_columns)}")
@@ -27,9 +34,33 @@ def cmd_compensate(args) -> int:
             f"{args.input} reconstructed by the steady-state Kalman observer (causal, as "
             f"firmware runs it); input noise {result.input_noise:.4g} °C/√s ({how}); "
             f"{args.input}_std is its steady-state std"])
+    _plot(figure, telemetry, spec, args.input, result)
     print(f"{args.input}: input noise {result.input_noise:.4g} °C/√s ({how}), steady-state "
-          f"std {result.std[-1]:.4g}; wrote {out}")
+          f"std {result.std[-1]:.4g}; wrote {out} and {figure}")
     return 0
+
+
+def _plot(path: Path, telemetry, spec, column: str, result) -> None:
+    """The sensors, the reconstructed input with its ±2 std band, and the log's own
+    column when it has one (a reference), against time."""
+    from .._plots import column_unit, new_figure, save_figure
+
+    fig = new_figure()
+    ax = fig.add_subplot()
+    t = result.ts
+    for c in spec.sensor_columns:
+        ax.plot(t, telemetry.column(c), lw=0.8, label=f"{c} (sensor)")
+    if column in telemetry.names:
+        ax.plot(t, telemetry.column(column), lw=0.8, color="k", ls="--",
+                label=f"{column} (logged)")
+    ax.fill_between(t, result.estimate - 2 * result.std, result.estimate + 2 * result.std,
+                    alpha=0.3, color="C3", lw=0)
+    ax.plot(t, result.estimate, lw=0.9, color="C3", label=f"{column} reconstructed ±2 std")
+    ax.set_xlabel("time, s")
+    ax.set_ylabel(column_unit(column))
+    ax.legend()
+    ax.set_title(f"thermojax compensate: {column}")
+    save_figure(fig, path)  # its metadata names thermojax: a later run may replace it
 
 
 def add_compensate(sub) -> None:
