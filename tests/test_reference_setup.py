@@ -18,7 +18,7 @@ import thermojax.reference as ref
 
 DT = 0.05            # 20 Hz observer
 T_REF = 35.0         # fixed-point reference temperature (°C)
-Q_DIFFUSION = 0.01   # stated default process noise: K/sqrt(s) on every node (imu6 has none)
+Q_DIFFUSION = 0.01   # the test builders' process noise, K/sqrt(s) on every node (export uses 1e-3)
 SENSOR_NOISE = 0.01  # K, the model file's sensor noise
 
 
