@@ -1,8 +1,10 @@
 """The missing heat (docs/formats.md §3a): the heat flow per node that no term of a fitted
 model accounts for, as a time series with its uncertainty.
 
-Around the fitted model's free run `x_sim(t)`, the error `δx = x − x_sim` obeys the
-model's linear(ized) dynamics driven by a disturbance heat `d` (W) on some nodes, a
+Around the fitted model's free run `x_sim(t)` (nonlinear terms included), the error
+`δx = x − x_sim` obeys the model's linear part (for a nonlinear model its terms'
+Jacobians are left out of the error dynamics: an approximation where they are strong)
+driven by a disturbance heat `d` (W) on some nodes, a
 random walk of intensity `σ_i = s · C_i` (W/√s; `s` in K/s/√s, `C_i` the node's
 capacitance):
 
