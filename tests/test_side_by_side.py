@@ -118,7 +118,9 @@ def test_refits_side_by_side_give_the_one_at_a_time_answer(tmp_path, monkeypatch
         reports.append(thermojax.investigate(spec, runs, max_steps=1, refits=4))
     steps = [r["steps"][0]["candidates"] for r in reports]
     refitted = [c for c in steps[0] if c["method"] == "refit"]
-    assert len(refitted) == 4
+    # the four best kinds, and the best learned law (refitted beside them)
+    assert len([c for c in refitted if c["kind"] != "expression"]) == 4
+    assert len([c for c in refitted if c["kind"] == "expression"]) <= 1
     assert steps[0] == steps[1]
     assert reports[0]["steps"][1]["parameters"] == reports[1]["steps"][1]["parameters"]
 

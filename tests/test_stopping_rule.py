@@ -129,7 +129,11 @@ def test_a_refit_gone_non_finite_fails_softly(tmp_path, monkeypatch):
     assert report["stopped_because"] == "no_supported_candidate"
     cands = report["steps"][0]["candidates"]
     failed = [c for c in cands if c["note"].startswith("refit from")]
-    assert len(failed) == 2 and not any(c["supported"] for c in cands)
+    # the best kind (refits=1) plus one tried after its failure, and the best learned law
+    # (refitted beside the kinds): every one failed softly
+    assert len([c for c in failed if c["kind"] != "expression"]) == 2
+    assert len([c for c in failed if c["kind"] == "expression"]) <= 1
+    assert not any(c["supported"] for c in cands)
     # every start failed, the retry from the nested optimum (the effect at zero) last
     assert all(c["method"] == "score" for c in failed)
     assert "not finite" in failed[0]["note"] and "nested model's optimum" in failed[0]["note"]
