@@ -68,7 +68,6 @@ class LearnedLaw:
     term: LibraryTerm
     column: str | None = None  # {u}
     kind: str = "expression"
-    nonlinear: bool = True
 
     def text(self, where) -> str:
         fill = {"a": where[0]}

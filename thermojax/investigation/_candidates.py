@@ -128,12 +128,18 @@ def column_role(name: str, values: np.ndarray) -> str:
     return "other"
 
 
+def helper_nodes(spec: ModelSpec, lowered: ModelSpec) -> set[str]:
+    """Nodes lowering made that the model file does not name (a lag's sensing element):
+    no candidate acts on them."""
+    return set(lowered.node_names) - set(spec.node_names) - {
+        e.name for e in spec.effects if e.kind == "extra_node"}
+
+
 def enumerate_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str]
                      ) -> list[tuple[str, tuple[str, ...]]]:
     """Every `(kind, where)` the vocabulary allows on `spec` (its lowered form `lowered`),
     except effects it already has and places on helper nodes lowering made."""
-    helpers = set(lowered.node_names) - set(spec.node_names) - {
-        e.name for e in spec.effects if e.kind == "extra_node"}
+    helpers = helper_nodes(spec, lowered)
     have = {(e.kind, tuple(e.where)) for e in spec.effects}
     # Paths an extra_node effect made (its mass to its ends): their conductances are that
     # effect's parameters, so a second mass cannot split them; it may go on the far side.

@@ -32,8 +32,8 @@ import numpy as np
 import dataclasses
 
 from ..fitting._bias import fit_bias, viscoelastic_candidate
-from ._candidates import (Candidate, column_role,
-                          enumerate_places, new_effect, refit_p_value, score_candidates)
+from ._candidates import (Candidate, column_role, enumerate_places, helper_nodes,
+                          new_effect, refit_p_value, score_candidates)
 from ..measurements._data import Experiment
 from ..fitting._fit import FitResult, fit, output_error_at, standardized_innovations
 from ..fitting._side_by_side import side_by_side
@@ -667,10 +667,9 @@ def _learned_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str])
     and the model's own power columns as inputs, except a law the model already holds."""
     roles = {**unused, **{h.input: "power" for h in spec.heat_inputs}}
     have = {(tuple(e.where), e.expression) for e in spec.effects if e.kind == "expression"}
+    helpers = helper_nodes(spec, lowered)
     return [(law, where) for law, where in learned_places(lowered, roles)
-            if (tuple(where), law.text(where)) not in have
-            and not any(w in set(lowered.node_names) - set(spec.node_names) - {
-                e.name for e in spec.effects if e.kind == "extra_node"} for w in where)]
+            if (tuple(where), law.text(where)) not in have and not helpers & set(where)]
 
 
 SEPARATION = {

@@ -57,11 +57,13 @@ def significance_rule(fdr: float, n_blocks: int) -> str:
         "inconclusive and the likelihood-ratio test decides")
 
 
-def deflated_delta_bic(c: Candidate) -> float:
-    """Δ BIC with the likelihood ratio divided by the candidate's long-run variance ratio."""
+def deflated_delta_bic(c: Candidate, deflation: float | None = None) -> float:
+    """Δ BIC with the likelihood ratio divided by a long-run variance ratio: the
+    candidate's own (`lr_deflation`) unless `deflation` is given."""
     if c.delta_bic is None or not np.isfinite(c.score):
         return float("nan")
-    return float(c.delta_bic + c.score * (1.0 - 1.0 / max(c.lr_deflation, 1.0)))
+    d = max(c.lr_deflation if deflation is None else deflation, 1.0)
+    return float(c.delta_bic + c.score * (1.0 - 1.0 / d))
 
 
 def judge(cands: list[Candidate], fdr: float, separation_advice) -> None:
@@ -101,9 +103,7 @@ def prefer_vocabulary(cands: list[Candidate]) -> None:
     column gained 37 in likelihood ratio over the heat source, 2 parameters more, with
     the mass still absent). Where a named kind explains the data as well, the simpler,
     named form is kept."""
-    def dbic(c, deflation):
-        return float(c.delta_bic + c.score * (1.0 - 1.0 / deflation))
-
+    dbic = deflated_delta_bic
     kinds = [c for c in cands if c.supported and c.learned is None]
     for c in cands:
         if c.learned is None or not c.supported:

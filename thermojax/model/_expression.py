@@ -77,19 +77,18 @@ class _Parser:
             raise ExpressionError(f"unexpected {tok[1]!r} at position {tok[2]}")
         return tree
 
-    def sum(self):
-        tree = self.product()
-        while self.peek()[1] in ("+", "-") and self.peek()[0] == "op":
-            op = self.take()[1]
-            tree = ("bin", op, tree, self.product())
+    def left(self, operand, ops):
+        """`operand (op operand)*` for `op` in `ops`, left-associative."""
+        tree = operand()
+        while self.peek()[0] == "op" and self.peek()[1] in ops:
+            tree = ("bin", self.take()[1], tree, operand())
         return tree
 
+    def sum(self):
+        return self.left(self.product, ("+", "-"))
+
     def product(self):
-        tree = self.unary()
-        while self.peek()[1] in ("*", "/") and self.peek()[0] == "op":
-            op = self.take()[1]
-            tree = ("bin", op, tree, self.unary())
-        return tree
+        return self.left(self.unary, ("*", "/"))
 
     def unary(self):
         if self.peek()[0] == "op" and self.peek()[1] in ("-", "+"):

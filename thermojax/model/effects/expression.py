@@ -8,9 +8,7 @@ enumerated from places: the discovery stage proposes them from the missing heat.
 
 from __future__ import annotations
 
-import numpy as np
-
-from .._expression import evaluate, evaluate_numpy, parse, resolve
+from .._expression import evaluate, parse, resolve
 from ._base import PathEffect, Term
 
 
@@ -42,12 +40,3 @@ class Expression(PathEffect):
     def score_direction(self, ctx, where):
         raise NotImplementedError("expression candidates are refitted, not score-tested")
 
-
-def expression_flow(spec, effect, T, u, values=None) -> np.ndarray:
-    """The law's heat flow (W) in NumPy at node temperatures `T` (..., nodes) and inputs
-    `u` (..., inputs) of `spec` (lowered), with the effect's parameter values (or
-    `values`)."""
-    params = tuple(effect.parameters)
-    program = resolve(parse(effect.expression), spec.node_names, spec.input_columns, params)
-    p = [effect.parameters[k].value for k in params] if values is None else values
-    return np.broadcast_to(evaluate_numpy(program, T, u, p), np.shape(T)[:-1])
