@@ -46,6 +46,11 @@ VERIFICATION_PROGRAMME = (
     ("soak", 10.0, 600.0), ("ramp", 70.0, 3.0), ("soak", 70.0, 2400.0),
     ("step", 0.0, 3000.0), ("ramp", 40.0, 2.0), ("soak", 40.0, 1200.0),
 )
+#: The packaged example (`thermojax/data/calibration/`, copies of the repository's
+#: `configs/imu6_bias.toml` and `configs/calibration/`): the truth the logs are
+#: simulated from, the calibration config and its start model.
+EXAMPLE_FOLDER = Path(__file__).resolve().parents[1] / "data" / "calibration"
+EXAMPLE_TRUTH = EXAMPLE_FOLDER / "imu6_bias_truth.toml"
 #: The example's runs: name -> (programme, use).
 EXAMPLE_RUNS = {
     "plateaus": (CALIBRATION_PROGRAMME, "calibration"),
@@ -167,8 +172,8 @@ def synthetic_imu_logs(out_dir, *, model=None, runs=None, temperature_dt_s: floa
     - `out_dir`: folder to write into (created): `<run>_temperature.csv`,
       `<run>_inertial.csv`.
     - `model`: the truth, a model file path or `ModelSpec` with fitted bias coefficients
-      (default `configs/imu6_bias.toml` of the repository, or the built-in `imu6` is not
-      enough: it has no bias channel).
+      (default `EXAMPLE_TRUTH`, the packaged copy of the repository's
+      `configs/imu6_bias.toml`; the built-in `imu6` is not enough: it has no bias channel).
     - `runs`: name -> programme (see `CALIBRATION_PROGRAMME`) or (programme, use); default
       `EXAMPLE_RUNS`.
     - `temperature_dt_s`: temperature-log period, s.
@@ -190,7 +195,7 @@ def synthetic_imu_logs(out_dir, *, model=None, runs=None, temperature_dt_s: floa
     from ..model._model_file import load_model
 
     if model is None:
-        model = Path(__file__).resolve().parents[2] / "configs" / "imu6_bias.toml"
+        model = EXAMPLE_TRUTH
     spec = load_model(model) if not hasattr(model, "biases") else model
     if not spec.biases or any(b.coefficients is None for b in spec.biases):
         raise InputError("the truth model needs bias channels with coefficients.",
@@ -232,3 +237,17 @@ def synthetic_imu_logs(out_dir, *, model=None, runs=None, temperature_dt_s: floa
                                      {b.column: bias[:, j] for j, b in enumerate(spec.biases)},
                                      rows)
     return written
+
+
+def write_example_config(out_dir) -> Path:
+    """Write the example calibration config and its start model into `out_dir`, beside
+    the logs `synthetic_imu_logs(out_dir)` writes (the config's runs are read from the
+    same folder). Returns the config's path."""
+    out = Path(out_dir)
+    text = (EXAMPLE_FOLDER / "imu6_bias.toml").read_text(encoding="utf-8")
+    config = out / "imu6_bias.toml"
+    config.write_text(text.replace('"data/', '"'), encoding="utf-8")
+    start = "imu6_bias_start.toml"
+    (out / start).write_text((EXAMPLE_FOLDER / start).read_text(encoding="utf-8"),
+                             encoding="utf-8")
+    return config

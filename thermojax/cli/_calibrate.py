@@ -14,14 +14,17 @@ def cmd_calibrate(args) -> int:
     from ..calibration._report import write_results
 
     if args.make_example_data is not None:
-        from ..calibration._synthetic import synthetic_imu_logs
+        from ..calibration._synthetic import synthetic_imu_logs, write_example_config
 
         out = Path(args.make_example_data)
-        args.progress(f"simulating the example runs of configs/imu6_bias.toml into {out}")
+        args.progress(f"simulating the example runs (truth: configs/imu6_bias.toml) into {out}")
         runs = synthetic_imu_logs(out)
         for r in runs.values():
             print(f"wrote {r.temperature_file}")
             print(f"wrote {r.inertial_file}")
+        config = write_example_config(out)
+        print(f"wrote {config} and {config.with_name('imu6_bias_start.toml')}; next: "
+              f"thermojax calibrate {config}")
         return 0
     if args.config is None:
         raise InputError("name a calibration config (or --make-example-data DIR).",
@@ -64,7 +67,9 @@ def add_calibrate(sub):
                    help="results folder (default: CONFIG's name with _results, beside it)")
     p.add_argument("--make-example-data", metavar="DIR", default=None,
                    help="only write the example's synthetic logs (configs/imu6_bias.toml "
-                   "truth) into DIR, for configs/calibration/imu6_bias.toml")
+                   "truth) into DIR, with the example config DIR/imu6_bias.toml that reads "
+                   "them (also for configs/calibration/imu6_bias.toml: DIR = "
+                   "configs/calibration/data)")
     _add_force(p, "an existing --out folder")
     _add_quiet(p)
     p.set_defaults(func=cmd_calibrate)
