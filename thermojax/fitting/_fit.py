@@ -30,8 +30,12 @@ from .._errors import InputError
 from ._kalman_fit import fit_kalman, standardized_innovations
 from ._output_error import fit_output_error, output_error_at
 from ._problem import LIKELIHOODS, Solution, prepare
+from ._size import check_fit_size
 from ._profile import profile_interval
 from ._summary import FitResult, summarize
+
+#: s; a fit predicted to take longer says so before it starts (`fitting._size`).
+LONG_FIT_S = 120.0
 
 __all__ = ["FitResult", "LIKELIHOODS", "fit", "output_error_at", "profile_interval",
            "standardized_innovations"]
@@ -71,6 +75,12 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     t_start = time.perf_counter()
     say = progress or (lambda _msg: None)
     prep = prepare(spec, experiments, likelihood, holdout)
+    cost = check_fit_size(prep.template.model.network.topology.n_nodes, len(prep.names),
+                          spec.source)
+    if cost.seconds > LONG_FIT_S:
+        say(f"a large fit: {len(prep.names)} free parameters of {cost.n_states} states, "
+            f"about {cost.bytes / 1e9:.1f} GB and roughly {cost.seconds / 60:.0f} min on a "
+            "2-core machine (fixing parameters known from design shortens it)")
     kalman = likelihood == "kalman"
     if kalman:
         sol = _kalman_stages(prep, solver, max_steps, prior_log_std, n_starts, seed, say)
