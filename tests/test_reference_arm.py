@@ -1,0 +1,92 @@
+"""The generated C on ARM: cross-compiled for an ARM Linux target (armhf, Thumb-2, hard
+float) and run under qemu-user, bit for bit against the NumPy reference; and compiled
+for a Cortex-M4 (Thumb-2, FPv4-SP hard float), whose step is counted instruction by
+instruction (benchmarks/observer_arm.py prints the table). The toolchains are Debian's
+`gcc-arm-linux-gnueabihf`, `libc6-dev-armhf-cross`, `qemu-user`, `gcc-arm-none-eabi`
+and `libnewlib-arm-none-eabi`
+(`.ci/run` installs them); a test is skipped, naming the missing tool, without them."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+import thermojax.reference as ref
+from thermojax.reference._arm import M4_FLAGS, count_step_instructions
+
+from test_reference_c import FAULTS, faulted_playback
+from test_reference_setup import IMU6_SCALING
+
+LINUX_CC, QEMU, M4_CC = "arm-linux-gnueabihf-gcc", "qemu-arm", "arm-none-eabi-gcc"
+STEPS = 6000
+WARN = ["-std=c99", "-O2", "-Wall", "-Wextra", "-pedantic", "-Werror", "-ffp-contract=off"]
+
+
+def _need(*tools):
+    missing = [t for t in tools if shutil.which(t) is None]
+    if missing:
+        pytest.skip(f"{', '.join(missing)} not installed (Debian: gcc-arm-linux-gnueabihf, "
+                    "libc6-dev-armhf-cross, qemu-user, gcc-arm-none-eabi, libnewlib-arm-none-eabi; "
+                    ".ci/run installs "
+                    "them)")
+
+
+def _observers():
+    system, u, y, x0, oc = faulted_playback()
+    u, y, oc = u[:STEPS], y[:STEPS], oc[:STEPS] | np.isnan(y[:STEPS])
+    obs = {"float64": ref.FloatObserver(system, FAULTS, dtype=np.float64),
+           "float32": ref.FloatObserver(system, FAULTS, dtype=np.float32)}
+    for fmt in ("q16.16", "q8.24"):
+        obs[fmt] = ref.FixedObserver(system, fmt, IMU6_SCALING[fmt], FAULTS)
+    return obs, (x0, u, y, oc)
+
+
+@pytest.mark.parametrize("build", ["float64", "float32", "q16.16", "q8.24"])
+def test_armhf_build_under_qemu_is_bit_exact(build, tmp_path):
+    _need(LINUX_CC, QEMU)
+    observers, (x0, u, y, oc) = _observers()
+    obs = observers[build]
+    if build.startswith("q"):
+        x0, u, y = obs.encode_states(x0), obs.encode_inputs(u), obs.encode_outputs(y)
+    want = obs.run(x0, u, y, oc)
+    src = ref.generate_c(obs, "obs")
+    paths = src.write(tmp_path)
+    exe = tmp_path / "obs_arm"
+    subprocess.run([LINUX_CC, *WARN, "-static", "-mthumb", "-march=armv7-a",
+                    "-mfpu=vfpv3-d16", "-mfloat-abi=hard", "-o", str(exe),
+                    str(paths["source"]), str(paths["harness"]), "-lm"], check=True,
+                   capture_output=True, text=True)
+    assert b"ARM" in subprocess.run(["file", str(exe)], capture_output=True).stdout \
+        if shutil.which("file") else True
+    (tmp_path / "in.bin").write_bytes(src.pack_playback(x0, u, y, oc))
+    subprocess.run([QEMU, str(exe), str(tmp_path / "in.bin"), str(tmp_path / "out.bin")],
+                   check=True, timeout=300)
+    got = src.unpack_output((tmp_path / "out.bin").read_bytes())
+    assert len(set(want.in_use.tolist())) >= 2          # a channel was dropped
+    assert np.array_equal(got.states.astype(want.states.dtype), want.states)
+    assert np.array_equal(got.residuals.astype(want.residuals.dtype), want.residuals)
+    for f in ("in_use", "healthy", "wire_break"):
+        assert np.array_equal(getattr(got, f), getattr(want, f))
+
+
+@pytest.mark.parametrize("build", ["float32", "q16.16"])
+def test_cortex_m4_build_compiles_and_is_counted(build, tmp_path):
+    _need(M4_CC)
+    observers, _ = _observers()
+    src = ref.generate_c(observers[build], "obs")
+    paths = src.write(tmp_path)
+    obj = tmp_path / "obs_m4.o"
+    subprocess.run([M4_CC, *WARN, *M4_FLAGS, "-c", "-o", str(obj), str(paths["source"])],
+                   check=True, capture_output=True, text=True)
+    count = count_step_instructions(obj, "obs")
+    # the step's multiply-accumulates alone (nonzero coefficients of [Phi B0 B1], [C D]
+    # and the full gain) are a floor: at least one instruction each
+    s = observers[build].system
+    macs = sum(int(np.count_nonzero(M)) for M in (np.hstack([s.Phi, s.B0, s.B1]),
+                                                   np.hstack([s.C, s.D]), s.L))
+    assert count["instructions"] >= macs
+    if build == "float32":   # single-precision FPU instructions, no double-precision calls
+        assert count["fpu"] > 0 and count["soft_float_calls"] == 0
