@@ -4,7 +4,8 @@ NumPy and the standard library only (no JAX): the filter-form observer with
 first-order-hold inputs in float64/float32 and in fixed point (Q16.16, Q8.24, Q15), the
 bias channels evaluated from the estimate (polynomial,
 gradients, exact rates, viscoelastic strain states), the firmware's channel supervision (plausibility, open circuit, ADC rails, wire break,
-reduced-order fallback gains), multi-rate bias interpolation through a double buffer,
+reduced-order fallback gains; untrusted inputs held at their last good value, state
+health and fixed-point saturation counts), multi-rate bias interpolation through a double buffer,
 the derived fixed-point error bound, and a C99 generator that repeats all of it.
 """
 
@@ -12,7 +13,7 @@ from ._artifact import ArtifactError, ObserverArtifact, load_observer
 from ._bias import BiasChannel, BiasEvaluator, FixedBiasEvaluator, bias_channels_from_metadata
 from ._bound import ErrorBound, error_series, quantization_error_bound
 from ._c_source import CSource, generate_c
-from ._faults import ChannelMonitor, FaultConfig
+from ._faults import ChannelMonitor, FaultConfig, default_input_limits
 from ._fixed import FixedObserver, FixedScaling
 from ._float import FloatObserver
 from ._formats import (FORMATS, Q15, Q8_24, Q16_16, FixedFormat, decode, encode, fixed_format,
@@ -26,6 +27,6 @@ __all__ = [
     "ErrorBound", "FORMATS", "FaultConfig", "FixedFormat", "FixedObserver", "FixedScaling",
     "FloatObserver", "MultiRateRun", "ObserverArtifact", "ObserverRun", "ObserverSystem",
     "Q15", "Q16_16", "Q8_24", "decode", "encode", "error_series", "fixed_format",
-    "bias_channels_from_metadata", "generate_c", "load_observer", "quantization_error_bound", "round_shift",
+    "bias_channels_from_metadata", "default_input_limits", "generate_c", "load_observer", "quantization_error_bound", "round_shift",
     "run_multirate", "saturate",
 ]

@@ -212,7 +212,11 @@ def load_observer(folder) -> ObserverArtifact:
                              residual_threshold=[np.inf if v is None else v
                                                  for v in f["residual_threshold_K"]],
                              wire_break_after=int(f["wire_break_after"]),
-                             recover_after=int(f["recover_after"]))
+                             recover_after=int(f["recover_after"]),
+                             # absent in artifacts written before input supervision: the
+                             # default (`default_input_limits`)
+                             input_limits=_rail_pairs(f.get("input_limits")))
+        faults.input_limits_array(system)          # checks the input limits' shape
     except (KeyError, TypeError, ValueError) as err:
         raise ArtifactError(f"the fault settings are incomplete or invalid ({err!r}).",
                             file=str(meta_path), field="faults") from None

@@ -71,8 +71,9 @@ class CSource:
     def pack_playback(self, x0, u, y, open_mask=None) -> bytes:
         """The harness's input file: `x0 (n,)`, `u (T, m)`, `y (T, p)` as words (codes for a
         fixed-point build), `open_mask (T,)` bytes or `(T, p)` booleans."""
-        u = np.asarray(u).astype(self.dtype, casting="unsafe")
-        y = np.asarray(y).astype(self.dtype, casting="unsafe")
+        with np.errstate(over="ignore", invalid="ignore"):   # float32: ±inf, as C would
+            u = np.asarray(u).astype(self.dtype, casting="unsafe")
+            y = np.asarray(y).astype(self.dtype, casting="unsafe")
         T = u.shape[0]
         if open_mask is None:
             oc = np.zeros(T, np.uint8)
@@ -92,7 +93,7 @@ class CSource:
         from ._run import ObserverRun
 
         fields = [("x", self.dtype, (self.n,)), ("r", self.dtype, (self.p,)),
-                  ("f", np.uint8, (3,))]
+                  ("f", np.uint8, (4,)), ("i", np.uint32), ("s", np.uint16)]
         bias_dtype = np.dtype(np.int32 if self.bias_word == "int32_t" else np.float64)
         if self.q:
             fields.append(("b", bias_dtype, (self.q,)))
@@ -102,7 +103,7 @@ class CSource:
             bias = rec["b"].astype(np.int64 if self.bias_word == "int32_t" else np.float64)
         return ObserverRun(rec["x"].astype(self.dtype), rec["r"].astype(self.dtype),
                            rec["f"][:, 0].copy(), rec["f"][:, 1].copy(), rec["f"][:, 2].copy(),
-                           bias)
+                           bias, rec["i"].copy(), rec["f"][:, 3].copy(), rec["s"].copy())
 
     def write(self, folder) -> dict:
         """Write `<prefix>.h`, `<prefix>.c` and `<prefix>_main.c` into `folder`."""
@@ -230,8 +231,8 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
     its sign; a zero of either sign gives the same values in every later sum, product and
     comparison (again up to the sign of zeros). So the build agrees with `FloatObserver`
     bit for bit up to the sign of an exact zero, and its flags agree exactly.
-    It needs finite inputs `u`: a zero coefficient times an infinity or NaN is NaN where
-    the rows layout skips it. Measurements may be anything: a channel whose value is not
+    The inputs it multiplies are finite: every input sample is checked first and a bad
+    one replaced by its last good value (below). Measurements may be anything: a channel whose value is not
     plausible is not in use, and the correction reads only the columns of the channels
     in use. The output product (`p` rows) is as in `"rows"`.
 
@@ -254,8 +255,9 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
     test and the wire-break flags without a finite residual threshold (the counter stays
     0, the flags down). The health and wire-break state lives in the lanes
     (`prefix_sup_h[]`, ...); `prefix_healthy` and `prefix_wire_break` are written from
-    them every step (outputs: a value written there from outside is not read back, as it
-    is by the branches). Cost (imu6, gcc 12, -O3 -march=x86-64-v3, instructions a step,
+    them every step (outputs: a value written there from outside is not read back; the
+    wire-break mask is read back by the branches, whose channel health lives in
+    `prefix_ch_healthy`). Cost (imu6, gcc 12, -O3 -march=x86-64-v3, instructions a step,
     see `benchmarks/observer_c.py`): lanes against branches 106 against 130 (float32) and
     133 against 158 (double) with the default `FaultConfig`, 149 against 153 and 176
     against 182 with residual thresholds and rails. At -O2 (SSE2): float32, vectorized,
@@ -269,7 +271,16 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
     `uint8_t prefix_step(const prefix_word_t u[P_M], const prefix_word_t y[P_P], uint8_t open_mask)`
     (returns the mask of channels used); globals `prefix_x[P_N]` (the corrected state;
     `prefix_x[P_W]` in the columns layout, the states then zeros),
-    `prefix_r[P_P]` (residuals), `prefix_healthy`, `prefix_wire_break` (masks).
+    `prefix_r[P_P]` (residuals), `prefix_healthy`, `prefix_wire_break` (masks; healthy
+    is 0 when `prefix_state_ok` is 0), `prefix_state_ok` (every state strictly inside the
+    limits and, fixed point, none saturated in the step), `prefix_input_fault` (uint32
+    mask of the inputs held at their last good value this step), `prefix_saturations`
+    (uint16, steps with a saturated state, fixed point).
+
+    Untrusted samples: each input `j` is used only when strictly inside its limits
+    (`FaultConfig.input_limits`, codes in fixed point), else `u[k-1]` (the last good
+    value) is used and its bit set in `prefix_input_fault`; reset sets `u[k-1]` to the
+    initial held values. Measurement limits are exclusive too.
 
     With bias channels (`observer.biases`): `P_Q` channels, `prefix_bias[P_Q]` (int32
     codes in a fixed build, `prefix_bias_t` = double in a float build), evaluated at the
@@ -277,8 +288,9 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
 
     The harness reads `argv[1]`: int32 `T`, then `x0` (`n` words), then per step `u`
     (`m` words), `y` (`p` words) and one byte of open-circuit flags; it writes to
-    `argv[2]` per step `x` (`n` words), `r` (`p` words) and three bytes (in use, healthy,
-    wire break), then the `q` bias values if any. With a third argument `repeat` it runs the playback that many times
+    `argv[2]` per step `x` (`n` words), `r` (`p` words), four bytes (in use, healthy,
+    wire break, state ok), the uint32 input-fault mask and the uint16 saturation count,
+    then the `q` bias values if any. With a third argument `repeat` it runs the playback that many times
     (for instruction counting) and writes the last.
     """
     if not prefix.isidentifier():
@@ -325,6 +337,12 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
          ("   /* the n states, then zeros */" if columns else ""),
          f"extern {prefix}_word_t {prefix}_r[{P}_P];",
          f"extern uint8_t {prefix}_healthy, {prefix}_wire_break;",
+         f"extern uint8_t {prefix}_state_ok;   /* 1: every state finite and within the "
+         f"limits, no saturation */",
+         f"extern uint32_t {prefix}_input_fault;   /* inputs held at their last good value "
+         f"this step */",
+         f"extern uint16_t {prefix}_saturations;   /* steps with a saturated state (fixed "
+         f"point), up to 65535 */",
          f"/* coefficient tables (column-major), for inspection: {prefix}_table({P}_TABLE_PHI) */",
          f"#define {P}_TABLE_PHI 0", f"#define {P}_TABLE_B0 1", f"#define {P}_TABLE_B1 2",
          f"#define {P}_TABLE_CY 3", f"#define {P}_TABLE_DY 4", f"#define {P}_TABLE_GAIN 5",
@@ -407,7 +425,11 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
               f"    return (a + ((int64_t)1 << (s - 1))) >> s;   /* s > 0 */", "}",
               f"static {word} {prefix}_sat(int64_t a) {{",
               f"    return ({word})(a < {P}_WMIN ? {P}_WMIN : a > {P}_WMAX ? {P}_WMAX : a);",
-              "}", ""]
+              "}",
+              f"static uint8_t {prefix}_clamped;",
+              f"static {word} {prefix}_satx(int64_t a) {{   /* a state: saturation counted */",
+              f"    if (a < {P}_WMIN || a > {P}_WMAX) {prefix}_clamped = 1;",
+              f"    return {prefix}_sat(a);", "}", ""]
     if fixed and q:
         c += [f"static int64_t {prefix}_clamp(int64_t a, int64_t lo, int64_t hi) {{",
               "    return a < lo ? lo : a > hi ? hi : a;", "}",
@@ -419,6 +441,21 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
         sup = _lane_supervision_c(prefix, word, p, lanes, [f"r{j}" for j in range(p)], lim,
                                   rails, thr, fc)
         c += sup[0]
+    if m > 32:
+        raise ValueError(f"`generate_c`: {m} inputs; the input-fault mask holds 32.")
+    wl = (lambda v: _lit(v, "int")) if fixed else (lambda v: _readable_lit(v, word))
+    ulit = wl
+    if fixed:
+        u_lim, x_lim, u_start = (observer.input_limit_codes, observer.state_limit_codes,
+                                 observer.u_start)
+    else:
+        u_lim, x_lim, u_start = (observer.input_limits, observer.state_limits,
+                                 observer.u_start)
+    state_check = [f"/* every state strictly inside the plausibility limits (False for NaN) */",
+                   f"static uint8_t {prefix}_in_range(void) {{",
+                   "    return (uint8_t)(" + "\n        && ".join(
+                       f"({wl(x_lim[i][0])} < {prefix}_x[{i}] && {prefix}_x[{i}] < "
+                       f"{wl(x_lim[i][1])})" for i in range(n)) + ");", "}"]
     if q:
         c += [f"{bias_word} {prefix}_bias[{P}_Q];"]
         nv = sum(len(v) for v in biases.evaluator._strain) if fixed else \
@@ -430,22 +467,31 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
                   "/* last step's temperatures of strain nodes */"]
     c += [f"{word} {prefix}_x[{xdim}];", f"{word} {prefix}_r[{P}_P];",
           f"uint8_t {prefix}_healthy, {prefix}_wire_break;",
-          f"static {word} {prefix}_u_prev[{P}_M];",
+          f"uint8_t {prefix}_state_ok;", f"uint32_t {prefix}_input_fault;",
+          f"uint16_t {prefix}_saturations;",
+          f"static {word} {prefix}_u_prev[{P}_M];   /* u[k-1]: the last good inputs */",
           *(sup[1] if lanes_sup else
-            [f"static uint16_t {prefix}_good_run[{P}_P], {prefix}_bad_run[{P}_P];"]),
+            [f"static uint16_t {prefix}_good_run[{P}_P], {prefix}_bad_run[{P}_P];",
+             f"static uint8_t {prefix}_ch_healthy;   /* channel health (the supervision's) */"]),
           f"static uint8_t {prefix}_started;", "",
+          *state_check, "",
           f"void {prefix}_reset(const {word} x0[{P}_N]) {{",
           f"    int i;",
           f"    for (i = 0; i < {P}_N; i++) {prefix}_x[i] = x0[i];",
           *(sup[2] if lanes_sup else
             [f"    for (i = 0; i < {P}_P; i++) {{ {prefix}_good_run[i] = 0; "
              f"{prefix}_bad_run[i] = 0; }}"]),
-          f"    {prefix}_healthy = (uint8_t)((1u << {P}_P) - 1u);",
+          *([] if lanes_sup else [f"    {prefix}_ch_healthy = (uint8_t)((1u << {P}_P) - 1u);"]),
+          *[f"    {prefix}_u_prev[{j}] = {ulit(u_start[j])};   /* held until a good sample */"
+            for j in range(m)],
+          f"    {prefix}_input_fault = 0; {prefix}_saturations = 0;",
+          f"    {prefix}_state_ok = {prefix}_in_range();",
+          f"    {prefix}_healthy = {prefix}_state_ok ? (uint8_t)((1u << {P}_P) - 1u) : 0u;",
           f"    {prefix}_wire_break = 0;", f"    {prefix}_started = 0;", "}", ""]
     lit = (lambda v: _lit(v, "int64_t")) if fixed else (lambda v: _readable_lit(v, word))
     xv = [f"{prefix}_x[{j}]" for j in range(n)]
     upv = [f"{prefix}_u_prev[{j}]" for j in range(m)]
-    uv = [f"u[{j}]" for j in range(m)]
+    uv = [f"ug{j}" for j in range(m)]   # the inputs used: good samples or held values
     # columns: the prediction and correction update `P_x` in place (no stack copy)
     xmv = xv if columns else [f"xm{i}" for i in range(n)]
     rv = [f"r{j}" for j in range(p)]
@@ -491,6 +537,15 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
           f"    {word} " + ", ".join(rv) + ";   /* residuals */",
           *([f"    int i;"] if columns or lanes_sup else []),
           f"    uint8_t mask = 0;",
+          *([f"    {word} " + ", ".join(uv) + ";   /* the inputs used */"] if m else []),
+          f"    /* untrusted inputs: outside the limits (exclusive; NaN never inside) an "
+          f"input is held */",
+          f"    {prefix}_input_fault = 0;",
+          *[f"    if ({wl(u_lim[j][0])} < u[{j}] && u[{j}] < {wl(u_lim[j][1])}) {uv[j]} = u[{j}];"
+            f"   /* {inp[j]} */"
+            f"\n    else {{ {uv[j]} = {upv[j]}; {prefix}_input_fault |= UINT32_C({1 << j}); }}"
+            for j in range(m)],
+          *([f"    {prefix}_clamped = 0;"] if fixed else []),
           f"    if ({prefix}_started) {{"]
     if columns:
         pred_cols = ([f"Phi[:, {v}]" for v in st] + [f"B0[:, {v}]" for v in inp] +
@@ -513,7 +568,7 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
                      f"+ B1[{st[i]}, :] u[k] */")
             e = total(pred_M[i], xv + upv + uv)
             if fixed:
-                e = "0" if e is None else f"{prefix}_sat({rounded(e, 'F_PRED', observer.f_pred)})"
+                e = "0" if e is None else f"{prefix}_satx({rounded(e, 'F_PRED', observer.f_pred)})"
             else:
                 e = _zero(word) if e is None else e
             c.append(f"        {xmv[i]} = {e};")
@@ -542,11 +597,11 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
         c += sup[3]
     for j in [] if lanes_sup else range(p):
         bit = 1 << j
-        wl = (lambda v: _lit(v, "int")) if fixed else (lambda v: _readable_lit(v, word))
         lo, hi = wl(lim[j][0]), wl(lim[j][1])
-        c += [f"    /* channel {j} ({out[j]}): plausibility, anti-windup, wire break */",
-              f"    if ((open_mask & {bit}u) || !({lo} <= y[{j}] && y[{j}] <= {hi})) {{",
-              f"        {prefix}_healthy &= (uint8_t)~{bit}u;",
+        c += [f"    /* channel {j} ({out[j]}): plausibility (limits exclusive), anti-windup, "
+              f"wire break */",
+              f"    if ((open_mask & {bit}u) || !({lo} < y[{j}] && y[{j}] < {hi})) {{",
+              f"        {prefix}_ch_healthy &= (uint8_t)~{bit}u;",
               f"        {prefix}_good_run[{j}] = 0; {prefix}_bad_run[{j}] = 0;"]
         railed = []
         if rails[j][0] >= lim[j][0]:
@@ -560,9 +615,9 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
                  "    } else {   /* (rails outside the plausible range: never railed) */")
         good = [f"if ({prefix}_good_run[{j}] < 65535u) {prefix}_good_run[{j}]++;",
                 f"{prefix}_bad_run[{j}] = 0;",
-                f"if (!({prefix}_healthy & {bit}u) && {prefix}_good_run[{j}] >= "
+                f"if (!({prefix}_ch_healthy & {bit}u) && {prefix}_good_run[{j}] >= "
                 f"{int(fc.recover_after)}u) {{",
-                f"    {prefix}_healthy |= {bit}u; {prefix}_wire_break &= (uint8_t)~{bit}u;",
+                f"    {prefix}_ch_healthy |= {bit}u; {prefix}_wire_break &= (uint8_t)~{bit}u;",
                 "}"]
         never_large = (thr[j] >= -F.word_min) if fixed else not np.isfinite(thr[j])
         if never_large:
@@ -575,11 +630,11 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
                   f"            {prefix}_good_run[{j}] = 0;",
                   f"            if ({prefix}_bad_run[{j}] >= {int(fc.wire_break_after)}u) {{",
                   f"                {prefix}_wire_break |= {bit}u; "
-                  f"{prefix}_healthy &= (uint8_t)~{bit}u;",
+                  f"{prefix}_ch_healthy &= (uint8_t)~{bit}u;",
                   "            }", "        } else {"]
             c += [f"            {g}" for g in good]
             c += ["        }"]
-        c += [f"        if ({prefix}_healthy & {bit}u) mask |= {bit}u;", "    }"]
+        c += [f"        if ({prefix}_ch_healthy & {bit}u) mask |= {bit}u;", "    }"]
     # correction, one case per set of channels in use
     # columns: `& (2^p - 1)` with every case written tells gcc the jump table needs no
     # range check (mask < 2^p already)
@@ -598,7 +653,7 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
             if e is None:
                 continue
             if fixed:
-                c.append(f"        {xmv[i]} = {prefix}_sat((int64_t){xmv[i]} + "
+                c.append(f"        {xmv[i]} = {prefix}_satx((int64_t){xmv[i]} + "
                          f"{rounded(e, 'F_GAIN', observer.f_gain)});   /* L[{st[i]}, :] */")
             else:
                 c.append(f"        {xmv[i]} = {xmv[i]} + ({e});   /* L[{st[i]}, :] */")
@@ -608,8 +663,19 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
     if q:
         c += (_fixed_bias_c if fixed else _float_bias_c)(biases, prefix, xmv, uv, st)
     c += [] if columns else [f"    {xv[i]} = {xmv[i]};" for i in range(n)]
-    c += [f"    {upv[j]} = u[{j}];" for j in range(m)]
-    c += [f"    {prefix}_started = 1;", f"    return mask;", "}", ""]
+    c += [f"    {upv[j]} = {uv[j]};" for j in range(m)]
+    c += [f"    {prefix}_started = 1;"]
+    if fixed:
+        c += [f"    if ({prefix}_clamped && {prefix}_saturations < 65535u) "
+              f"{prefix}_saturations++;",
+              f"    {prefix}_state_ok = (uint8_t)(!{prefix}_clamped && {prefix}_in_range());"]
+    else:
+        c += [f"    {prefix}_state_ok = {prefix}_in_range();"]
+    c += ([f"    if (!{prefix}_state_ok) {prefix}_healthy = 0;   /* healthy: state in range */"]
+          if lanes_sup else
+          [f"    {prefix}_healthy = {prefix}_state_ok ? {prefix}_ch_healthy : 0u;   "
+           "/* healthy: state in range */"])
+    c += [f"    return mask;", "}", ""]
     if columns:
         rows = ["    {" + ", ".join(_readable_lit(v, word) for v in col) + "}" +
                 ("," if k + 1 < len(cols) else "") + f"   /* {k}: {what} */"
@@ -638,13 +704,16 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
         "    for (rep = 0; rep < repeat; rep++) {",
         f"        {prefix}_reset(x0);",
         "        for (k = 0; k < T; k++) {",
-        f"            uint8_t flags[3];",
+        f"            uint8_t flags[4];",
         f"            flags[0] = {prefix}_step(u + k * {P}_M, y + k * {P}_P, oc[k]);",
         "            if (rep + 1 < repeat) continue;",
         f"            flags[1] = {prefix}_healthy; flags[2] = {prefix}_wire_break;",
+        f"            flags[3] = {prefix}_state_ok;",
         f"            fwrite({prefix}_x, sizeof {prefix}_x[0], {P}_N, out);",
         f"            fwrite({prefix}_r, sizeof {prefix}_r[0], {P}_P, out);",
-        "            fwrite(flags, 1, 3, out);",
+        "            fwrite(flags, 1, 4, out);",
+        f"            fwrite(&{prefix}_input_fault, 4, 1, out);",
+        f"            fwrite(&{prefix}_saturations, 2, 1, out);",
         *([f"            fwrite({prefix}_bias, sizeof {prefix}_bias[0], {P}_Q, out);"]
           if q else []), "        }", "    }",
         "    fclose(out); free(u); free(y); free(oc);", "    return 0;", "}", ""])
@@ -846,9 +915,9 @@ def _lane_supervision_c(prefix, word, p, lanes, rv, lim, rails, thr, fc) -> tupl
         ([("w", "wire_break"), ("b", "bad")] if has_thr else [])
     body = [f"            {it} " + ", ".join(f"{s} = {sv(s)}" for s, _ in stored) + ";"]
     body += [f"            {it} pl = ~{P}_SUP_OPEN[open_mask & {(1 << p) - 1}u][i] & "
-            f"(({P}_SUP_LO[i] <= yl[i]) & (yl[i] <= {P}_SUP_HI[i]) ? -1 : 0);" if open_table else
+            f"(({P}_SUP_LO[i] < yl[i]) & (yl[i] < {P}_SUP_HI[i]) ? -1 : 0);" if open_table else
             f"            {it} pl = ((open_mask & {P}_SUP_BITS[0][i]) == 0) & "
-            f"({P}_SUP_LO[i] <= yl[i]) & (yl[i] <= {P}_SUP_HI[i]) ? -1 : 0;"]
+            f"({P}_SUP_LO[i] < yl[i]) & (yl[i] < {P}_SUP_HI[i]) ? -1 : 0;"]
     if has_rails:
         body.append(f"            {it} ra = (yl[i] <= {P}_SUP_RLO[i]) | "
                     f"(yl[i] >= {P}_SUP_RHI[i]) ? -1 : 0;")

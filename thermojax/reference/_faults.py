@@ -7,9 +7,11 @@ states the same rules branch free, for the generated C's lane-parallel form
 and input. At each step, for channel `j`:
 
 1. *readable*: the front end reports no open circuit (and, in float builds, the value is
-   not NaN). *plausible*: readable and `limits[0] <= y <= limits[1]`.
-   *railed*: plausible and at or beyond an ADC rail (`y <= rails[j][0]` or
-   `y >= rails[j][1]`).
+   not NaN). *plausible*: readable and strictly inside the limits,
+   `limits[0] < y < limits[1]`: a reading exactly at a limit (a sensor or ADC stuck at
+   its end of scale) is implausible, in every build (float: the values; fixed point: the
+   codes, the limits encoded once). *railed*: plausible and at or beyond an ADC rail
+   (`y <= rails[j][0]` or `y >= rails[j][1]`).
 2. Not plausible: the channel is dropped at once (`healthy = False`) and both counters
    are cleared.
 3. Railed: the channel is left out of this step's correction (anti-windup: a clipped
@@ -24,6 +26,12 @@ and input. At each step, for channel `j`:
    with the precomputed gain of exactly the channels in use, without any reset.
 
 Counters saturate at 65535.
+
+Inputs are supervised too (`input_limits`, below): before anything else in a step, input
+`j` is *good* when `input_limits[j][0] < u[j] < input_limits[j][1]` (NaN never is); a bad
+sample is replaced by the last good value of that input (before the first good one: the
+middle of its limits when both are finite, else 0) and its bit is set in the step's
+input-fault mask. The observer only ever sees good or held inputs.
 """
 
 from __future__ import annotations
@@ -41,14 +49,19 @@ class FaultConfig:
 
     **Arguments:**
 
-    - `limits`: plausible range `(low, high)`, default −55…+125 °C; outside it a reading
-      drops its channel.
+    - `limits`: plausible range `(low, high)`, exclusive, default −55…+125 °C; a reading
+      at or outside it drops its channel, a state at or outside it is not healthy.
     - `rails`: per channel `(low, high)` ADC rails, shape `(p, 2)` or one pair for all;
       default none (±inf). A reading at or beyond a rail gets no correction.
     - `residual_threshold`: per channel `|r|` limit for the wire-break test (K), default
       inf (off).
     - `wire_break_after`: N, consecutive large residuals that raise the wire-break flag.
     - `recover_after`: M, consecutive good samples that bring a dropped channel back.
+    - `input_limits`: per input `(low, high)` plausible range of `u` (exclusive), shape
+      `(m, 2)` or one pair for all, in the inputs' units (°C, W); default
+      `default_input_limits`: `±(limits[1] - limits[0]) / g_j`, where `g_j` is the largest
+      steady-state gain from input `j` to an output (the input that, held alone, would move
+      a sensor across the whole plausible span), ±inf for an input without effect.
     """
 
     limits: tuple[float, float] = (-55.0, 125.0)
@@ -56,6 +69,7 @@ class FaultConfig:
     residual_threshold: object = None
     wire_break_after: int = 10
     recover_after: int = 20
+    input_limits: object = None
 
     def __post_init__(self):
         if not self.limits[0] < self.limits[1]:
@@ -82,6 +96,58 @@ class FaultConfig:
         if np.any(t <= 0):
             raise ValueError("`FaultConfig(residual_threshold=...)` must be positive.")
         return t.copy()
+
+    def input_limits_array(self, system) -> np.ndarray:
+        """`(m, 2)` input limits for `system` (an `ObserverSystem`): `input_limits`, or
+        `default_input_limits` when None."""
+        m = system.n_inputs
+        if self.input_limits is None:
+            return default_input_limits(system, self.limits)
+        r = np.asarray(self.input_limits, dtype=np.float64)
+        r = np.tile(r, (m, 1)) if r.shape == (2,) else r.reshape(-1, 2) if r.size == 0 else r
+        if r.shape != (m, 2) or np.any(np.isnan(r)) or np.any(r[:, 0] >= r[:, 1]):
+            raise ValueError(f"`FaultConfig(input_limits=...)` has shape {r.shape}; expected "
+                             f"(2,) or ({m}, 2) pairs with low < high.")
+        return r
+
+
+def default_input_limits(system, limits) -> np.ndarray:
+    """`(m, 2)` default input limits: `±(limits[1] - limits[0]) / g_j` with
+    `g_j = max_i |G[i, j]|`, `G = C (I - Phi)⁺ (B0 + B1) + D` the steady-state gain from
+    the inputs to the outputs (K per input unit); `⁺` the pseudo-inverse with singular
+    values below `1e-10` of the largest dropped (an integrating state, such as a held
+    one, adds no gain); ±inf where `g_j = 0`."""
+    n, m = system.n_states, system.n_inputs
+    G = system.C @ np.linalg.pinv(np.eye(n) - system.Phi, rcond=1e-10) @ \
+        (system.B0 + system.B1) + system.D
+    g = np.abs(G).max(axis=0) if G.size else np.zeros(m)
+    with np.errstate(divide="ignore"):
+        half = np.where(np.isfinite(g) & (g > 0), (limits[1] - limits[0]) / g, np.inf)
+    return np.stack([-half, half], axis=1)
+
+
+def initial_inputs(input_limits) -> np.ndarray:
+    """`(m,)` values held before the first good sample of each input: the middle of its
+    limits when both are finite, else 0."""
+    lo, hi = input_limits[:, 0], input_limits[:, 1]
+    finite = np.isfinite(lo) & np.isfinite(hi)
+    mid = np.where(finite, lo, 0.0) / 2 + np.where(finite, hi, 0.0) / 2
+    return np.where(finite, mid, 0.0)
+
+
+def hold_inputs(u, held, limits):
+    """Input supervision of one step: `(u_used, fault_mask)`. Input `j` is used when
+    `limits[j, 0] < u[j] < limits[j, 1]` (NaN never is), else `held[j]` (its last good
+    value) is used and bit `j` of `fault_mask` is set. Works on floats and integer codes."""
+    good = (limits[:, 0] < u) & (u < limits[:, 1])
+    mask = sum(1 << j for j in range(len(u)) if not good[j])
+    return np.where(good, u, held).astype(u.dtype), mask
+
+
+def state_in_range(x, limits) -> bool:
+    """Whether every state is strictly inside its `(low, high)` row of `limits (n, 2)`
+    (False for NaN): the state part of "healthy"."""
+    return bool(np.all((limits[:, 0] < x) & (x < limits[:, 1])))
 
 
 class ChannelMonitor:

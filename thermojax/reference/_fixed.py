@@ -22,6 +22,15 @@ Step (integer codes throughout):
     r  = sat(y - rnd(C x⁻ << c0 + D u[k] << c1, F_out))
     x  = sat(x⁻ + rnd(sum_{j in use} L[:, j] r[j], f_L))
 
+Untrusted samples (`_faults.py`): an input code not strictly inside the encoded
+`FaultConfig.input_limits` is replaced by the input's last good code before the step (a
+code at the word's minimum or maximum never passes: NaN encodes to the minimum, a
+saturated encoding to an end of the word); a measurement code is plausible strictly
+inside the encoded `limits`. Saturation of a state (the prediction or the correction
+clamped to the word) is counted per step in `saturations` (steps with any clamp, up to
+65535); `state_ok` is True when no state saturated in the step and every state code is
+strictly inside the limits encoded around its own reference.
+
 Bias channels (optional, `biases=`): after the correction, `FixedBiasEvaluator` (in
 `_bias.py`, where its formats and scaling rule are stated) evaluates every channel from the
 corrected state codes and the input codes: polynomial by Horner, gradients, exact rate
@@ -35,7 +44,8 @@ import dataclasses
 import numpy as np
 
 from ._bias import FixedBiasEvaluator
-from ._faults import ChannelMonitor, FaultConfig
+from ._faults import (ChannelMonitor, FaultConfig, hold_inputs, initial_inputs,
+                      state_in_range)
 from ._formats import FixedFormat, decode, encode, fixed_format, round_shift, saturate
 from ._run import ObserverRun, play
 from ._system import ObserverSystem
@@ -123,7 +133,7 @@ class FixedObserver:
             raise ValueError("`FixedScaling(input_scale=...)` must be positive.")
         eq = system.Phi @ self.x_ref + (system.B0 + system.B1) @ self.u_ref - self.x_ref
         out = system.C @ self.x_ref + system.D @ self.u_ref - self.y_ref
-        tol = 1e-9 * (1 + np.abs(self.x_ref).max() + np.abs(self.u_ref).max())
+        tol = 1e-9 * (1 + np.abs(self.x_ref).max() + np.abs(self.u_ref).max(initial=0.0))
         if np.abs(eq).max() > tol or np.abs(out).max() > tol:
             raise ValueError(f"`FixedObserver(scaling=...)`: the offsets are not an "
                              f"equilibrium (Phi x_ref + (B0+B1) u_ref - x_ref up to "
@@ -169,10 +179,18 @@ class FixedObserver:
             t = np.floor(thr / s * 2.0 ** f + 0.5)
         self.threshold_codes = np.where(np.isfinite(t) & (t < _ACC_LIMIT), t,
                                         _ACC_LIMIT).astype(np.int64)
+        ulim = self.faults.input_limits_array(system)
+        self.input_limit_codes = np.stack([self.encode_inputs(ulim[:, 0]),
+                                           self.encode_inputs(ulim[:, 1])], 1)
+        self.u_start = self.encode_inputs(initial_inputs(ulim))
+        self.state_limit_codes = np.stack(
+            [encode(self.faults.limits[0], f, F, self.x_ref, s),
+             encode(self.faults.limits[1], f, F, self.x_ref, s)], 1)
         self.monitor = ChannelMonitor(p, self.faults.wire_break_after, self.faults.recover_after)
         self.x = np.zeros(n, np.int64)
-        self.u_prev = np.zeros(m, np.int64)
+        self.u_prev = self.u_start.copy()
         self.started = False
+        self.input_fault, self.state_ok, self.saturations = 0, True, 0
         self.bias = None
         self.biases = None if biases is None else FixedBiasEvaluator(
             biases, F, self.x_ref, self.u_ref, self.u_scale, self.faults.limits)
@@ -224,6 +242,9 @@ class FixedObserver:
         """Start over from state codes `x0 (n,)`; the next step corrects `x⁻[0] = x0`."""
         self.x = saturate(np.asarray(x0_codes, np.int64).reshape(self.system.n_states), self.fmt)
         self.started = False
+        self.u_prev = self.u_start.copy()       # held before the first good sample
+        self.input_fault, self.saturations = 0, 0
+        self.state_ok = state_in_range(self.x, self.state_limit_codes)
         self.monitor.reset()
         if self.biases is not None:
             self.biases.reset()
@@ -231,28 +252,35 @@ class FixedObserver:
     def step(self, u, y, open_circuit=None):
         """One step on codes `u (m,)`, `y (p,)`; returns `(x, r, in_use_mask)` as codes."""
         c, sh, F = self.coef, self.shift, self.fmt
-        u = saturate(u, F)
+        u, self.input_fault = hold_inputs(saturate(u, F), self.u_prev, self.input_limit_codes)
         y = saturate(y, F)
         p = self.system.n_outputs
+        clamped = False
         if self.started:
             acc = ((c["Phi"] @ self.x) << sh["Phi"]) + ((c["B0"] @ self.u_prev) << sh["B0"]) \
                 + ((c["B1"] @ u) << sh["B1"])
-            xm = saturate(round_shift(acc, self.f_pred), F)
+            acc = round_shift(acc, self.f_pred)
+            xm = saturate(acc, F)
+            clamped = bool(np.any(xm != acc))
         else:
             xm = self.x
         pred = round_shift(((c["C"] @ xm) << sh["C"]) + ((c["D"] @ u) << sh["D"]), self.f_out)
         r = saturate(y - pred, F)
         oc = np.zeros(p, bool) if open_circuit is None else np.asarray(open_circuit, bool)
         lim, rail, thr = self.limit_codes, self.rail_codes, self.threshold_codes
-        plausible = [bool(not oc[j] and lim[j, 0] <= y[j] <= lim[j, 1]) for j in range(p)]
+        plausible = [bool(not oc[j] and lim[j, 0] < y[j] < lim[j, 1]) for j in range(p)]
         railed = [plausible[j] and bool(y[j] <= rail[j, 0] or y[j] >= rail[j, 1])
                   for j in range(p)]
         large = [plausible[j] and bool(r[j] > thr[j] or r[j] < -thr[j]) for j in range(p)]
         mask = self.monitor.update(plausible, railed, large)
         if mask:
             use = np.array([mask >> j & 1 for j in range(p)], np.int64)
-            xm = saturate(xm + round_shift(c["L"][mask] @ (r * use), self.f_gain), F)
+            acc = xm + round_shift(c["L"][mask] @ (r * use), self.f_gain)
+            xm = saturate(acc, F)
+            clamped = clamped or bool(np.any(xm != acc))
         self.x, self.u_prev, self.started = xm, u, True
+        self.saturations = min(self.saturations + clamped, 65535)
+        self.state_ok = not clamped and state_in_range(xm, self.state_limit_codes)
         if self.biases is not None:
             self.bias = self.biases.step(xm, u)
         return xm, r, mask

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._faults import ChannelMonitor, FaultConfig
+from ._faults import (ChannelMonitor, FaultConfig, hold_inputs, initial_inputs,
+                      state_in_range)
 from ._run import ObserverRun, play
 from ._system import ObserverSystem
 
@@ -52,6 +53,12 @@ class SparseSum:
 class FloatObserver:
     """The observer of `ObserverSystem` in IEEE float64 or float32, with channel supervision.
 
+    Untrusted inputs: each input sample outside `FaultConfig.input_limits` (exclusive;
+    NaN and ±inf always) is replaced by that input's last good value (`hold_inputs`),
+    compared in the observer's dtype, before anything else; `self.input_fault` is the
+    step's mask. After the step `self.state_ok` says whether every state is strictly
+    inside `FaultConfig.limits` (False for NaN); `run` then reports no channel healthy.
+
     Operation order (fixed, and the same in the generated straight-line C; see
     `SparseSum`): each row is one left-to-right sum over the row's nonzero coefficients
     only, the first product starting the sum. Prediction: row `i` of `[Phi B0 B1]` times
@@ -87,15 +94,22 @@ class FloatObserver:
         self.limits = np.asarray(self.faults.limits, dtype=dtype)
         self.rails = self.faults.rails_array(p).astype(dtype)
         self.threshold = self.faults.threshold_array(p).astype(dtype)
+        self.input_limits = self.faults.input_limits_array(system).astype(dtype)
+        self.state_limits = np.tile(self.limits, (system.n_states, 1))
+        self.u_start = initial_inputs(self.faults.input_limits_array(system)).astype(dtype)
         self.monitor = ChannelMonitor(p, self.faults.wire_break_after, self.faults.recover_after)
         self.x = np.zeros(system.n_states, dtype)
-        self.u_prev = np.zeros(system.n_inputs, dtype)
+        self.u_prev = self.u_start.copy()
         self.started = False
+        self.input_fault, self.state_ok, self.saturations = 0, True, 0
 
     def reset(self, x0) -> None:
         """Start over from `x0 (n,)`; the next step corrects `x⁻[0] = x0` (no prediction)."""
         self.x = np.array(x0, dtype=self.dtype).reshape(self.system.n_states)
         self.started = False
+        self.u_prev = self.u_start.copy()       # held before the first good sample
+        self.input_fault, self.saturations = 0, 0
+        self.state_ok = state_in_range(self.x, self.state_limits)
         self.monitor.reset()
         if self.biases is not None:
             self.biases.reset()
@@ -104,8 +118,9 @@ class FloatObserver:
         """One observer step with inputs `u (m,)`, measurements `y (p,)` and the front
         end's open-circuit flags; returns `(x, r, in_use_mask)`."""
         dt = self.dtype
-        u = np.asarray(u, dtype=dt)
-        y = np.asarray(y, dtype=dt)
+        with np.errstate(over="ignore"):  # too large for float32: ±inf (held, not plausible)
+            u, y = np.asarray(u, dtype=dt), np.asarray(y, dtype=dt)
+        u, self.input_fault = hold_inputs(u, self.u_prev, self.input_limits)
         p, n = self.system.n_outputs, self.system.n_states
         if self.started:
             xm = self._predict(np.concatenate([self.x, self.u_prev, u]))
@@ -114,7 +129,7 @@ class FloatObserver:
         pred = self._output(np.concatenate([xm, u]))
         r = np.where(self._output.has_terms, y - pred, y)
         oc = np.zeros(p, bool) if open_circuit is None else np.asarray(open_circuit, bool)
-        plausible = [bool(not oc[j] and self.limits[0] <= y[j] <= self.limits[1])
+        plausible = [bool(not oc[j] and self.limits[0] < y[j] < self.limits[1])
                      for j in range(p)]
         railed = [plausible[j] and bool(y[j] <= self.rails[j, 0] or y[j] >= self.rails[j, 1])
                   for j in range(p)]
@@ -125,6 +140,7 @@ class FloatObserver:
             corr = gain(r)
             xm = np.where(gain.has_terms, xm + corr, xm)
         self.x, self.u_prev, self.started = xm, u, True
+        self.state_ok = state_in_range(xm, self.state_limits)
         if self.biases is not None:
             self.bias = self.biases.step(xm, u)
         return xm, r, mask

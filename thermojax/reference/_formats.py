@@ -90,13 +90,15 @@ def saturate(a, fmt: FixedFormat):
 def encode(values, frac_bits: int, fmt: FixedFormat, offset=0.0, scale=1.0):
     """Codes of physical `values`: `sat(floor((v - offset) / scale * 2**frac_bits + 1/2))`.
 
+    NaN (not readable) gives the word's minimum, `-inf` and `+inf` its ends: codes that no
+    exclusive limit lets through (`_faults.py`), so a bad value is flagged, never used.
     The same rule as `round_shift` (nearest, ties toward +inf), computed in float64 (an
     ADC driver's job, outside the bit-exact core; the generated C takes codes).
     """
     z = (np.asarray(values, dtype=np.float64) - offset) / scale * 2.0 ** frac_bits
     with np.errstate(invalid="ignore"):
         z = np.floor(z + 0.5)
-        z = np.clip(np.nan_to_num(z, nan=0.0), fmt.word_min, fmt.word_max)
+        z = np.clip(np.where(np.isnan(z), fmt.word_min, z), fmt.word_min, fmt.word_max)
     return z.astype(np.int64)
 
 
