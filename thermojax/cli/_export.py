@@ -12,6 +12,20 @@ from ._outputs import check_output_folder, staged_folder
 FORMATS = ("q16.16", "q8.24", "q15")
 
 
+def _count(text: str) -> int:
+    import argparse
+
+    from ..reference._faults import COUNTER_MAX
+
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of samples, got {text!r}")
+    if not 1 <= v <= COUNTER_MAX:
+        raise argparse.ArgumentTypeError(f"expected 1..{COUNTER_MAX} samples, got {v}")
+    return v
+
+
 def cmd_export(args) -> int:
     from ..reference import load_observer
 
@@ -45,6 +59,9 @@ def cmd_export(args) -> int:
         with staged_folder(out) as tmp:
             result = export_observer(model, args.rate, tmp, fixed=args.fixed,
                                      method=args.method, sensors=args.sensor,
+                                     faults=fault_config(args),
+                                     reconstruct=args.reconstruct,
+                                     input_noise=args.input_noise,
                                      operating_point=args.operating_point,
                                      c_float=args.c_float, c_layout=args.c_layout)
             load_observer(tmp)  # what was written reads back
@@ -58,11 +75,61 @@ def cmd_export(args) -> int:
           f"slowest error pole |z| = {worst:.6f}")
     print(f"float C build: {m['c_build']['float']}, {m['c_build']['layout']} layout")
     if m["fixed"]:
+        eb = m["fixed"]["error_bound"]
         print(f"fixed point {m['fixed']['format']}: LSB {m['fixed']['lsb_K']:.3g} K around "
-              f"{m['fixed']['reference_C']:g} °C")
+              f"{m['fixed']['reference_C']:g} °C; guaranteed within {eb['max_K']:.3g} K of "
+              f"the exact float64 observer ({eb['assumes']})")
+    print(supervision_line(m["faults"]))
+    if m["reconstruct"] is not None:
+        rc = m["reconstruct"]
+        print(f"reconstructs {rc['input']} as state {rc['state_index']} (input noise "
+              f"{rc['input_noise_C_per_sqrt_s']:g} °C/√s)")
     for name, size in result.files.items():
         print(f"  {out / name}  ({size} bytes)")
     return 0
+
+
+def fault_config(args):
+    """The `FaultConfig` of the supervision flags (docs/cli.md, "export")."""
+    from ..reference import FaultConfig
+
+    if args.limits is not None and not args.limits[0] < args.limits[1]:
+        raise InputError(f"the plausible range needs LOW < HIGH, got {args.limits[0]:g} "
+                         f"{args.limits[1]:g}.", field="--limits")
+    limits = tuple(args.limits) if args.limits is not None else (-55.0, 125.0)
+    if args.rails is not None:
+        lo, hi = args.rails
+        if not lo < hi:
+            raise InputError(f"the ADC rails need LOW < HIGH, got {lo:g} {hi:g}.",
+                             field="--rails")
+        if hi <= limits[0] or lo >= limits[1]:
+            raise InputError(f"the rails {lo:g}…{hi:g} °C lie outside the plausible range "
+                             f"{limits[0]:g}…{limits[1]:g} °C, so every reading would be "
+                             "dropped or railed; check the units of --rails and --limits.",
+                             field="--rails")
+    return FaultConfig(limits=limits, rails=args.rails,
+                       residual_threshold=args.wire_break_threshold,
+                       wire_break_after=args.wire_break_after,
+                       recover_after=args.recover_after)
+
+
+def supervision_line(faults: dict) -> str:
+    """One line saying what the exported channel supervision does (observer.json faults)."""
+    lo, hi = faults["limits_C"]
+    rails = {tuple(r) for r in faults["rails_C"]}
+    thr = {t for t in faults["residual_threshold_K"]}
+    words = [f"readings outside {lo:g}…{hi:g} °C drop their channel"]
+    if rails != {(None, None)}:
+        words.append("readings at the ADC rails " + ", ".join(
+            f"{'-' if a is None else f'{a:g}'}…{'-' if b is None else f'{b:g}'} °C"
+            for a, b in sorted(rails, key=str)) + " get no correction")
+    if thr != {None}:
+        words.append(f"|residual| > {', '.join(f'{t:g}' for t in sorted(thr, key=str))} K for "
+                     f"{faults['wire_break_after']} samples raises wire break, "
+                     f"{faults['recover_after']} good samples recover")
+    else:
+        words.append("no wire-break test (--wire-break-threshold)")
+    return "supervision: " + "; ".join(words)
 
 
 def add_export(sub):
@@ -80,8 +147,10 @@ def add_export(sub):
     p.add_argument("--fixed", choices=FORMATS, default=None,
                    help="also write the fixed-point build in this format")
     p.add_argument("--method", choices=["kalman", "poles"], default="kalman",
-                   help="gains: steady-state Kalman (default) or pole placement at 4x the "
-                   "open-loop poles")
+                   help="gains: steady-state Kalman (default; q and R from the model, "
+                   "recorded in observer.json 'design') or pole placement by the seed's rule: "
+                   "4x the open-loop poles, modes already faster than 5 sample periods kept, "
+                   "faster poles capped at 1/(5 dt) (docs/observer.md §4)")
     p.add_argument("--sensor", action="append", metavar="COLUMN",
                    help="use only this sensor column (repeatable; default all)")
     p.add_argument("--operating-point", type=float, default=25.0, metavar="T_C",
@@ -93,6 +162,30 @@ def add_export(sub):
                    help="the float C build's layout: rows (straight-line, any core; default) "
                    "or columns (vectorized sums and supervision for SIMD cores: gcc -O3 "
                    "with AVX2 or NEON)")
+    p.add_argument("--reconstruct", metavar="COLUMN", default=None,
+                   help="lag compensation: reconstruct this temperature input (the fluid a "
+                   "lagging sensor sees) as the observer's last state, as `thermojax "
+                   "compensate` does; needs --input-noise")
+    p.add_argument("--input-noise", type=_positive_float, default=None, metavar="Q",
+                   help="the reconstructed input's random-walk diffusion, °C/√s (`thermojax "
+                   "compensate` prints the maximum-likelihood value for a log)")
+    g = p.add_argument_group("channel supervision (recorded in observer.json 'faults', "
+                             "honoured by the reference and the C)")
+    g.add_argument("--limits", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,
+                   help="plausible range of a reading, °C (default -55 125): a reading "
+                   "outside drops its channel at once")
+    g.add_argument("--rails", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,
+                   help="ADC rails, °C, every sensor (default none): a reading at or beyond "
+                   "a rail gets no correction (anti-windup)")
+    g.add_argument("--wire-break-threshold", type=_positive_float, default=None, metavar="K",
+                   help="|prediction residual| above which a sample counts as bad, K "
+                   "(default: no wire-break test)")
+    g.add_argument("--wire-break-after", type=_count, default=10, metavar="N",
+                   help="consecutive bad samples that raise wire break and drop the channel "
+                   "(default 10)")
+    g.add_argument("--recover-after", type=_count, default=20, metavar="M",
+                   help="consecutive good samples that bring a dropped channel back "
+                   "(default 20)")
     p.add_argument("--check", metavar="DIR", default=None,
                    help="only check an existing artifact folder (schema and arrays)")
     _add_force(p, "an existing --out folder")

@@ -117,7 +117,8 @@ def _gain(discrete_full, system_c, rows, dt, method, noise, q, names, speedup):
 def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: str = "kalman",
                     sensors=None, operating_point: float = 25.0, speedup: float = 4.0,
                     faults=None, power_scale: float = 1.0, c_float: str = "float64",
-                    c_layout: str = "rows") -> ExportResult:
+                    c_layout: str = "rows", reconstruct: str | None = None,
+                    input_noise: float | None = None) -> ExportResult:
     """Write the reference-observer artifact of a model (see the module docstring).
 
     The full sensor set must observe every state (else `InputError` naming the lost
@@ -143,6 +144,11 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     - `c_layout`: `"rows"` (default, straight-line, any core) or `"columns"`
       (column-at-a-time sums and lane-parallel supervision for SIMD cores), the float C
       build's layout (`thermojax.reference.generate_c`).
+    - `reconstruct`, `input_noise`: lag compensation (`thermojax compensate` in firmware):
+      the temperature input `reconstruct` (a column name) becomes the observer's last
+      state, a random walk of diffusion `input_noise` °C/√s (Kalman gains only); the
+      artifact's inputs are the others. A sensor subset that does not see it holds its
+      estimate (zero gain on that state; recorded in `subsets`).
 
     **Returns:** an `ExportResult`. Warnings (a nonlinear effect linearized, a coefficient
     that rounds to zero in the fixed format) are issued with `warnings.warn` and listed.
@@ -215,12 +221,21 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
         warn(f"model '{where}' has nonlinear effect(s) {', '.join(effects)}: the exported "
              f"observer is its linearization at a uniform {operating_point:g} °C with no "
              "power, accurate near that temperature only.")
+    q = np.asarray(model.process_noise, float)
+    held = None   # the reconstructed input's state: no eigenvalue, held where unobserved
+    if reconstruct is not None:
+        system_plain = system
+        system, names, inputs, power_inputs, q, held, holds = _augment(
+            system, names, inputs, power_inputs, q, reconstruct, input_noise, method, where)
+    else:
+        holds = t.input_holds
     discrete = discretize(system, dt)
     Phi, B0, B1, C, D = (np.asarray(a, float) for a in
                          (discrete.Phi, discrete.B0, discrete.B1, discrete.C, discrete.D))
     call = f"export --sensor {' '.join(sensor_names)}"
     A_c = np.asarray(system.A, float)
-    tau = np.sort(-1.0 / np.linalg.eigvals(A_c).real)
+    eig = np.linalg.eigvals(A_c if held is None else A_c[:held, :held])
+    tau = np.sort(-1.0 / eig.real)
     if observability_rank(discrete) < len(names):
         fast = discretize(system, tau[0] / 10)   # a period that resolves every mode
         try:
@@ -247,7 +262,6 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                          file=where, field="--rate")
 
     noise = np.asarray(model.noise, float)[rows]
-    q = np.asarray(model.process_noise, float)
     gains, subset_info = {}, []
     for r in range(1, p + 1):
         for s in itertools.combinations(range(p), r):
@@ -256,6 +270,21 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
             try:
                 L = _gain(discrete, system, s, dt, method, noise, q, names, speedup)
             except InputError as err:
+                if held is not None and r < p:   # these sensors do not see the input
+                    L = np.vstack([_gain(None, system_plain, s, dt, "kalman", noise,
+                                         q[:held], names[:held], speedup),
+                                   np.zeros((1, len(s)))])
+                    used = (f"kalman, {names[held]} held (these sensors do not observe it: "
+                            f"{err})")
+                    gains[tuple(s)] = L
+                    rho = float(np.abs(np.linalg.eigvals(
+                        ((np.eye(len(names)) - L @ C[s]) @ Phi)[:held, :held])).max())
+                    subset_info.append({"sensors": [sensor_names[j] for j in s],
+                                        "mask": int(sum(1 << j for j in s)), "method": used,
+                                        "spectral_radius": rho,
+                                        "observable_states": int(observability_rank(
+                                            _Pair(Phi, C[s])))})
+                    continue
                 if r == p:
                     raise InputError(f"at {rate_hz:g} Hz (dt {dt:g} s) no observer gain: {err}",
                                      file=where, field="--rate") from None
@@ -275,6 +304,11 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                                  f"spectral radius {rho:.6g} >= 1); change the rate.",
                                  file=where, field="--rate")
     obs_system = ref.ObserverSystem.build(Phi, B0, B1, C, D, gains)
+    if faults.input_limits is None:   # temperatures: the plausibility limits; powers: derived
+        derived = faults.input_limits_array(obs_system)
+        faults = dataclasses.replace(faults, input_limits=[
+            derived[j].tolist() if j in power_inputs else list(faults.limits)
+            for j in range(len(inputs))])
 
     # references of the fixed-point representation (also useful to a float build)
     m = len(inputs)
@@ -282,7 +316,13 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     u_ref = np.array([0.0 if j in power_inputs else T_REF for j in range(m)])
     y_ref = C @ x_ref + D @ u_ref
     u0 = np.array([0.0 if j in power_inputs else float(operating_point) for j in range(m)])
-    x_steady = np.asarray(system.steady_state(jnp.asarray(u0)))
+    if held is None:
+        x_steady = np.asarray(system.steady_state(jnp.asarray(u0)))
+    else:   # the steady state with the reconstructed input at the operating point too
+        u_all = np.insert(u0, reconstructed_index(t.input_names, reconstruct),
+                          float(operating_point))
+        x_steady = np.append(np.asarray(system_plain.steady_state(jnp.asarray(u_all))),
+                             float(operating_point))
     arrays = {"Phi": Phi, "B0": B0, "B1": B1, "C": C, "D": D,
               "gain_table": obs_system.gain_table, "x_ref": x_ref, "u_ref": u_ref,
               "y_ref": y_ref, "u_steady": u0, "x_steady": x_steady,
@@ -319,7 +359,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                       "coefficient_frac_bits": {k: int(v) for k, v in fixed_obs.coef_frac.items()},
                       "representation": "value = reference + code * 2**-frac_bits * scale"}
         _check_fixed(fixed_obs, obs_system, np.asarray(system.A), np.asarray(system.B), names,
-                     inputs, sensor_names, rate_hz, dt, where, warn)
+                     inputs, sensor_names, rate_hz, dt, where, warn, held)
+        fixed_meta["error_bound"] = _error_bound(fixed_obs, faults, u_ref, power_inputs, names)
 
     meta = {
         "schema": SCHEMA, "thermojax_version": __version__,
@@ -327,24 +368,32 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
         "rate_hz": rate_hz, "dt_s": dt, "method": method,
         "states": [{"name": nm, "units": "°C"} for nm in names],
         "inputs": [{"name": nm, "units": "W" if j in power_inputs else "°C",
-                    "hold": t.input_holds[j]} for j, nm in enumerate(inputs)],
+                    "hold": holds[j]} for j, nm in enumerate(inputs)],
         "outputs": [{"name": nm, "units": "°C"} for nm in sensor_names],
         "form": "filter: x⁻[k] = Phi x[k-1] + B0 u[k-1] + B1 u[k]; "
                 "x[k] = x⁻[k] + L_S (y[k] - C x⁻[k] - D u[k]); readings minus output_offset",
         "gain_table": "gain_table[mask] is the gain when exactly the sensors whose bit is "
                       "set in mask are in use (bit j: outputs[j]); mask 0: prediction only",
         "subsets": subset_info,
+        "design": _design_record(method, q, noise, sensor_names, names, dt, speedup,
+                                 system, held),
         "plausibility_limits_C": list(faults.limits),
         "faults": {"limits_C": list(faults.limits),
                    "rails_C": _finite_or_none(faults.rails_array(p)),
                    "residual_threshold_K": _finite_or_none(faults.threshold_array(p)),
                    "wire_break_after": int(faults.wire_break_after),
-                   "recover_after": int(faults.recover_after)},
+                   "recover_after": int(faults.recover_after),
+                   "input_limits": _finite_or_none(faults.input_limits_array(obs_system))},
         "fixed": fixed_meta,
         "biases": biases,
         "linearization": linearization,
         "warnings": caught,
         "c_build": {"float": c_float, "layout": c_layout},
+        "reconstruct": None if held is None else {
+            "input": names[held], "state_index": held, "input_noise_C_per_sqrt_s":
+            float(input_noise),
+            "model": "the input as a random walk (d u = input_noise dβ), held between "
+                     "samples; its estimate is state x[state_index]"},
     }
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -364,6 +413,41 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                                        encoding="utf-8")
     files = {f: (out / f).stat().st_size for f in [*meta["files"], "observer.json"]}
     return ExportResult(out, files, meta, arrays, tuple(caught))
+
+
+def reconstructed_index(input_names, column) -> int:
+    return list(input_names).index(column)
+
+
+def _augment(system, names, inputs, power_inputs, q, column, input_noise, method, where):
+    """The system with input `column` as its last state (`augment_unknown_input`), and
+    the names, inputs, power inputs, process noises and holds that go with it."""
+    from ._input_reconstruction import augment_unknown_input
+
+    field = "--reconstruct"
+    if column not in inputs:
+        raise InputError(f"'{column}' is not an input of the model; its inputs are "
+                         f"{list(inputs)}.", file=where, field=field)
+    j = reconstructed_index(inputs, column)
+    if j in power_inputs:
+        raise InputError(f"'{column}' is a heat input (W); the exported observer "
+                         "reconstructs a temperature input only (its state is stored like "
+                         "the others, as °C). `thermojax compensate` reconstructs powers.",
+                         file=where, field=field)
+    if method != "kalman":
+        raise InputError("a reconstructed input is a random walk without a pole to move: "
+                         "its gains are Kalman gains; drop --method poles.",
+                         file=where, field="--method")
+    if input_noise is None or not np.isfinite(input_noise) or input_noise <= 0:
+        raise InputError("--reconstruct needs --input-noise Q (°C/√s, > 0): the input's "
+                         "random-walk diffusion, the speed/noise trade-off. `thermojax "
+                         "compensate` on a log chooses it by maximum likelihood and prints it.",
+                         file=where, field="--input-noise")
+    rest = [i for i in range(len(inputs)) if i != j]
+    aug = augment_unknown_input(system, j)
+    return (aug, (*names, column), tuple(inputs[i] for i in rest),
+            {k for k, i in enumerate(rest) if i in power_inputs},
+            np.append(q, float(input_noise)), len(names), aug.holds)
 
 
 def fixed_prefix(fmt_name: str) -> str:
@@ -423,7 +507,49 @@ def _biases(spec) -> list:
     return out
 
 
-def _check_fixed(fx, system, A, B, names, inputs, sensors, rate_hz, dt, where, warn) -> None:
+def _design_record(method, q, noise, sensors, names, dt, speedup, system, held) -> dict:
+    """The design's inputs as `observer.json` records them (docs/observer.md §4)."""
+    out = {"method": method,
+           "process_noise_C_per_sqrt_s": dict(zip(names, map(float, q))),
+           "sensor_noise_C": dict(zip(sensors, map(float, noise))),
+           "kalman": "Qc = diag(q²), Qd by Van Loan, P from the discrete Riccati equation, "
+                     "L_S = P C_Sᵀ (C_S P C_Sᵀ + R)⁻¹ with R = diag(noise_S²)"}
+    if method == "poles":
+        from ._pole_placement import observer_poles
+
+        poles = observer_poles(system, dt, speedup)
+        out["poles"] = {"speedup": float(speedup), "min_time_constant_s": 5.0 * dt,
+                        "rule": "s_i = speedup·λ_i; modes with −1/λ_i ≤ 5 dt kept; faster "
+                                "than 1/(5 dt) capped there; repeats × 0.98",
+                        "continuous_per_s": np.asarray(poles.continuous, float).tolist(),
+                        "discrete": np.asarray(poles.discrete, float).tolist()}
+    return out
+
+
+def _error_bound(fx, faults, u_ref, power_inputs, names) -> dict:
+    """The fixed build's guaranteed error against the exact float64 observer (all sensors
+    in use, nothing saturated), with the envelopes it assumes: states and temperature
+    inputs within the plausible range, powers within their input limits, residuals
+    within the range's span."""
+    from ..reference import quantization_error_bound
+
+    lo, hi = faults.limits
+    x_env = np.full(len(names), max(hi - T_REF, T_REF - lo))
+    u_lim = np.asarray(faults.input_limits_array(fx.system), float) if hasattr(
+        faults, "input_limits_array") else None
+    u_env = np.array([max(abs(u_lim[j, 0] - u_ref[j]), abs(u_lim[j, 1] - u_ref[j]))
+                      if u_lim is not None and j in power_inputs and np.all(np.isfinite(u_lim[j]))
+                      else max(hi - T_REF, T_REF - lo) for j in range(len(u_ref))])
+    r_env = np.full(fx.system.n_outputs, hi - lo)
+    b = quantization_error_bound(fx, x_env, x_env, u_env, r_env)
+    return {"bound_K": dict(zip(names, map(float, b.bound))), "max_K": float(b.bound.max()),
+            "assumes": f"all sensors in use, no saturation, states within {lo:g}…{hi:g} °C "
+                       f"(±{x_env[0]:g} K about {T_REF:g} °C), inputs within their limits, "
+                       f"residuals within ±{hi - lo:g} K (docs/observer.md §7)"}
+
+
+def _check_fixed(fx, system, A, B, names, inputs, sensors, rate_hz, dt, where, warn,
+                 held=None) -> None:
     """Couplings the format rounds to zero (a warning) and stability after quantization.
 
     A coupling is an entry of `Phi`, `B0`, `B1` whose continuous counterpart (`A`, `B`) is
@@ -454,7 +580,10 @@ def _check_fixed(fx, system, A, B, names, inputs, sensors, rate_hz, dt, where, w
         Phi_q = fx.coef["Phi"] * 2.0 ** -fx.coef_frac["Phi"]
         C_q = fx.coef["C"] * 2.0 ** -fx.coef_frac["C"]
         L_q = fx.coef["L"][mask] * 2.0 ** -fx.coef_frac["L"]
-        rho = float(np.abs(np.linalg.eigvals((np.eye(n) - L_q @ C_q) @ Phi_q)).max())
+        E = (np.eye(n) - L_q @ C_q) @ Phi_q
+        if held is not None and not L_q[held].any():   # a subset that holds the input
+            E = E[:held, :held]
+        rho = float(np.abs(np.linalg.eigvals(E)).max())
         if not rho < 1.0:
             used = [sensors[j] for j in range(system.n_outputs) if mask >> j & 1]
             raise InputError(f"at {rate_hz:g} Hz (dt {dt:g} s) the {fx.fmt.name} observer with "
