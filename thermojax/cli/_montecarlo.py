@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from .._errors import InputError
@@ -14,13 +15,12 @@ def cmd_montecarlo(args) -> int:
 
     config = load_config(args.config)
     out = Path(args.out or config.out or f"montecarlo_{Path(args.config).stem}")
+    check_output_folder(out, args.force, in_place=True, shared=_shared_lock_key())
     if out.is_dir() and is_own_folder(out) and (out / "manifest.json").is_file() and not (
             args.resume or args.force):
         raise InputError("the folder holds chunks of an earlier run; pass --resume to "
                          "continue it or --force to start afresh.", file=str(out),
                          field="--out")
-    if not (args.resume and is_own_folder(out)):
-        check_output_folder(out, args.force)
     mark_own(out)
     result = run_montecarlo(config, out, resume=args.resume and not args.force,
                             progress=args.progress)
@@ -46,6 +46,20 @@ def cmd_montecarlo(args) -> int:
     print(f"wrote {out / 'report.json'}, {out / 'report.md'} and plots "
           f"({len(result['computed'])} chunk(s) computed, {len(result['skipped'])} resumed)")
     return 0
+
+
+def _shared_lock_key() -> str | None:
+    """None for a study one process computes (the folder locked whole); for one sharded
+    over processes (docs/cli.md), each process's own lock key, since they fill one
+    folder together (`process<i>`, or no key of its own where the index is not known
+    before JAX starts: then the lock is this process's alone)."""
+    env = os.environ
+    if not any(env.get(v) for v in ("THERMOJAX_PROCESS_COUNT", "THERMOJAX_PROCESS_INDEX",
+                                     "THERMOJAX_DISTRIBUTED", "JAX_COORDINATOR_ADDRESS",
+                                     "JAX_NUM_PROCESSES")):
+        return None
+    index = env.get("THERMOJAX_PROCESS_INDEX") or env.get("JAX_PROCESS_ID")
+    return f"process{index}" if index is not None else f"pid{os.getpid()}"
 
 
 def add_montecarlo(sub):

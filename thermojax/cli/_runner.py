@@ -101,8 +101,11 @@ def load_config(path: str | Path) -> dict:
 
 def new_run_folder(parent: Path, name: str) -> Path:
     """A folder that did not exist before: `<parent>/<name>-<UTC time>[-n]`."""
+    from ._outputs import ROOM_FOLDER, check_room
+
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
     parent.mkdir(parents=True, exist_ok=True)
+    check_room(parent, ROOM_FOLDER)  # before the work, not after it
     for n in range(1000):
         folder = parent / (f"{name}-{stamp}" + (f"-{n}" if n else ""))
         try:
