@@ -3,10 +3,12 @@
 from .. import _x64  # noqa: F401  (float64 before any array is made)
 from ._data import Dataset, Experiment
 from ._inputs import load_profile, model_inputs, model_outputs, profile_inputs
+from ._plausibility import Outlier, check_plausibility
 from ._profiles import Profile, builtin_profile
 from ._telemetry import Telemetry, read_telemetry, write_telemetry
 
 __all__ = [
-    "Dataset", "Experiment", "Profile", "Telemetry", "builtin_profile", "load_profile",
+    "Dataset", "Experiment", "Outlier", "Profile", "Telemetry", "builtin_profile",
+    "check_plausibility", "load_profile",
     "model_inputs", "model_outputs", "profile_inputs", "read_telemetry", "write_telemetry",
 ]

@@ -1,0 +1,254 @@
+"""Telemetry is checked for plausibility before any work (issue 32, item 1): a cell the
+model's units and the other samples rule out is named by file, line and column, and the
+user chooses to stop (the default, exit 2) or drop it (`--outliers drop`); a kelvin
+column and a time column in milliseconds are named as such; after dropping, one glitch
+no longer decides the fit.
+
+The data are helpers' rtd2h runs (simulated by NumPy from a known truth) written as CSV
+with one bad cell injected; the CLI runs in-process from the folder holding them, so the
+fit reuses the compilation of tests/test_fit_cli.py's runs of the same names and shapes.
+"""
+
+import numpy as np
+import pytest
+
+from thermojax import write_telemetry
+from thermojax._errors import InputError
+from thermojax.cli import main
+from thermojax.measurements import Telemetry, read_telemetry
+from thermojax.measurements._plausibility import check_plausibility
+
+from helpers import RTD2H_NAMES, RTD2H_TEXT, RTD2H_TRUTH, rtd2h_data, rtd2h_spec
+
+ROW = 205  # 0-based data row of the injected cell: mid-way through a heater block
+LINE = ROW + 2  # its line in the file: the header is line 1, no comments
+
+
+def run(capsys, *argv):
+    capsys.readouterr()
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as e:  # argparse usage errors
+        rc = e.code
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def assert_refused(rc, err, *fragments):
+    assert rc == 2, err
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment in err, (fragment, err)
+
+
+def channels_of(run_data):
+    ts, U, Y, *_ = run_data
+    return ts, {"T_fluid": U[:, 0].copy(), "P_heater": U[:, 1].copy(),
+                "T_core": Y[:, 0].copy(), "T_sheath": Y[:, 1].copy()}
+
+
+def write_runs(folder, edit=None, scale_time=1.0):
+    """a.csv and b.csv of rtd2h in `folder`, each passed through `edit(channels)`."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "rtd2h.toml").write_text(RTD2H_TEXT)
+    for name, data in zip(RTD2H_NAMES, rtd2h_data(1)):
+        ts, channels = channels_of(data)
+        if edit is not None:
+            edit(channels)
+        write_telemetry(folder / name, ts * scale_time, channels)
+    return folder
+
+
+def glitch(column, value, row=ROW):
+    def edit(channels):
+        channels[column][row] = value
+    return edit
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    return write_runs(tmp_path_factory.mktemp("clean"))
+
+
+# ---------------------------------------------------------------------------
+# the check alone (no fit)
+
+
+def test_clean_runs_pass_unchanged(clean):
+    spec = rtd2h_spec()
+    for name in RTD2H_NAMES:
+        t = read_telemetry(clean / name)
+        checked, dropped = check_plausibility(spec, t)
+        assert checked is t and dropped == []
+
+
+@pytest.mark.parametrize("column, value, words", [
+    ("T_core", 1e300, "1e+300"), ("T_core", 1e6, "above 5000 °C"),
+    ("T_core", -400.0, "below absolute zero"), ("T_sheath", 1e6, "1e+06"),
+    ("T_fluid", 1e300, "1e+300"), ("P_heater", 1e300, "1e+300"),
+    ("P_heater", 1e6, "far outside the rest of the column"),
+])
+def test_one_bad_cell_is_named_by_line_and_column(tmp_path, column, value, words):
+    folder = write_runs(tmp_path, glitch(column, value))
+    with pytest.raises(InputError) as e:
+        check_plausibility(rtd2h_spec(), read_telemetry(folder / "a.csv"))
+    assert (e.value.line, e.value.field) == (LINE, column)
+    message = str(e.value)
+    for fragment in (f"line {LINE}", f"column '{column}'", words, "--outliers drop"):
+        assert fragment in message, (fragment, message)
+
+
+def test_kelvin_column_is_named_as_kelvin(tmp_path):
+    def kelvin(channels):
+        channels["T_core"] += 273.15
+
+    folder = write_runs(tmp_path, kelvin)
+    with pytest.raises(InputError, match=r"'T_core' looks like kelvin.*subtract 273\.15") as e:
+        check_plausibility(rtd2h_spec(), read_telemetry(folder / "a.csv"))
+    assert e.value.field == "T_core"
+
+
+def test_milliseconds_are_named_as_milliseconds(tmp_path):
+    folder = write_runs(tmp_path, scale_time=1000.0)
+    with pytest.raises(InputError, match="milliseconds.*divide it by 1000") as e:
+        check_plausibility(rtd2h_spec(), read_telemetry(folder / "a.csv"))
+    assert e.value.field == "time_s"
+
+
+def telemetry(ts, **channels):
+    return Telemetry(ts=np.asarray(ts, float), channels=channels)
+
+
+ONE_NODE = """
+name = "one"
+[[nodes]]
+name = "n"
+capacitance = 1e6
+[[boundaries]]
+node = "n"
+input = "Ta"
+conductance = 200.0
+[[heat_inputs]]
+node = "n"
+input = "P"
+hold = "zoh"
+gain = { value = 1.0, fixed = true }
+[[sensors]]
+node = "n"
+column = "T"
+"""
+
+
+def test_legitimate_data_never_trigger():
+    """Switched power, one short pulse, a quantized sensor stuck on one value but for one
+    step, an hourly building log over a year, an oven at 250 °C: nothing is flagged."""
+    import thermojax as tj
+
+    spec = tj.parse_model(ONE_NODE, source="one.toml")
+    rng = np.random.default_rng(0)
+    n = 2000
+    ts = 300.0 * np.arange(n)
+    cases = {
+        "prbs": dict(Ta=5 + rng.standard_normal(n), P=5000.0 * rng.integers(0, 2, n),
+                     T=21 + 0.1 * rng.standard_normal(n)),
+        "pulse": dict(Ta=np.full(n, 20.0), P=np.where(np.arange(n) == 700, 3000.0, 0.0),
+                      T=np.round(21 + 0.01 * rng.standard_normal(n), 1)),
+        "quantized": dict(Ta=np.full(n, 20.0), P=np.zeros(n),
+                          T=np.where(np.arange(n) == 900, 20.5, 20.0)),
+        "oven": dict(Ta=np.full(n, 20.0), P=np.full(n, 2e4),
+                     T=250 + np.sin(np.arange(n) / 50.0)),
+    }
+    for name, channels in cases.items():
+        t = telemetry(ts, **channels)
+        assert check_plausibility(spec, t) == (t, []), name
+    hourly = telemetry(3600.0 * np.arange(24 * 365), Ta=np.full(24 * 365, 10.0),
+                       P=np.zeros(24 * 365), T=np.full(24 * 365, 20.0))
+    assert check_plausibility(spec, hourly)[1] == []
+
+
+def test_drop_makes_a_sensor_cell_missing_and_fills_an_input_by_its_hold():
+    spec = rtd2h_spec()
+    ts, channels = channels_of(rtd2h_data(1)[0])
+    truth = {k: v.copy() for k, v in channels.items()}
+    channels["T_core"][ROW] = 1e300
+    channels["P_heater"][ROW] = 1e6  # zoh: the previous value
+    channels["T_fluid"][ROW + 1] = -1e300  # foh: the line between its neighbours
+    t = telemetry(ts, **channels)
+    checked, dropped = check_plausibility(spec, t, outliers="drop")
+    assert sorted((o.column, o.row) for o in dropped) == [
+        ("P_heater", ROW), ("T_core", ROW), ("T_fluid", ROW + 1)]
+    assert np.isnan(checked.channels["T_core"][ROW])
+    assert checked.channels["P_heater"][ROW] == truth["P_heater"][ROW - 1]
+    assert checked.channels["T_fluid"][ROW + 1] == pytest.approx(
+        0.5 * (truth["T_fluid"][ROW] + truth["T_fluid"][ROW + 2]))
+    untouched = np.ones(len(ts), bool)
+    untouched[[ROW, ROW + 1]] = False
+    for name in truth:
+        np.testing.assert_array_equal(checked.channels[name][untouched],
+                                      truth[name][untouched])
+
+
+# ---------------------------------------------------------------------------
+# the command line
+
+
+@pytest.mark.parametrize("command", ["fit", "diagnose", "investigate"])
+def test_commands_stop_before_work_and_name_the_cell(capsys, tmp_path, command):
+    folder = write_runs(tmp_path, glitch("T_core", 1e300))
+    rc, _, err = run(capsys, command, "--model", folder / "rtd2h.toml", "--data",
+                     folder / "a.csv", "--out", tmp_path / "out")
+    assert_refused(rc, err, "a.csv", f"line {LINE}", "'T_core'", "--outliers drop")
+    assert not (tmp_path / "out").exists()
+
+
+def test_unused_columns_are_checked_for_absurd_cells_only(capsys, tmp_path):
+    """diagnose offers unused columns as candidate inputs: 1e300 there is refused, a
+    status column with one odd code is not (its meaning is unknown)."""
+    spec = rtd2h_spec()
+    ts, channels = channels_of(rtd2h_data(1)[0])
+    status = np.zeros(len(ts))
+    status[ROW] = 255.0
+    t = telemetry(ts, **channels, status=status)
+    assert check_plausibility(spec, t, others=True) == (t, [])
+    folder = write_runs(tmp_path, lambda c: c.update(spare=np.where(
+        np.arange(len(c["T_core"])) == ROW, 1e300, 1.0)))
+    assert check_plausibility(spec, read_telemetry(folder / "a.csv"))[1] == []
+    rc, _, err = run(capsys, "diagnose", "--model", folder / "rtd2h.toml", "--data",
+                     folder / "a.csv", "--out", tmp_path / "out")
+    assert_refused(rc, err, f"line {LINE}", "'spare'")
+
+
+@pytest.mark.parametrize("scale_time, edit, words", [
+    (1.0, lambda c: c.__setitem__("T_core", c["T_core"] + 273.15), "kelvin"),
+    (1000.0, None, "milliseconds"),
+])
+def test_fit_names_the_unit_mistake_even_when_dropping(capsys, tmp_path, scale_time, edit,
+                                                        words):
+    folder = write_runs(tmp_path, edit, scale_time)
+    rc, _, err = run(capsys, "fit", "--model", folder / "rtd2h.toml", "--data",
+                     folder / "a.csv", "--out", tmp_path / "out", "--outliers", "drop")
+    assert_refused(rc, err, "a.csv", words)
+
+
+def test_fit_after_dropping_recovers_the_truth(capsys, tmp_path, monkeypatch):
+    """A 1e300 sensor cell in a.csv and a 1e6 W heater cell in b.csv, dropped: the fit
+    finds the parameters that generated the data, and says what it dropped."""
+    import json
+
+    folder = tmp_path / "data"
+    write_runs(folder)
+    for name, edit in (("a.csv", glitch("T_core", 1e300)), ("b.csv", glitch("P_heater", 1e6))):
+        t = read_telemetry(folder / name)
+        channels = {k: np.array(v) for k, v in t.channels.items()}
+        edit(channels)
+        write_telemetry(folder / name, t.ts, channels)
+    monkeypatch.chdir(folder)
+    rc, out, err = run(capsys, "fit", "--model", "rtd2h.toml", "--data", "a.csv", "--data",
+                       "b.csv", "--out", tmp_path / "out", "--outliers", "drop", "--quiet")
+    assert rc == 0, err
+    assert "a.csv: dropped 1 implausible cell" in err and f"line {LINE}" in err
+    assert "b.csv: dropped 1 implausible cell" in err
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    for name, value in RTD2H_TRUTH.items():
+        assert report["parameters"][name]["value"] == pytest.approx(value, rel=0.05), name
+    assert report["rmse"]["T_core"] < 0.02
