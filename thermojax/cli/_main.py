@@ -18,10 +18,12 @@ from .._errors import InputError
 from ._progress import Progress
 from ._compensate import add_compensate
 from ._export import add_export
+from ._playback import add_playback
+from ._rate import add_rate
 from ._calibrate import add_calibrate
 from ._montecarlo import add_montecarlo
-from ._outputs import (check_output_file, check_output_folder, mark_own, staged_file,
-                       staged_folder)
+from ._outputs import (check_output_file, check_output_folder, mark_own, output_session,
+                       staged_file, staged_folder)
 
 
 def _builtin_model_path(name: str) -> Path:
@@ -141,7 +143,7 @@ def cmd_demo(args) -> int:
     from ..model._network import local_time_constants
 
     out = Path(args.out)
-    check_output_folder(out, args.force)
+    check_output_folder(out, args.force, in_place=True)
     mark_own(out)
     model = _builtin_model_path("imu6")
     print("thermojax demo: the six-node tactical-IMU model through the seed's calibration "
@@ -191,11 +193,11 @@ def cmd_demo(args) -> int:
     return 0
 
 
-def _load_runs(spec, paths: list[str]):
+def _load_runs(spec, paths: list[str], outliers: str = "stop"):
     from ..measurements._data import Experiment
-    from ..measurements._telemetry import read_telemetry
 
-    return [Experiment.from_telemetry(spec, read_telemetry(p), name=p) for p in paths]
+    return [Experiment.from_telemetry(spec, t, name=p)
+            for p, t in zip(paths, _plausible(spec, _read_runs(paths), outliers))]
 
 
 def cmd_fit(args) -> int:
@@ -210,7 +212,7 @@ def cmd_fit(args) -> int:
     check_output_folder(out, args.force)
     spec = io.load_model(_resolve_model(args.model))
     _check_profile_names(spec, args.profile or [], args.likelihood)
-    experiments = _load_runs(spec, args.data)
+    experiments = _load_runs(spec, args.data, getattr(args, "outliers", "stop"))
     args.progress(f"fitting {len(experiments)} run(s) under the {args.likelihood} likelihood "
                   "(the first evaluation compiles the model)")
     with warnings.catch_warnings(record=True) as caught:
@@ -312,6 +314,11 @@ def _add_fit_arguments(p) -> None:
     p.add_argument("--data", required=True, action="append", help="telemetry CSV (repeatable)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error")
+    p.add_argument("--outliers", choices=["stop", "drop"], default="stop",
+                   help="a cell the model's units and the other samples rule out: stop (the "
+                   "default, naming each by line and column) or drop it (a sensor cell becomes "
+                   "a dropped sample, an input cell is filled from its neighbours as its hold "
+                   "says)")
     _add_force(p, "an existing --out folder")
     _add_quiet(p)
 
@@ -336,6 +343,18 @@ def _read_runs(paths: list[str]):
     return [read_telemetry(p) for p in paths]
 
 
+def _plausible(spec, runs, outliers: str = "stop", others: bool = False):
+    """Each run checked for plausibility against the model (--outliers); drops said.
+    `others`: the columns the model does not read too (candidate inputs)."""
+    from ..measurements._plausibility import check_plausibility, describe_dropped
+
+    checked = [check_plausibility(spec, t, outliers, others=others) for t in runs]
+    for t, dropped in checked:
+        if dropped:
+            print(f"warning: {describe_dropped(t, dropped)}", file=sys.stderr)
+    return [t for t, _ in checked]
+
+
 def cmd_diagnose(args) -> int:
     from .. import io
     from ..investigation._diagnose import diagnose
@@ -343,7 +362,8 @@ def cmd_diagnose(args) -> int:
     out = Path(args.out)
     check_output_folder(out, args.force)
     spec = io.load_model(_resolve_model(args.model))
-    runs = _read_runs(args.data)
+    runs = _plausible(spec, _read_runs(args.data), getattr(args, "outliers", "stop"),
+                      others=True)
     with staged_folder(out) as tmp:
         report = diagnose(spec, runs, likelihood=args.likelihood, out=tmp,
                           progress=args.progress)
@@ -372,9 +392,10 @@ def cmd_investigate(args) -> int:
     from ..investigation._investigate import investigate
 
     out = Path(args.out)
-    check_output_folder(out, args.force)
+    check_output_folder(out, args.force, in_place=True)
     spec = io.load_model(_resolve_model(args.model))
-    runs = _read_runs(args.data)
+    runs = _plausible(spec, _read_runs(args.data), getattr(args, "outliers", "stop"),
+                      others=True)
     mark_own(out)  # finished steps are kept here; a rerun resumes from them
     report = investigate(spec, runs, likelihood=args.likelihood, out=out,
                          max_steps=args.max_steps, resume=not args.restart,
@@ -557,6 +578,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_demo(sub)
     add_export(sub)
     add_compensate(sub)
+    add_playback(sub)
+    add_rate(sub)
     add_calibrate(sub)
     add_montecarlo(sub)
     return parser
@@ -606,7 +629,7 @@ def main(argv: list[str] | None = None) -> int:
 
         enable_compilation_cache()
     try:
-        with args.progress.running():
+        with args.progress.running(), output_session(args.command):
             status = args.func(args)
             if args.progress.interrupted:  # swallowed where Python ignores exceptions
                 raise KeyboardInterrupt
