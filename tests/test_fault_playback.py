@@ -164,3 +164,22 @@ def test_playback_mistakes_are_named(tmp_path, artifact, capsys):
     assert main(["playback", str(bare), "--data", str(log), "--out", str(out),
                  "--build", "fixed", "--quiet"]) == 2
     assert "--fixed" in capsys.readouterr().err
+
+
+def test_bad_input_samples_are_held_and_flagged(tmp_path, artifact, capsys):
+    log, ts = _log(tmp_path)
+    got = tj.read_telemetry(log)
+    fluid = np.array(got.column("T_fluid"))
+    fluid[200], fluid[400:403] = np.nan, 1e6          # a dropped and an absurd input
+    bad = tmp_path / "bad.csv"
+    tj.write_telemetry(bad, got.ts, {"T_fluid": fluid, "T_core": got.column("T_core")})
+    out = tmp_path / "play.csv"
+    assert main(["playback", str(artifact), "--data", str(bad), "--out", str(out),
+                 "--quiet"]) == 0
+    assert "4 samples with an input held" in capsys.readouterr().out
+    played = tj.read_telemetry(out)
+    flags = played.column("input_fault").astype(int)
+    assert np.array_equal(np.flatnonzero(flags), [200, 400, 401, 402])
+    assert np.all(np.isfinite(played.column("T_core_estimate")))
+    assert np.all(played.column("state_ok") == 1)
+

@@ -14,7 +14,7 @@ from ._outputs import check_output_file, staged_file
 
 def cmd_playback(args) -> int:
     from .. import io
-    from ..measurements._telemetry import check_inputs, check_sensors
+    from ..measurements._telemetry import check_sensors
     from ..observer._fault_playback import RECOVERED_K, parse_fault, play_faults
     from ..reference import load_observer
 
@@ -23,7 +23,8 @@ def cmd_playback(args) -> int:
     art = load_observer(args.observer)
     faults = [parse_fault(text, art.output_names) for text in args.inject or ()]
     log = io.read_telemetry(args.data)
-    check_inputs(log, art.input_names)
+    for c in art.input_names:   # present; a bad cell is the observer's to hold (input_fault)
+        log.column(c)
     check_sensors(log, art.output_names)
     if abs(log.dt - art.dt) > 1e-6 * art.dt:
         raise InputError(f"the log is sampled every {log.dt:g} s but the observer runs every "
@@ -45,7 +46,7 @@ def cmd_playback(args) -> int:
         channels[f"{c}_reading"] = pb.readings[:, j]
         channels[f"{c}_estimate"] = pb.faulted[:, j]
         channels[f"{c}_clean"] = pb.clean[:, j]
-    for key in ("in_use", "healthy", "wire_break"):
+    for key in ("in_use", "healthy", "wire_break", "input_fault", "state_ok", "saturations"):
         channels[key] = getattr(pb, key).astype(float)
     with staged_file(out) as tmp:
         io.write_telemetry(tmp, log.ts, channels, comments=[
@@ -53,7 +54,9 @@ def cmd_playback(args) -> int:
             f"({args.build})", "faults: " + ("; ".join(f.label for f in faults) or "none"),
             "COLUMN_estimate: the observer's estimate of the reading with the faults; "
             "COLUMN_clean: without them; in_use, healthy, wire_break: channel bit masks "
-            f"(bit j: {', '.join(names)})"])
+            f"(bit j: {', '.join(names)}); input_fault: inputs held (bit j: "
+            f"{', '.join(art.input_names) or 'none'}); state_ok: every state finite and "
+            "in range; saturations: fixed-point saturations so far"])
     figure = out.with_suffix(".png")
     _plot(figure, pb, names, faults)
     for v in pb.verdicts:
@@ -62,6 +65,10 @@ def cmd_playback(args) -> int:
                else "NOT recovered by the end of the log")
         print(f"{v.fault.label}: {'bounded' if v.bounded else 'NOT BOUNDED'} (worst "
               f"{v.worst_K:.3g} K from the clean estimate), {rec}")
+    if pb.input_fault.any() or not pb.state_ok.all() or pb.saturations[-1]:
+        print(f"the log itself: {int(np.count_nonzero(pb.input_fault))} samples with an input "
+              f"held, {int(np.count_nonzero(pb.state_ok == 0))} with a state out of range, "
+              f"{int(pb.saturations[-1])} fixed-point saturations")
     print(f"wrote {out} and {figure}")
     return 0
 

@@ -118,6 +118,20 @@ def inject(faults, t, y, rails_high, names):
     return y, oc
 
 
+def _held(u, input_fault, artifact):
+    """The inputs the observer used: a flagged sample replaced by the last good one (the
+    value the reference starts with before any)."""
+    from ..reference._faults import initial_inputs
+
+    used = np.array(u, float)
+    last = initial_inputs(artifact.faults.input_limits_array(artifact.system))
+    for k in range(used.shape[0]):
+        bad = (int(input_fault[k]) >> np.arange(used.shape[1])) & 1 == 1
+        used[k, bad] = last[bad]
+        last = used[k]
+    return used
+
+
 @dataclasses.dataclass(frozen=True)
 class FaultVerdict:
     """What one fault did: the largest distance of any estimate from the clean run's
@@ -137,7 +151,9 @@ class FaultPlayback:
     """A playback with faults: `t (T,)` s, the faulted `readings (T, p)` (°C, NaN when
     missing), `open_circuit (T, p)`, the estimated readings `faulted (T, p)` and `clean
     (T, p)` (°C), the channel masks `in_use`, `healthy`, `wire_break (T,)` of the
-    faulted run, and one `FaultVerdict` per fault."""
+    faulted run, its `input_fault` mask and `state_ok` flag `(T,)` and fixed-point
+    `saturations` so far (`thermojax.reference.ObserverRun`), and one `FaultVerdict`
+    per fault."""
 
     t: np.ndarray
     readings: np.ndarray
@@ -147,6 +163,9 @@ class FaultPlayback:
     in_use: np.ndarray
     healthy: np.ndarray
     wire_break: np.ndarray
+    input_fault: np.ndarray
+    state_ok: np.ndarray
+    saturations: np.ndarray
     verdicts: tuple
 
 
@@ -173,7 +192,7 @@ def play_faults(artifact, t, u, y, faults, build: str = "float64") -> FaultPlayb
             obs = artifact.float_observer(np.float32 if build == "float32" else np.float64)
             r = obs.run(x0, u, readings - offset, open_circuit | np.isnan(readings))
         x = np.asarray(r.states, float)
-        return r, x, x @ s.C.T + u @ s.D.T + offset
+        return r, x, x @ s.C.T + _held(u, r.input_fault, artifact) @ s.D.T + offset
 
     _, _, clean = run(np.asarray(y, float), np.zeros(oc.shape, bool))
     verdicts = []
@@ -194,4 +213,5 @@ def play_faults(artifact, t, u, y, faults, build: str = "float64") -> FaultPlayb
                                      bool(inside[t >= f.start_s].all()), recovered))
     r, x, est = run(bad, oc)
     return FaultPlayback(np.asarray(t, float), bad, oc, est, clean, r.in_use, r.healthy,
-                         r.wire_break, tuple(verdicts))
+                         r.wire_break, r.input_fault, r.state_ok, r.saturations,
+                         tuple(verdicts))
