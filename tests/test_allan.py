@@ -91,3 +91,103 @@ def test_plot(tmp_path):
                                               "halved": allan_deviation(0.5 * y, 10.0)})
     from matplotlib.image import imread
     assert imread(path).shape[1] >= 1000
+
+
+# --- against allantools: an independent implementation (a dev dependency only) ---------
+
+def _noise(alpha, n, rng):
+    """Power-law rate noise S_y ∝ f^α: white phase (2), flicker phase (1), white rate (0),
+    flicker rate (−1), random walk of rate (−2), by shaping white noise in frequency."""
+    f = np.fft.rfftfreq(n)
+    f[0] = f[1]
+    spec = np.fft.rfft(rng.standard_normal(n)) * f ** (alpha / 2.0)
+    return np.fft.irfft(spec, n) + 5.0  # an offset too: σ must not see it
+
+
+@pytest.mark.parametrize("alpha", [2, 1, 0, -1, -2])
+@pytest.mark.parametrize("n", [9, 57, 1000, 20_000])
+def test_against_allantools(alpha, n):
+    allantools = pytest.importorskip("allantools")
+    fs, ci = 8.0, 0.9
+    y = _noise(alpha, n, np.random.default_rng(100 + n))
+    taus = np.unique(np.r_[np.arange(0.6, 40), np.geomspace(1, n, 30)]) / fs
+    a = allan_deviation(y, fs, taus=taus, alpha=alpha, ci=ci)
+    t, dev, _, n_terms = allantools.oadev(y, rate=fs, data_type="freq", taus=taus)
+    assert np.array_equal(a.taus, t) and np.array_equal(a.n_terms, n_terms)
+    # same estimator; float64 roundoff of the cumulative phase only
+    np.testing.assert_allclose(a.adev, dev, rtol=1e-12, atol=0)
+    ms, n_phase = np.round(t * fs).astype(int), n + 1
+    edf = []
+    for m in ms:
+        try:
+            edf.append(allantools.edf_greenhall(alpha=alpha, d=2, m=int(m), N=n_phase,
+                                                overlapping=True, modified=False))
+        except NotImplementedError:  # white phase, r ≤ d: SP 1065's simple fit
+            edf.append(allantools.edf_simple(n_phase, int(m), alpha))
+    # same algorithm, same printed table constants; only the order of float64 sums differs
+    np.testing.assert_allclose(a.edf, edf, rtol=1e-10, atol=0)
+    bounds = np.array([allantools.confidence_interval(d, e, ci=ci) for d, e in zip(dev, edf)])
+    # chi-squared quantiles from scipy on both sides; roundoff only
+    np.testing.assert_allclose(a.lower, bounds[:, 0], rtol=1e-10, atol=0)
+    np.testing.assert_allclose(a.upper, bounds[:, 1], rtol=1e-10, atol=0)
+
+
+def test_edf_all_branches_against_allantools():
+    """Every branch of Greenhall's algorithm (exact sum with F = m and F = ∞, table 2,
+    the rescaled J_max sum, table 3 for flicker phase, the white-phase simple fit)."""
+    allantools = pytest.importorskip("allantools")
+    from thermojax.calibration._allan import _edf
+    for n in (9, 20, 101, 250, 1000, 5000, 100_000):
+        for alpha in (2, 1, 0, -1, -2):
+            for m in (1, 2, 3, 5, 8, 16, 33, 34, 40, 64, 100, 128, 500, 1000, 4000, 20_000):
+                if 2 * m > n - 1:
+                    continue
+                try:
+                    ref = allantools.edf_greenhall(alpha=alpha, d=2, m=m, N=n + 1,
+                                                   overlapping=True, modified=False)
+                except NotImplementedError:
+                    ref = allantools.edf_simple(n + 1, m, alpha)
+                # same algorithm; float64 summation order only (measured ≤ 3e-14)
+                assert _edf(alpha, m, n + 1) == pytest.approx(ref, rel=1e-10), (n, alpha, m)
+
+
+def test_greenhall_tables_from_their_integrals():
+    """The printed table constants are the three-digit roundings of integrals of sz."""
+    from scipy import integrate
+
+    from thermojax.calibration._allan import _GREENHALL_TABLE2, _GREENHALL_TABLE3, _sz
+    knots = np.arange(-3.0, 4.0)
+    for alpha in (0, -1, -2):
+        def g(t, p=0):
+            return np.abs(t) ** p * (_sz(t, np.inf, alpha) / _sz(0.0, np.inf, alpha)) ** 2
+        a0 = sum(integrate.quad(g, lo, hi)[0] for lo, hi in zip(knots[:-1], knots[1:]))
+        a1 = sum(integrate.quad(g, lo, hi, args=(1,))[0] for lo, hi in zip(knots[:-1], knots[1:]))
+        # table printed to three significant digits
+        np.testing.assert_allclose(_GREENHALL_TABLE2[alpha], (a0, a1), rtol=1.5e-3)
+    # flicker phase: sz(0; m) = b0 + b1 ln m up to O(1/m²); b0 = 18 − 4 ln 2 printed 15.23
+    b0, b1 = _GREENHALL_TABLE3
+    for m in (100, 1000):
+        assert float(_sz(0.0, m, 1)) == pytest.approx(b0 + b1 * np.log(m), rel=1e-4)
+
+
+def test_bad_alpha_and_ci():
+    y = np.random.default_rng(6).standard_normal(100)
+    with pytest.raises(InputError, match="noise type alpha"):
+        allan_deviation(y, 1.0, alpha=-3)
+    with pytest.raises(InputError, match="confidence level"):
+        allan_deviation(y, 1.0, ci=1.0)
+
+
+def test_runtime_requirements_free_of_test_and_doc_tools():
+    """`pip install thermojax` brings no allantools, test or documentation tools (issue 32):
+    they may appear only behind an extra."""
+    import re
+    from importlib.metadata import PackageNotFoundError, requires
+
+    try:
+        reqs = requires("thermojax") or []
+    except PackageNotFoundError:
+        pytest.skip("thermojax is not installed (pip install -e .)")
+    runtime = {re.split(r"[\s<>=!~\[;(]", r, maxsplit=1)[0].lower()
+               for r in reqs if "extra ==" not in r}
+    assert runtime and not runtime & {"allantools", "pytest", "sphinx", "numpydoc"}

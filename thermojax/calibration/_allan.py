@@ -1,17 +1,22 @@
 """Overlapping Allan deviation of a rate signal, and the noise terms read off it.
 
-The deviation itself and its equivalent degrees of freedom come from `allantools`
-(NIST SP 1065 eq. 11; Greenhall's EDF); this file chooses the averaging times, names the
-noise type at each of them and reads angle random walk, bias instability and rate random
-walk off the curve (IEEE Std 952, annex C).
+Everything is computed here with NumPy and SciPy: the deviation (NIST SP 1065 eq. 11),
+its equivalent degrees of freedom (Greenhall & Riley 2003, "Uncertainty of stability
+variances based on finite differences", for the overlapping Allan variance; the simple
+SP 1065 table 5 fit where that algorithm has no closed case) and the chi-squared interval
+(SP 1065 §5.3). The tests check all three against `allantools`, an independent
+implementation that is a development dependency only. This file also chooses the
+averaging times, names the noise type at each of them and reads angle random walk, bias
+instability and rate random walk off the curve (IEEE Std 952, annex C).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from math import comb
 
-import allantools
 import numpy as np
+from scipy import stats
 
 from .._errors import InputError
 
@@ -71,7 +76,8 @@ def allan_deviation(rate_samples, sample_rate_hz: float, taus=None, *, alpha: in
       `log σ² / log τ` at each point: `α = −μ − 1` rounded to −2…0, and 2 where the
       ADEV falls as `1/τ` (μ ≤ −1.5: quantization); points averaging fewer than 30
       independent stretches (`N/m < 30`) keep the type of the last point before them.
-    - `ci`: confidence level of the interval, default one sigma (0.683).
+      Given, it must be one of 2, 1, 0, −1, −2.
+    - `ci`: confidence level of the interval, between 0 and 1; default one sigma (0.683).
 
     **Returns:** an `AllanDeviation`.
     """
@@ -94,21 +100,62 @@ def allan_deviation(rate_samples, sample_rate_hz: float, taus=None, *, alpha: in
     if taus is None:
         m = 2 ** np.arange(int(np.log2(y.size / 4)) + 1)
         taus = m / fs
-    taus_used, adev, _, n_terms = allantools.oadev(y, rate=fs, data_type="freq",
-                                                   taus=np.asarray(taus, dtype=float))
+    if not 0.0 < ci < 1.0:
+        raise InputError(f"the confidence level must lie between 0 and 1, got {ci!r}.",
+                         field="ci")
+    if alpha is not None and int(alpha) not in _GREENHALL_TABLE2:
+        raise InputError(f"the noise type alpha must be one of 2, 1, 0, -1, -2 (the power-law "
+                         f"types the overlapping Allan variance separates), got {alpha!r}.",
+                         field="alpha")
+    ms = _averaging_factors(np.asarray(taus, dtype=float), fs, y.size)
+    taus_used = ms / fs
+    adev, n_terms = _oadev(y, ms)
     if taus_used.size == 0:
         raise InputError(f"no averaging time fits in {y.size} samples at {fs:g} Hz.",
                          field="taus")
-    ms = np.round(taus_used * fs).astype(int)
     if alpha is None:
         alphas = _noise_types(taus_used, adev, y.size // ms)
     else:
         alphas = np.full(taus_used.shape, int(alpha))
     edf = np.array([_edf(int(a), int(m), y.size + 1) for a, m in zip(alphas, ms)])
-    bounds = [allantools.confidence_interval(d, e, ci=ci) for d, e in zip(adev, edf)]
-    lower, upper = (np.array(b, dtype=float) for b in zip(*bounds))
+    lower, upper = _chi2_interval(adev, edf, ci)
     return AllanDeviation(taus=taus_used, adev=adev, lower=lower, upper=upper, edf=edf,
-                          alpha=alphas, n_terms=n_terms.astype(int), sample_rate_hz=fs, ci=ci)
+                          alpha=alphas, n_terms=n_terms, sample_rate_hz=fs, ci=ci)
+
+
+def _averaging_factors(taus, fs: float, n_freq: int) -> np.ndarray:
+    """The averaging factors `m = round(τ·fs)` that fit the record, sorted and unique: at
+    least one sample, and at least two second differences (`N − 2m ≥ 2` over the
+    `N = n_freq + 1` phase points)."""
+    m = np.unique(np.round(np.atleast_1d(taus) * fs))
+    m = m[(m >= 1) & (2 * m <= n_freq - 1)]
+    return m.astype(int)
+
+
+def _oadev(y, ms) -> tuple[np.ndarray, np.ndarray]:
+    """Overlapping Allan deviation at the factors `ms` (NIST SP 1065 eq. 11), and the
+    number of second differences averaged at each.
+
+    With the phase `x_0 = 0, x_k = Σ_{j<k} (y_j − ȳ)` in sample periods (the mean removed
+    first: it does not change σ, and it keeps the cumulative sum small),
+    `σ²(m) = Σ_i (x_{i+2m} − 2x_{i+m} + x_i)² / (2 m² (N − 2m))` over the `N` phase points.
+    """
+    x = np.concatenate([[0.0], np.cumsum(y - y.mean())])
+    adev = np.empty(ms.shape)
+    for k, m in enumerate(ms):
+        d2 = x[2 * m:] - 2.0 * x[m:x.size - m] + x[:x.size - 2 * m]
+        adev[k] = np.sqrt(np.dot(d2, d2) / (2.0 * d2.size)) / m
+    return adev, x.size - 2 * ms
+
+
+def _chi2_interval(dev, edf, ci: float) -> tuple[np.ndarray, np.ndarray]:
+    """Two-sided interval at level `ci` for a deviation with `edf` degrees of freedom:
+    `edf·σ̂²/σ²` is chi-squared, so `σ ∈ σ̂·√(edf / χ²_{edf}(1 − p, p))`, `p = (1 − ci)/2`
+    (NIST SP 1065 eq. 33)."""
+    p = 0.5 * (1.0 - ci)
+    lower = dev * np.sqrt(edf / stats.chi2.isf(p, edf))
+    upper = dev * np.sqrt(edf / stats.chi2.ppf(p, edf))
+    return lower, upper
 
 
 def _local_slopes(taus, adev) -> np.ndarray:
@@ -133,11 +180,108 @@ def _noise_types(taus, adev, n_averages) -> np.ndarray:
 def _edf(alpha: int, m: int, n_phase: int) -> float:
     """Greenhall's EDF of the overlapping ADEV; the simple (SP 1065 table 5) one where
     Greenhall's has no closed case (white phase at the longest averaging times)."""
-    try:
-        return float(allantools.edf_greenhall(alpha=alpha, d=2, m=m, N=n_phase,
-                                              overlapping=True, modified=False))
-    except NotImplementedError:
-        return float(allantools.edf_simple(n_phase, m, alpha))
+    edf = _edf_greenhall(alpha, m, n_phase)
+    return _edf_simple_white_phase(m, n_phase) if edf is None else edf
+
+
+#: Greenhall & Riley (2003), table 2, column d = 2 (unmodified variances): `(a0, a1)` of
+#: `1/edf ≈ (a0 − a1/r)/r` for long records, `r = M/S`. For α ≤ 0 these are, to the three
+#: digits printed, `∫ sz²(t) dt / sz(0)²` and `∫ |t| sz²(t) dt / sz(0)²` over
+#: `|t| ≤ d + 1` with `F = ∞` (the tests check that); for α = 1 the same integrals of the
+#: `m → ∞` shape of `sz` without the `sz(0)²` (table 3 gives that); α = 2 is
+#: `C(4d, 2d)/C(2d, d)²`, `d/2`.
+_GREENHALL_TABLE2 = {2: (35.0 / 18.0, 1.0), 1: (790.0, 410.0), 0: (2.0 / 3.0, 1.0 / 3.0),
+                     -1: (0.852, 0.375), -2: (1.079, 0.368)}
+
+#: Greenhall & Riley (2003), table 3, d = 2: `sz(0; m, α = 1) ≈ b0 + b1 ln m` for flicker
+#: phase noise. With our `sw` this is `12 ln m + 18 − 4 ln 2` (= 15.227…; printed 15.23).
+_GREENHALL_TABLE3 = (15.23, 12.0)
+
+#: The algorithm's cutoff: sums longer than this many terms use the asymptotic forms.
+_J_MAX = 100
+
+
+def _sw(t: np.ndarray, alpha: int) -> np.ndarray:
+    """Greenhall's `sw(t)` for the power law `α`, up to a factor that cancels in the EDF:
+    `|t|^(3−α)` for even `α`, `t^(3−α) ln|t|` (0 at `t = 0`) for odd `α`."""
+    t = np.abs(np.asarray(t, dtype=float))
+    if alpha % 2 == 0:
+        return t ** (3 - alpha)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(t == 0.0, 0.0, t ** (3 - alpha) * np.log(t))
+
+
+def _sz(t, f: float, alpha: int, d: int = 2) -> np.ndarray:
+    """Greenhall's `sz(t; F, α, d)`: the `d`-th order difference filter (binomial weights,
+    unit steps in `t`) applied to `sx`, where `sx` is `F²` times minus the second difference
+    of `sw` at step `1/F` (finite `F`, the unmodified variances have `F = m`), or `sw` of
+    `α + 2` when `F = ∞`."""
+    t = np.asarray(t, dtype=float)
+
+    def sx(u):
+        if np.isinf(f):
+            return _sw(u, alpha + 2)
+        return f * f * (2.0 * _sw(u, alpha) - _sw(u - 1.0 / f, alpha) - _sw(u + 1.0 / f, alpha))
+
+    return sum((-1) ** abs(k) * comb(2 * d, d + k) * sx(t + k) for k in range(-d, d + 1))
+
+
+def _basic_sum(j: int, big_m: float, s: float, f: float, alpha: int, d: int = 2) -> float:
+    """Greenhall's `BasicSum(J, M, S, F, α, d) = sz²(0) + (1 − J/M) sz²(J/S)
+    + 2 Σ_{j=1}^{J−1} (1 − j/M) sz²(j/S)`."""
+    lags = np.arange(1, int(j))
+    total = _sz(0.0, f, alpha, d) ** 2 + (1.0 - j / big_m) * _sz(j / s, f, alpha, d) ** 2
+    return float(total + 2.0 * np.sum((1.0 - lags / big_m) * _sz(lags / s, f, alpha, d) ** 2))
+
+
+def _edf_greenhall(alpha: int, m: int, n_phase: int) -> float | None:
+    """EDF of the overlapping Allan variance (`d = 2`, unmodified: `F = m`, stride
+    `S = m`) by Greenhall & Riley (2003), from `n_phase` phase points; None for white
+    phase noise when `r = M/S` is at most `d` (the case the simple fit covers here).
+
+    The filter spans `L = m/F + m d` phase points, so `M = 1 + ⌊S (N − L)/m⌋` terms are
+    averaged; their correlations reach `J = min(M, (d + 1) S)` lags. Short sums are done
+    exactly (`BasicSum`); long ones use table 2 when `r > d + 1`, else `J_max` terms at
+    the stride `J_max/r` with `F = ∞`. For α ≤ 0 a short sum with `m (d + 1) > J_max` also
+    uses `F = ∞`. Flicker phase (α = 1) keeps a finite `F` (`m`, or `J_max/r` for the
+    rescaled sum) and, in the long cases, normalizes by table 3's `sz(0) ≈ b0 + b1 ln m`.
+    """
+    d = 2
+    f = s = float(m)
+    big_l = m / f + m * d
+    big_m = 1.0 + np.floor(s * (n_phase - big_l) / m)
+    j = min(big_m, (d + 1) * s)
+    r = big_m / s
+    if alpha == 2:
+        if np.ceil(r) <= d:
+            return None
+        a0, a1 = _GREENHALL_TABLE2[2]
+        return 1.0 / ((a0 - a1 / r) / big_m)
+    if j <= _J_MAX:
+        f_used = f if (alpha == 1 or m * (d + 1) <= _J_MAX) else np.inf
+        inv = _basic_sum(int(j), big_m, s, f_used, alpha, d) / (big_m * _sz(0.0, f_used, alpha, d) ** 2)
+    elif alpha == 1:  # Greenhall's case 3: sz(0) grows as ln m, table 3 gives it
+        sz0 = _GREENHALL_TABLE3[0] + _GREENHALL_TABLE3[1] * np.log(m)
+        if r > d + 1:
+            a0, a1 = _GREENHALL_TABLE2[1]
+            inv = (a0 - a1 / r) / (sz0 ** 2 * r)
+        else:
+            m_prime = _J_MAX / r
+            inv = _basic_sum(_J_MAX, _J_MAX, m_prime, m_prime, alpha, d) / (sz0 ** 2 * _J_MAX)
+    elif r > d + 1:
+        a0, a1 = _GREENHALL_TABLE2[alpha]
+        inv = (a0 - a1 / r) / r
+    else:
+        inv = (_basic_sum(_J_MAX, _J_MAX, _J_MAX / r, np.inf, alpha, d)
+               / (_J_MAX * _sz(0.0, np.inf, alpha, d) ** 2))
+    return float(1.0 / inv)
+
+
+def _edf_simple_white_phase(m: int, n_phase: int) -> float:
+    """NIST SP 1065 table 5, overlapping ADEV, white phase noise (α = 2):
+    `edf = (N + 1)(N − 2m) / (2 (N − m))` from `N` phase points."""
+    n = float(n_phase)
+    return (n + 1.0) * (n - 2.0 * m) / (2.0 * (n - m))
 
 
 @dataclass(frozen=True)
