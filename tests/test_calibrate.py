@@ -358,4 +358,26 @@ def test_bad_data(example, capsys, tmp_path):
            "do not overlap", "time_s")
     hold_i.write_text(orig_i)
     hold_t.write_text(orig_t)
+
+    # one logger glitch in the temperature log: named by line and column before any
+    # work (the LinAlgError of issue 32); with outliers.implausible = "drop" it is a
+    # dropped sample and the config prepares
+    def glitch(lines):
+        head = [i for i, s in enumerate(lines) if s.startswith("time_s")][0]
+        j = lines[head].split(",").index("T_asic")
+        cells = lines[head + 40].split(",")
+        cells[j] = "1e300"
+        lines[head + 40] = ",".join(cells)
+        return lines
+    _edit_csv(data / "holdout_temperature.csv", hold_t, glitch)
+    _fails(capsys, ["calibrate", str(cfg), "--out", out], "holdout_temperature.csv",
+           "'T_asic'", "line")
+    from thermojax.calibration._pipeline import prepare
+
+    dropping = tmp_path / "drop.toml"
+    dropping.write_text(cfg.read_text().replace("[outliers]\n",
+                                                '[outliers]\nimplausible = "drop"\n'))
+    with pytest.warns(UserWarning, match="T_asic"):
+        prepare(dropping)
+    hold_t.write_text(orig_t)
     assert not (tmp_path / "o").exists()  # nothing written on any of these

@@ -82,6 +82,7 @@ class CalibrationConfig:
     outlier_window: int = 7
     outlier_n_sigmas: float = 3.0
     outlier_scale_window: int = 1000
+    implausible: str = "stop"   # the temperature log's implausible cells: stop or drop
     cutoff_fraction: float = 0.8
     filter_order: int = 4
     orientation_columns: tuple[str, ...] | None = None
@@ -244,6 +245,10 @@ def load_config(path) -> CalibrationConfig:
     if window < 3 or window % 2 == 0:
         raise _err(path, f"the Hampel window must be an odd number ≥ 3, got {window}.",
                    "outliers.window")
+    implausible = out.get("implausible", "stop")
+    if implausible not in ("stop", "drop"):
+        raise _err(path, f"'implausible' is \"stop\" or \"drop\", got {implausible!r}.",
+                   "outliers.implausible")
     scale_window = _number(path, out, "scale_window", "outliers", 1000, integer=True)
     if scale_window < 10:
         raise _err(path, f"the noise-std block must be at least 10 samples, got "
@@ -307,7 +312,7 @@ def load_config(path) -> CalibrationConfig:
         path=path, model=model, channels=channels, stages=stages, temperature_sensor=sensor,
         dt_s=dt_s, runs=runs, outlier_window=window,
         outlier_n_sigmas=_number(path, out, "n_sigmas", "outliers", 3.0),
-        outlier_scale_window=scale_window,
+        outlier_scale_window=scale_window, implausible=implausible,
         cutoff_fraction=cutoff,
         filter_order=_number(path, lp, "filter_order", "lowpass", 4, integer=True),
         orientation_columns=ori_cols,

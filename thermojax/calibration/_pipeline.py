@@ -90,6 +90,7 @@ def load_runs(config: CalibrationConfig, spec) -> list[RawRun]:
     sensor columns in the temperature log, each calibrated channel (not all NaN) in the
     inertial log, timestamps strictly increasing (read_telemetry), streams overlapping in
     time. Raises `InputError` naming the data file and field (or line)."""
+    from ..measurements._plausibility import check_plausibility, describe_dropped
     from ..measurements._telemetry import read_telemetry
 
     runs = []
@@ -116,6 +117,13 @@ def load_runs(config: CalibrationConfig, spec) -> list[RawRun]:
                 raise InputError(f"the column {c!r} is all NaN (empty): there is nothing to "
                                  "calibrate in this run; record it or drop the run.",
                                  file=str(i_file), field=c)
+        # the temperature log against the model's units (kelvin, milliseconds, cells no
+        # temperature or power can take): stop, or drop them (config outliers.implausible);
+        # the inertial log's spikes are the conditioning's (Hampel)
+        t, dropped = check_plausibility(dataclasses.replace(spec, biases=()), t,
+                                        config.implausible)
+        if dropped:
+            warnings.warn(describe_dropped(t, dropped), stacklevel=2)
         tt, ti = np.asarray(t.ts), np.asarray(i.ts)
         if max(tt[0], ti[0]) >= min(tt[-1], ti[-1]):
             raise InputError(
@@ -733,7 +741,7 @@ def run_pipeline(config, *, observer_dir=None, progress=None) -> CalibrationResu
                     "played back on each held-back run from the steady state of its first "
                     "input; residual = measured − observer bias"
                     + (f" after the first {config.skip_s:g} s" if config.skip_s else "")
-                    + "; overlapping Allan deviation (allantools, one-sigma intervals from "
+                    + "; overlapping Allan deviation (NIST SP 1065, one-sigma intervals from "
                     "Greenhall's EDF) of each gyro channel's raw, static-polynomial-"
                     "compensated and observer-compensated output on the same samples, "
                     "angle random walk and bias instability read off (IEEE Std 952)"),
