@@ -187,6 +187,29 @@ def test_directions_sharing_parameters_are_merged():
     assert "2 independent combinations" in d["message"]
 
 
+@pytest.mark.parametrize("powered", [False, True])
+def test_unpowered_runs_name_the_missing_excitation(powered):
+    """imu6 (which has a heat input) with the common scale of every C and G, and a
+    proof-mass direction, left undetermined: when the runs' power columns are all zero
+    the advice is a known heat input (a missing excitation), not faster sampling; when
+    they are not, the scale is not claimed."""
+    spec = tj.load_model(CONFIGS / "imu6.toml")
+    v1 = np.ones(13)
+    v2 = np.zeros(13)
+    v2[[IMU6_NAMES.index("nodes.proof_mass.capacitance"),
+        IMU6_NAMES.index("links.mems-proof_mass.conductance")]] = 1.0
+    Q = basis(13, v1, seed=3)
+    Q2, _ = np.linalg.qr(np.column_stack([v1, v2, Q[:, 2:]]))
+    F = fisher(Q2, [0.0, 0.0] + list(np.geomspace(5.0, 1e5, 11)))
+    ident = identifiability(F, IMU6_NAMES, spec, sample_period=1.0, powered=powered)
+    (d,) = ident.directions
+    if powered:
+        assert "missing excitation" not in d["message"]
+    else:
+        assert "missing excitation" in d["message"] and "known heat input" in d["message"]
+        assert "sample faster" not in d["message"] and d["cause"] == "practical"
+
+
 def test_initial_temperatures_are_marginalized():
     """A per-run initial temperature (°C, not log) correlated with the log parameters: the
     condition number is that of the Schur complement (the log block with the initial

@@ -49,7 +49,8 @@ def _finite(x: float):
 
 def identifiability(info: np.ndarray, names: list[str], spec: ModelSpec,
                     max_log_std: float = 1.0, max_initial_std: float = 10.0,
-                    sample_period: float | None = None) -> Identifiability:
+                    sample_period: float | None = None, powered: bool | None = None
+                    ) -> Identifiability:
     """Analyse a Fisher information matrix `info` over the free parameters `names`.
 
     The truncated directions are those the solvers leave out (`TruncatedGaussNewton`'s
@@ -60,8 +61,12 @@ def identifiability(info: np.ndarray, names: list[str], spec: ModelSpec,
     reported together, as one subspace with one message, whose cause is structural (the
     model's transfer function does not change along it: no sensor can separate them),
     sampling (an unsensed node faster than `sample_period`, s) or practical (too little
-    excitation), and whose advice removes the whole subspace.
+    excitation), and whose advice removes the whole subspace. `powered`: whether the runs
+    drive a heat input (not all zero); default: whether the model has one. Without
+    power the common scale of every C and G is named as such, with the advice to add a
+    known heat input.
     """
+    powered = bool(spec.heat_inputs) if powered is None else bool(powered)
     info = 0.5 * (np.asarray(info, float) + np.asarray(info, float).T)
     k = len(names)
     if k == 0:
@@ -109,10 +114,18 @@ def identifiability(info: np.ndarray, names: list[str], spec: ModelSpec,
         groups = [g for g in groups if g not in touching] + [merged]
     directions, bad = [], {names[lg[i]] for i in np.flatnonzero(involved)}
     lg_names = [names[i] for i in lg]
-    for g in groups:
+    # the common scale of every C and G may span several groups: said once, in the group
+    # holding most of the capacitances and conductances
+    scaled = None
+    if groups and _has_scale(V[:, weak], lg_names, spec, powered):
+        thermal = set(_thermal_free(spec))
+        scaled = max(range(len(groups)),
+                     key=lambda i: len(thermal & set(groups[i]["parameters"])))
+    for i_group, g in enumerate(groups):
         bad.update(g["parameters"])
         basis = V[:, g["columns"]]
-        msg, cause, to_fix = _explain_group(g, basis, lg_names, spec, sample_period)
+        msg, cause, to_fix = _explain_group(g, basis, lg_names, spec, sample_period,
+                                            i_group == scaled)
         for d in g["directions"]:
             d.pop("cause", None)
         directions.append({"parameters": g["parameters"], "dimension": len(g["directions"]),
@@ -274,7 +287,7 @@ def _to_fix(basis: np.ndarray, names: list[str]) -> list[str]:
 
 
 def _explain_group(g: dict, basis: np.ndarray, names: list[str], spec: ModelSpec,
-                   sample_period: float | None) -> tuple[str, str, list[str]]:
+                   sample_period: float | None, scale: bool) -> tuple[str, str, list[str]]:
     """The message, cause and parameters to fix of one merged group of directions."""
     dim = len(g["directions"])
     causes = [d["cause"] for d in g["directions"]]
@@ -288,8 +301,9 @@ def _explain_group(g: dict, basis: np.ndarray, names: list[str], spec: ModelSpec
                        to_fix=to_fix)
     else:
         msg = _explain({p: 1.0 for p in g["parameters"]}, spec, std, sample_period,
-                       subspace=dim, cause=cause, to_fix=to_fix, scale=_has_scale(basis, names,
-                                                                                   spec))
+                       subspace=dim, cause=cause, to_fix=to_fix, scale=scale)
+    if scale and cause == "sampling":
+        cause = "practical"   # a missing excitation, which faster data does not supply
     return msg, cause, to_fix
 
 
@@ -300,10 +314,11 @@ def _thermal_free(spec: ModelSpec) -> list[str]:
     return out
 
 
-def _has_scale(basis: np.ndarray, names: list[str], spec: ModelSpec) -> bool:
-    """Whether the common scale of every free C and G lies in the span of `basis`."""
+def _has_scale(basis: np.ndarray, names: list[str], spec: ModelSpec, powered: bool) -> bool:
+    """Whether the common scale of every free C and G lies in the span of `basis` (only
+    possible when the runs drive no heat input)."""
     free = _thermal_free(spec)
-    if len(free) < 2 or spec.heat_inputs:
+    if len(free) < 2 or powered:
         return False
     ones = np.array([1.0 if n in free else 0.0 for n in names])
     if ones.sum() < len(free):
@@ -341,7 +356,12 @@ def _explain(members: dict[str, float], spec: ModelSpec, std: float,
     if scale:
         text += (" One of them is the common scale of every C and G: with temperature inputs "
                  "only and no measured power, multiplying every C and G by the same factor "
-                 "leaves every temperature unchanged.")
+                 "leaves every temperature unchanged. That one is a missing excitation, not "
+                 "a sampling or sensor problem: the runs drive no heat input (their power "
+                 "columns are all zero); add a known heat input (a heater step, or the "
+                 "unit's own dissipation, measured) or fix one capacitance from design data.")
+        if cause == "sampling":
+            cause = "practical"   # the scale is no sampling matter; faster data won't fix it
     if cause == "structural":
         where = f" on node(s) {unsensed}" if unsensed else ""
         text += (" This is structural: the model's response from every input to every sensor "

@@ -71,8 +71,11 @@ def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) ->
     """The `FitResult` of a solved fit (`t_start`: `time.perf_counter()` at its start)."""
     spec, data = prep.spec, prep.data
     fitted_spec = model_to_spec(sol.state.model, spec, process_noise=likelihood == "kalman")
+    heat = [spec.input_columns.index(c) for c in spec.heat_columns]
     ident = identifiability(sol.information, sol.names, fitted_spec,
-                            sample_period=float(np.max(np.asarray(data.dt))))
+                            sample_period=float(np.max(np.asarray(data.dt))),
+                            powered=bool(heat) and bool(np.any(
+                                np.asarray(data.inputs)[:, :, heat] != 0)))
     parameters = _parameters(sol, ident, spec)
     n_params = len(sol.names) + len(sol.noise)
     n_samples = int(np.asarray(data.mask).sum())
