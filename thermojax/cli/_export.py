@@ -62,6 +62,7 @@ def cmd_export(args) -> int:
                                      faults=fault_config(args),
                                      reconstruct=args.reconstruct,
                                      input_noise=args.input_noise,
+                                     inertial_rate_hz=args.inertial_rate,
                                      operating_point=args.operating_point,
                                      c_float=args.c_float, c_layout=args.c_layout)
             load_observer(tmp)  # what was written reads back
@@ -84,6 +85,10 @@ def cmd_export(args) -> int:
         rc = m["reconstruct"]
         print(f"reconstructs {rc['input']} as state {rc['state_index']} (input noise "
               f"{rc['input_noise_C_per_sqrt_s']:g} °C/√s)")
+    if m["multirate"] is not None:
+        mr = m["multirate"]
+        print(f"multi-rate: {', '.join(mr['bias_channels'])} interpolated at "
+              f"{mr['inertial_rate_hz']:g} Hz ({mr['ratio']} ticks per observer step)")
     for name, size in result.files.items():
         print(f"  {out / name}  ({size} bytes)")
     return 0
@@ -169,6 +174,10 @@ def add_export(sub):
     p.add_argument("--input-noise", type=_positive_float, default=None, metavar="Q",
                    help="the reconstructed input's random-walk diffusion, °C/√s (`thermojax "
                    "compensate` prints the maximum-likelihood value for a log)")
+    p.add_argument("--inertial-rate", type=_positive_float, default=None, metavar="HZ",
+                   help="with bias channels: also write the multi-rate split (tj_multirate.c: "
+                   "double buffer and interpolation of the bias corrections at this rate, a "
+                   "whole multiple of --rate, e.g. 2000)")
     g = p.add_argument_group("channel supervision (recorded in observer.json 'faults', "
                              "honoured by the reference and the C)")
     g.add_argument("--limits", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,

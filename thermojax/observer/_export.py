@@ -118,7 +118,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                     sensors=None, operating_point: float = 25.0, speedup: float = 4.0,
                     faults=None, power_scale: float = 1.0, c_float: str = "float64",
                     c_layout: str = "rows", reconstruct: str | None = None,
-                    input_noise: float | None = None) -> ExportResult:
+                    input_noise: float | None = None,
+                    inertial_rate_hz: float | None = None) -> ExportResult:
     """Write the reference-observer artifact of a model (see the module docstring).
 
     The full sensor set must observe every state (else `InputError` naming the lost
@@ -149,6 +150,9 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
       state, a random walk of diffusion `input_noise` °C/√s (Kalman gains only); the
       artifact's inputs are the others. A sensor subset that does not see it holds its
       estimate (zero gain on that state; recorded in `subsets`).
+    - `inertial_rate_hz`: with bias channels, also write the multi-rate split
+      (`tj_multirate.c`/`.h`: double buffer and interpolation at this rate, an integer
+      multiple of `rate_hz`; `thermojax.reference.generate_multirate_c`).
 
     **Returns:** an `ExportResult`. Warnings (a nonlinear effect linearized, a coefficient
     that rounds to zero in the fixed format) are issued with `warnings.warn` and listed.
@@ -404,6 +408,16 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                               FLOAT_PREFIX, c_names, layout=c_layout)]
     if fixed_obs is not None:
         sources.append(ref.generate_c(fixed_obs, fixed_prefix(fmt.name), c_names))
+    meta["multirate"] = None
+    if inertial_rate_hz is not None:
+        ratio = _ratio(inertial_rate_hz, rate_hz, bias_eval, where)
+        sources.append(ref.generate_multirate_c(MULTIRATE_PREFIX, bias_eval.n_channels, ratio))
+        meta["multirate"] = {"inertial_rate_hz": float(inertial_rate_hz), "ratio": ratio,
+                             "bias_channels": [ch["column"] for ch in biases
+                                               if ch["coefficients"] is not None],
+                             "use": f"after each {FLOAT_PREFIX}_step: {MULTIRATE_PREFIX}_publish("
+                                    f"{FLOAT_PREFIX}_bias); every inertial tick: "
+                                    f"{MULTIRATE_PREFIX}_tick()"}
     for src in sources:
         for key, path in src.write(out).items():
             meta["files"][path.name] = key
@@ -448,6 +462,23 @@ def _augment(system, names, inputs, power_inputs, q, column, input_noise, method
     return (aug, (*names, column), tuple(inputs[i] for i in rest),
             {k for k, i in enumerate(rest) if i in power_inputs},
             np.append(q, float(input_noise)), len(names), aug.holds)
+
+
+MULTIRATE_PREFIX = "tj_multirate"
+
+
+def _ratio(inertial_rate_hz, rate_hz, bias_eval, where) -> int:
+    """Inertial ticks per observer step, an integer, for a model with bias channels."""
+    if bias_eval is None:
+        raise InputError("--inertial-rate interpolates bias corrections, and the model has no "
+                         "bias channel with fitted coefficients ([[biases]], docs/formats.md "
+                         "§4).", file=where, field="--inertial-rate")
+    ratio = float(inertial_rate_hz) / rate_hz
+    if not np.isfinite(ratio) or ratio < 1 or abs(ratio - round(ratio)) > 1e-9 * ratio:
+        raise InputError(f"the inertial rate ({inertial_rate_hz:g} Hz) must be a whole multiple "
+                         f"of the observer rate ({rate_hz:g} Hz).", file=where,
+                         field="--inertial-rate")
+    return int(round(ratio))
 
 
 def fixed_prefix(fmt_name: str) -> str:

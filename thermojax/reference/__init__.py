@@ -19,6 +19,7 @@ from ._float import FloatObserver
 from ._formats import (FORMATS, Q15, Q8_24, Q16_16, FixedFormat, decode, encode, fixed_format,
                        round_shift, saturate)
 from ._multirate import BiasInterpolator, DoubleBuffer, MultiRateRun, run_multirate
+from ._multirate_c import generate_multirate_c, pack_multirate
 from ._run import ObserverRun
 from ._system import ObserverSystem
 
@@ -27,6 +28,6 @@ __all__ = [
     "ErrorBound", "FORMATS", "FaultConfig", "FixedFormat", "FixedObserver", "FixedScaling",
     "FloatObserver", "MultiRateRun", "ObserverArtifact", "ObserverRun", "ObserverSystem",
     "Q15", "Q16_16", "Q8_24", "decode", "encode", "error_series", "fixed_format",
-    "bias_channels_from_metadata", "default_input_limits", "generate_c", "load_observer", "quantization_error_bound", "round_shift",
+    "bias_channels_from_metadata", "default_input_limits", "generate_c", "generate_multirate_c", "pack_multirate", "load_observer", "quantization_error_bound", "round_shift",
     "run_multirate", "saturate",
 ]
