@@ -177,9 +177,21 @@ def test_kalman_fit_reaches_the_optimum_with_zero_process_noise(reference):
     for params in (mine, ref_params):
         assert numpy_nll(params, U, Y) == pytest.approx(reference_nll(params, U, Y), abs=1e-8)
     # a process noise whose optimum is zero is reported at its bound, not as a tiny std
-    for name in ("nodes.wall.process_noise", "nodes.floor.process_noise"):
-        if p[name].get("at_bound"):
-            assert p[name]["value"] == 0.0 and p[name]["std"] is None
+    from thermojax.fitting._fit_report import fit_report, parameter_rows
+
+    report = fit_report(result, ["run"])
+    rows = {r["name"]: r for r in parameter_rows(report)}
+    held = [name for name in ("nodes.wall.process_noise", "nodes.floor.process_noise")
+            if p[name].get("at_bound")]
+    for name in held:
+        assert p[name]["value"] == 0.0 and p[name]["std"] is None
+        # report.json says so, and report.md calls it "at bound", not unidentifiable
+        assert report["parameters"][name]["at_bound"] is True
+        assert rows[name]["flags"] == ["at bound"]
+    # the SciPy optimum has them (within its tolerance) at zero too
+    assert held and all(ref.x[7 + i] < 1e-6 for i, name in enumerate(
+        ("nodes.wall.process_noise", "nodes.air.process_noise",
+         "nodes.floor.process_noise")) if name in held)
     assert result.converged
 
 

@@ -28,7 +28,8 @@ def fit_report(result: FitResult, runs: list[str]) -> dict:
         "bic": result.bic,
         "n_params": result.n_params,
         "n_samples": result.n_samples,
-        "parameters": {k: {"value": v["value"], "std": v["std"], "free": v["free"]}
+        "parameters": {k: {"value": v["value"], "std": v["std"], "free": v["free"],
+                           **({"at_bound": True} if v.get("at_bound") else {})}
                        for k, v in result.parameters.items()},
         "correlation": {"names": result.free_names, "matrix": result.correlation},
         "identifiability": result.identifiability.to_json(),
@@ -210,11 +211,14 @@ def parameter_rows(report: dict, initial: dict | None = None,
         flags, lo, hi, how = [], None, None, None
         if not free:
             flags.append("fixed")
+        elif p.get("at_bound"):   # held at its zero boundary: known, not unidentifiable
+            flags.append("at bound")
         elif sd is None:
             flags.append("unidentifiable")
         log = _is_log_parameter(name)
         v0 = initial.get(name)
-        if free and log and v is not None and v0 and v0 > 0 and v < _AT_BOUND * v0:
+        if free and log and v is not None and v0 and v0 > 0 and v < _AT_BOUND * v0 \
+                and "at bound" not in flags:
             flags.append("at bound")
         prof = profiles.get(name)
         if prof and prof.get("lower") is not None and prof.get("upper") is not None:
@@ -298,7 +302,8 @@ def write_fit_markdown(out: Path, report: dict, rows: list[dict], plots: list[st
         "value ± 1.96 std, taken on the log scale, exp(log value ± 1.96 std/value), for "
         "positive parameters. Flags: fixed (given in the model file), unidentifiable (no "
         "std: the data do not determine it), at bound (a positive parameter driven to "
-        "~0).", ""]
+        "~0, or a Kalman fit's process noise whose optimum is its zero boundary: held "
+        "there, known, no std).", ""]
     ident = report.get("identifiability") or {}
     for d in ident.get("unidentifiable") or []:
         if d.get("message"):
