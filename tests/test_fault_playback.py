@@ -183,3 +183,31 @@ def test_bad_input_samples_are_held_and_flagged(tmp_path, artifact, capsys):
     assert np.all(np.isfinite(played.column("T_core_estimate")))
     assert np.all(played.column("state_ok") == 1)
 
+
+
+def test_gating_ignores_a_spike_and_rejects_an_offset(tmp_path, capsys):
+    """With --gate a sample over the threshold does not correct: the spike's sample is
+    left out (the channel stays healthy), and an offset is refused from its first
+    sample until the wire-break flag rises at the N-th."""
+    out = tmp_path / "g"
+    assert main(["export", "--model", MODEL, "--rate", "1", "--out", str(out),
+                 "--wire-break-threshold", "1.5", "--wire-break-after", "3",
+                 "--recover-after", "4", "--gate", "--quiet"]) == 0
+    assert "gated" in capsys.readouterr().out
+    log, ts = _log(tmp_path)
+    play = tmp_path / "p.csv"
+    assert main(["playback", str(out), "--data", str(log), "--out", str(play),
+                 "--inject", "spike:T_core:450", "--inject", "wire-break:T_core:600:700",
+                 "--quiet"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if " on T_core " in ln]
+    spike = next(ln for ln in lines if ln.startswith("spike"))
+    got, in_use, wire = _masks(play)
+    assert in_use[450] == 0 and in_use[449] == 1 and in_use[451] == 1 and wire[450] == 0
+    assert np.all(in_use[600:701] == 0)           # never absorbed
+    assert np.all(wire[602:701] == 1) and np.all(wire[:602] == 0)
+    worst = float(spike.split("worst ")[1].split(" K")[0])
+    assert worst < 0.05                           # the spike never reached the estimate
+    # gating needs a threshold
+    assert main(["export", "--model", MODEL, "--rate", "1", "--out", str(tmp_path / "h"),
+                 "--gate", "--quiet"]) == 2
+    assert "--wire-break-threshold" in capsys.readouterr().err

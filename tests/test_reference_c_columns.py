@@ -189,7 +189,8 @@ def test_channel_rules_equal_channel_monitor():
     from thermojax.reference._faults import COUNTER_MAX, ChannelMonitor, _Lane, _var, \
         channel_rules
 
-    for N, M in ((1, 1), (3, 2), (10, 20), (COUNTER_MAX, COUNTER_MAX)):
+    for N, M, gate in ((1, 1, False), (3, 2, False), (10, 20, False),
+                       (COUNTER_MAX, COUNTER_MAX, False), (1, 1, True), (3, 2, True)):
         counts = sorted({0, 1, 2, N - 1, N, N + 1, M - 1, M, M + 1, COUNTER_MAX - 1,
                          COUNTER_MAX} - {-1, COUNTER_MAX + 1})
         for known_railed, known_large in itertools.product((False, True), repeat=2):
@@ -204,13 +205,13 @@ def test_channel_rules_equal_channel_monitor():
             steps = []
             bind = lambda name, e: (e if e.const is not None else
                                     (steps.append((name, e)), _var(name, flag=e.flag))[1])
-            rules = channel_rules(v, N, M, bind)
+            rules = channel_rules(v, N, M, bind, gate=gate)
             for h, w, pl, ra, lg, g, b in itertools.product(
                     (False, True), (False, True), (False, True), (False, True),
                     (False, True), counts, counts):
                 if (known_railed and ra) or (known_large and (lg or b or w)):
                     continue
-                mon = ChannelMonitor(1, N, M)
+                mon = ChannelMonitor(1, N, M, gate)
                 mon.healthy, mon.wire_break, mon.good_run, mon.bad_run = [h], [w], [g], [b]
                 mask = mon.update([pl], [pl and ra], [pl and lg])
                 env = {"healthy": h, "wire_break": w, "good": g, "bad": b, "plausible": pl,
@@ -234,6 +235,11 @@ SUPERVISION = {
     "thresholds,N=M=1": ref.FaultConfig(residual_threshold=0.2, wire_break_after=1,
                                         recover_after=1),
     "rails only": ref.FaultConfig(rails=(-20.0, 60.0), recover_after=1),
+    # gated: a large residual is left out of the correction
+    "thresholds, gated": ref.FaultConfig(rails=[(-40.0, 100.0), (-np.inf, np.inf),
+                                                (-55.0, 1e9)],
+                                         residual_threshold=[0.3, np.inf, 1.0],
+                                         wire_break_after=3, recover_after=2, gate=True),
     "default": ref.FaultConfig(recover_after=5),
 }
 

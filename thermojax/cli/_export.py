@@ -102,6 +102,9 @@ def fault_config(args):
         raise InputError(f"the plausible range needs LOW < HIGH, got {args.limits[0]:g} "
                          f"{args.limits[1]:g}.", field="--limits")
     limits = tuple(args.limits) if args.limits is not None else (-55.0, 125.0)
+    if args.gate and args.wire_break_threshold is None:
+        raise InputError("--gate leaves out samples whose residual exceeds the wire-break "
+                         "threshold: give --wire-break-threshold K too.", field="--gate")
     if args.rails is not None:
         lo, hi = args.rails
         if not lo < hi:
@@ -115,7 +118,7 @@ def fault_config(args):
     return FaultConfig(limits=limits, rails=args.rails,
                        residual_threshold=args.wire_break_threshold,
                        wire_break_after=args.wire_break_after,
-                       recover_after=args.recover_after)
+                       recover_after=args.recover_after, gate=args.gate)
 
 
 def supervision_line(faults: dict) -> str:
@@ -131,7 +134,8 @@ def supervision_line(faults: dict) -> str:
     if thr != {None}:
         words.append(f"|residual| > {', '.join(f'{t:g}' for t in sorted(thr, key=str))} K for "
                      f"{faults['wire_break_after']} samples raises wire break, "
-                     f"{faults['recover_after']} good samples recover")
+                     f"{faults['recover_after']} good samples recover"
+                     + ("; a sample over it is not used (gated)" if faults.get("gate") else ""))
     else:
         words.append("no wire-break test (--wire-break-threshold)")
     return "supervision: " + "; ".join(words)
@@ -192,6 +196,10 @@ def add_export(sub):
     g.add_argument("--wire-break-after", type=_count, default=10, metavar="N",
                    help="consecutive bad samples that raise wire break and drop the channel "
                    "(default 10)")
+    g.add_argument("--gate", action="store_true",
+                   help="with --wire-break-threshold: leave a sample whose residual exceeds "
+                   "it out of the correction (a spike is ignored, a plausible offset is not "
+                   "absorbed before the wire-break flag rises)")
     g.add_argument("--recover-after", type=_count, default=20, metavar="M",
                    help="consecutive good samples that bring a dropped channel back "
                    "(default 20)")

@@ -387,6 +387,7 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                    "residual_threshold_K": _finite_or_none(faults.threshold_array(p)),
                    "wire_break_after": int(faults.wire_break_after),
                    "recover_after": int(faults.recover_after),
+                   "gate": bool(faults.gate),
                    "input_limits": _finite_or_none(faults.input_limits_array(obs_system))},
         "fixed": fixed_meta,
         "biases": biases,

@@ -215,7 +215,8 @@ def load_observer(folder) -> ObserverArtifact:
                              recover_after=int(f["recover_after"]),
                              # absent in artifacts written before input supervision: the
                              # default (`default_input_limits`)
-                             input_limits=_rail_pairs(f.get("input_limits")))
+                             input_limits=_rail_pairs(f.get("input_limits")),
+                             gate=bool(f.get("gate", False)))   # absent before gating
         faults.input_limits_array(system)          # checks the input limits' shape
     except (KeyError, TypeError, ValueError) as err:
         raise ArtifactError(f"the fault settings are incomplete or invalid ({err!r}).",

@@ -638,9 +638,17 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
                   f"            if ({prefix}_bad_run[{j}] >= {int(fc.wire_break_after)}u) {{",
                   f"                {prefix}_wire_break |= {bit}u; "
                   f"{prefix}_ch_healthy &= (uint8_t)~{bit}u;",
-                  "            }", "        } else {"]
+                  "            }",
+                  *(["            /* gated: a large residual is not used */"] if fc.gate
+                    else []),
+                  "        } else {"]
             c += [f"            {g}" for g in good]
+            if fc.gate:
+                c += [f"            if ({prefix}_ch_healthy & {bit}u) mask |= {bit}u;"]
             c += ["        }"]
+            if fc.gate:
+                c += ["    }"]
+                continue
         c += [f"        if ({prefix}_ch_healthy & {bit}u) mask |= {bit}u;", "    }"]
     # correction, one case per set of channels in use
     # columns: `& (2^p - 1)` with every case written tells gcc the jump table needs no
@@ -937,7 +945,8 @@ def _lane_supervision_c(prefix, word, p, lanes, rv, lim, rails, thr, fc) -> tupl
         body.append(f"            {it} {name} = {e.c};")
         return _var(name, flag=e.flag)
 
-    new = channel_rules(v, int(fc.wire_break_after), int(fc.recover_after), bind, consts)
+    new = channel_rules(v, int(fc.wire_break_after), int(fc.recover_after), bind, consts,
+                        gate=fc.gate)
     body += [f"            {sv(s)} = {new[k].c};" for s, k in stored]
     body += [f"            bits |= ({new['in_use'].c} & {P}_SUP_BITS[0][i]) | "
              f"({new['healthy'].c} & {P}_SUP_BITS[1][i])" +

@@ -69,6 +69,7 @@ class FaultConfig:
     residual_threshold: object = None
     wire_break_after: int = 10
     recover_after: int = 20
+    gate: bool = False
     input_limits: object = None
 
     def __post_init__(self):
@@ -151,10 +152,12 @@ def state_in_range(x, limits) -> bool:
 
 
 class ChannelMonitor:
-    """The per-channel state machine of `FaultConfig` (counters and flags, plain ints)."""
+    """The per-channel state machine of `FaultConfig` (counters and flags, plain ints);
+    with `gate`, a sample with a large residual is left out of the correction."""
 
-    def __init__(self, p: int, wire_break_after: int, recover_after: int):
+    def __init__(self, p: int, wire_break_after: int, recover_after: int, gate: bool = False):
         self.p, self.N, self.M = p, int(wire_break_after), int(recover_after)
+        self.gate = bool(gate)
         self.reset()
 
     def reset(self):
@@ -186,7 +189,7 @@ class ChannelMonitor:
                 if not self.healthy[j] and self.good_run[j] >= self.M:
                     self.healthy[j] = True
                     self.wire_break[j] = False
-            if self.healthy[j]:
+            if self.healthy[j] and not (self.gate and large[j]):
                 mask |= 1 << j
         return mask
 
@@ -274,13 +277,14 @@ def _at_least(x, k, below_c=None):
     return _Lane(f"({x.c} > {below_c} ? -1 : 0)", lambda env: x.f(env) >= k)
 
 
-def channel_rules(v, N, M, bind, const_c=None):
+def channel_rules(v, N, M, bind, const_c=None, gate=False):
     """The rules of `FaultConfig` (`ChannelMonitor.update`) for one channel, branch free,
     as `_Lane` expressions: from the state `v["healthy"], v["wire_break"], v["good"],
     v["bad"]` and the step's `v["plausible"], v["railed"], v["large"]`, the new state
     and `in_use` (a dict). `bind(name, expr)` names an intermediate result (a C local)
     and returns it as a variable; `const_c` may give the C text of `COUNTER_MAX`, `N - 1`
-    and `M - 1` (keys `"max"`, `"N-1"`, `"M-1"`)."""
+    and `M - 1` (keys `"max"`, `"N-1"`, `"M-1"`). With `gate`, a large residual keeps
+    the sample out of the correction (`in_use` false)."""
     k = const_c or {}
     zero = _Lane.known(0, False)
     act = bind("act", v["plausible"] & ~v["railed"])   # neither dropped nor at a rail
@@ -299,6 +303,8 @@ def channel_rules(v, N, M, bind, const_c=None):
     healthy = bind("hn", (v["healthy"] & v["plausible"] & ~broken) | back)
     # in use: act & healthy, which is healthy where act is plausible (no rails)
     in_use = healthy if act.c == v["plausible"].c else act & healthy
+    if gate:
+        in_use = in_use & ~v["large"]
     wire_break = bind("wn", (v["wire_break"] & ~back) | broken)
     return {"healthy": healthy, "wire_break": wire_break, "good": good, "bad": bad,
             "in_use": in_use}

@@ -186,7 +186,8 @@ class FixedObserver:
         self.state_limit_codes = np.stack(
             [encode(self.faults.limits[0], f, F, self.x_ref, s),
              encode(self.faults.limits[1], f, F, self.x_ref, s)], 1)
-        self.monitor = ChannelMonitor(p, self.faults.wire_break_after, self.faults.recover_after)
+        self.monitor = ChannelMonitor(p, self.faults.wire_break_after, self.faults.recover_after,
+                                      self.faults.gate)
         self.x = np.zeros(n, np.int64)
         self.u_prev = self.u_start.copy()
         self.started = False

@@ -97,7 +97,8 @@ class FloatObserver:
         self.input_limits = self.faults.input_limits_array(system).astype(dtype)
         self.state_limits = np.tile(self.limits, (system.n_states, 1))
         self.u_start = initial_inputs(self.faults.input_limits_array(system)).astype(dtype)
-        self.monitor = ChannelMonitor(p, self.faults.wire_break_after, self.faults.recover_after)
+        self.monitor = ChannelMonitor(p, self.faults.wire_break_after, self.faults.recover_after,
+                                      self.faults.gate)
         self.x = np.zeros(system.n_states, dtype)
         self.u_prev = self.u_start.copy()
         self.started = False
