@@ -89,6 +89,7 @@ def test_fixed_c_gated_bit_exact(fmt, tmp_path):
     import dataclasses
 
     system, u, y, x0, oc = faulted_playback()
+    x0 = x0 + 3.0              # a start 3 K off: the first step corrects all the same
     gated = dataclasses.replace(FAULTS, gate=True)
     fx = ref.FixedObserver(system, fmt, IMU6_SCALING[fmt], gated)
     X0, U, Y = fx.encode_states(x0), fx.encode_inputs(u), fx.encode_outputs(y)
@@ -96,9 +97,27 @@ def test_fixed_c_gated_bit_exact(fmt, tmp_path):
     want = fx.run(X0, U, Y, oc)
     plain = ref.FixedObserver(system, fmt, IMU6_SCALING[fmt], FAULTS).run(X0, U, Y, oc)
     assert not np.array_equal(want.in_use, plain.in_use)
+    assert want.in_use[0] == 7                 # the first step is never gated
     src = ref.generate_c(fx, "obs")
     got = gcc_run(src, gcc_build(src, tmp_path), tmp_path, X0, U, Y, oc)
     assert np.array_equal(got.states.astype(np.int64), want.states)
     for f in ("in_use", "healthy", "wire_break"):
         assert np.array_equal(getattr(got, f), getattr(want, f))
+
+
+@pytest.mark.parametrize("layout, supervision", [("rows", "branches"), ("rows", "lanes"),
+                                                 ("columns", "lanes")])
+def test_float_c_gated_from_a_far_start(layout, supervision, tmp_path):
+    """Gating from a start 3 K off in every float layout: the first step corrects (its
+    state is a guess), later large residuals do not; C as NumPy, bit for bit."""
+    import dataclasses
+
+    system, u, y, x0, oc = faulted_playback()
+    obs = ref.FloatObserver(system, dataclasses.replace(FAULTS, gate=True))
+    want = obs.run(x0 + 3.0, u, y, oc)
+    assert want.in_use[0] == 7
+    src = ref.generate_c(obs, "obs", layout=layout, supervision=supervision)
+    got = gcc_run(src, gcc_build(src, tmp_path), tmp_path, x0 + 3.0, u, y, oc)
+    assert np.array_equal(got.in_use, want.in_use)
+    assert np.abs(got.states - want.states).max() == 0.0
 

@@ -196,7 +196,7 @@ def test_channel_rules_equal_channel_monitor():
         for known_railed, known_large in itertools.product((False, True), repeat=2):
             v = {name: _var(name, flag=name not in ("good", "bad"))
                  for name in ("healthy", "wire_break", "good", "bad", "plausible", "railed",
-                              "large")}
+                              "large", "started")}
             if known_railed:
                 v["railed"] = _Lane.known(False)
             if known_large:
@@ -206,16 +206,16 @@ def test_channel_rules_equal_channel_monitor():
             bind = lambda name, e: (e if e.const is not None else
                                     (steps.append((name, e)), _var(name, flag=e.flag))[1])
             rules = channel_rules(v, N, M, bind, gate=gate)
-            for h, w, pl, ra, lg, g, b in itertools.product(
+            for h, w, pl, ra, lg, st, g, b in itertools.product(
                     (False, True), (False, True), (False, True), (False, True),
-                    (False, True), counts, counts):
+                    (False, True), (False, True) if gate else (True,), counts, counts):
                 if (known_railed and ra) or (known_large and (lg or b or w)):
                     continue
                 mon = ChannelMonitor(1, N, M, gate)
                 mon.healthy, mon.wire_break, mon.good_run, mon.bad_run = [h], [w], [g], [b]
-                mask = mon.update([pl], [pl and ra], [pl and lg])
+                mask = mon.update([pl], [pl and ra], [pl and lg], st)
                 env = {"healthy": h, "wire_break": w, "good": g, "bad": b, "plausible": pl,
-                       "railed": pl and ra, "large": pl and lg}
+                       "railed": pl and ra, "large": pl and lg, "started": st}
                 for name, e in steps:
                     env[name] = e.f(env)
                 got = {k: e.f(env) for k, e in rules.items()}

@@ -639,8 +639,10 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
                   f"                {prefix}_wire_break |= {bit}u; "
                   f"{prefix}_ch_healthy &= (uint8_t)~{bit}u;",
                   "            }",
-                  *(["            /* gated: a large residual is not used */"] if fc.gate
-                    else []),
+                  *([f"            /* gated: a large residual is not used (but at the "
+                     f"first step) */",
+                     f"            if (!{prefix}_started && ({prefix}_ch_healthy & {bit}u)) "
+                     f"mask |= {bit}u;"] if fc.gate else []),
                   "        } else {"]
             c += [f"            {g}" for g in good]
             if fc.gate:
@@ -925,7 +927,8 @@ def _lane_supervision_c(prefix, word, p, lanes, rv, lim, rails, thr, fc) -> tupl
          "bad": _var("bad", "b", False) if has_thr else _Lane.known(0, False),
          "plausible": _var("plausible", "pl"),
          "railed": _var("railed", "ra") if has_rails else _Lane.known(False),
-         "large": _var("large", "lg") if has_thr else _Lane.known(False)}
+         "large": _var("large", "lg") if has_thr else _Lane.known(False),
+         "started": _var("started", "st")}
     stored = [("h", "healthy"), ("g", "good")] + \
         ([("w", "wire_break"), ("b", "bad")] if has_thr else [])
     body = [f"            {it} " + ", ".join(f"{s} = {sv(s)}" for s, _ in stored) + ";"]
@@ -938,6 +941,9 @@ def _lane_supervision_c(prefix, word, p, lanes, rv, lim, rails, thr, fc) -> tupl
                     f"(yl[i] >= {P}_SUP_RHI[i]) ? -1 : 0;")
     if has_thr:
         body.append(f"            {it} lg = {fabs}(rl[i]) > {P}_SUP_THR[i] ? -1 : 0;")
+    if has_thr and fc.gate:
+        body.append(f"            {it} st = {prefix}_started ? -1 : 0;   /* gating from the "
+                    "second step */")
 
     def bind(name, e):
         if e.const is not None or e.c.isidentifier():   # known, or a variable already

@@ -166,8 +166,9 @@ class ChannelMonitor:
         self.good_run = [0] * self.p
         self.bad_run = [0] * self.p
 
-    def update(self, plausible, railed, large) -> int:
-        """Advance one step; return the bit mask of channels in use."""
+    def update(self, plausible, railed, large, started: bool = True) -> int:
+        """Advance one step; return the bit mask of channels in use. `started`: false at
+        the first step after a reset, which is never gated (its state is a guess)."""
         mask = 0
         for j in range(self.p):
             if not plausible[j]:
@@ -189,7 +190,7 @@ class ChannelMonitor:
                 if not self.healthy[j] and self.good_run[j] >= self.M:
                     self.healthy[j] = True
                     self.wire_break[j] = False
-            if self.healthy[j] and not (self.gate and large[j]):
+            if self.healthy[j] and not (self.gate and started and large[j]):
                 mask |= 1 << j
         return mask
 
@@ -284,7 +285,8 @@ def channel_rules(v, N, M, bind, const_c=None, gate=False):
     and `in_use` (a dict). `bind(name, expr)` names an intermediate result (a C local)
     and returns it as a variable; `const_c` may give the C text of `COUNTER_MAX`, `N - 1`
     and `M - 1` (keys `"max"`, `"N-1"`, `"M-1"`). With `gate`, a large residual keeps
-    the sample out of the correction (`in_use` false)."""
+    the sample out of the correction (`in_use` false) once started (`v["started"]`, a
+    flag: not at the first step after a reset)."""
     k = const_c or {}
     zero = _Lane.known(0, False)
     act = bind("act", v["plausible"] & ~v["railed"])   # neither dropped nor at a rail
@@ -304,7 +306,7 @@ def channel_rules(v, N, M, bind, const_c=None, gate=False):
     # in use: act & healthy, which is healthy where act is plausible (no rails)
     in_use = healthy if act.c == v["plausible"].c else act & healthy
     if gate:
-        in_use = in_use & ~v["large"]
+        in_use = in_use & ~(v["large"] & v["started"])
     wire_break = bind("wn", (v["wire_break"] & ~back) | broken)
     return {"healthy": healthy, "wire_break": wire_break, "good": good, "bad": bad,
             "in_use": in_use}

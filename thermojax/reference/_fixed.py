@@ -273,7 +273,7 @@ class FixedObserver:
         railed = [plausible[j] and bool(y[j] <= rail[j, 0] or y[j] >= rail[j, 1])
                   for j in range(p)]
         large = [plausible[j] and bool(r[j] > thr[j] or r[j] < -thr[j]) for j in range(p)]
-        mask = self.monitor.update(plausible, railed, large)
+        mask = self.monitor.update(plausible, railed, large, self.started)
         if mask:
             use = np.array([mask >> j & 1 for j in range(p)], np.int64)
             acc = xm + round_shift(c["L"][mask] @ (r * use), self.f_gain)

@@ -135,7 +135,7 @@ class FloatObserver:
         railed = [plausible[j] and bool(y[j] <= self.rails[j, 0] or y[j] >= self.rails[j, 1])
                   for j in range(p)]
         large = [plausible[j] and bool(abs(r[j]) > self.threshold[j]) for j in range(p)]
-        mask = self.monitor.update(plausible, railed, large)
+        mask = self.monitor.update(plausible, railed, large, self.started)
         if mask:
             gain = self._gains[mask]
             corr = gain(r)
