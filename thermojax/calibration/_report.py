@@ -138,7 +138,7 @@ def report_markdown(res: CalibrationResults) -> str:
 
 def plot_static(res: CalibrationResults, path: Path) -> Path:
     """Each channel's static polynomial against its plateau points."""
-    from .._plots import new_figure, style_figure
+    from .._plots import column_unit, new_figure, style_figure
 
     chans = list(res.static)
     fig = new_figure(figsize=(11, 3.6 * len(chans)))
@@ -152,7 +152,7 @@ def plot_static(res: CalibrationResults, path: Path) -> Path:
         ax.plot(grid, p.polynomial(grid), label=f"order-{p.polynomial.order} polynomial")
         ax.set_title(f"Static bias polynomial of {ch} from dwell plateaus")
         ax.set_xlabel(f"{res.config.temperature_sensor} (°C)")
-        ax.set_ylabel(f"{ch} (channel unit)")
+        ax.set_ylabel(f"{ch}, {column_unit(ch, bias=True)}")
         ax.legend()
     fig.tight_layout()
     style_figure(fig)
@@ -162,7 +162,7 @@ def plot_static(res: CalibrationResults, path: Path) -> Path:
 
 def plot_verification(res: CalibrationResults, path: Path) -> Path:
     """The residual bias (measured − observer) of each held-back run and channel."""
-    from .._plots import new_figure, style_figure
+    from .._plots import column_unit, new_figure, style_figure
 
     chans = list(res.config.channels)
     fig = new_figure(figsize=(11, 3.6 * len(chans)))
@@ -180,7 +180,7 @@ def plot_verification(res: CalibrationResults, path: Path) -> Path:
                            label="peak limit" if s > 0 else None)
         ax.set_title(f"Residual bias of {ch} after the exported observer, held-back runs")
         ax.set_xlabel("time since the start of the run (h)")
-        ax.set_ylabel(f"{ch}: measured − observer")
+        ax.set_ylabel(f"{ch}: measured − observer, {column_unit(ch, bias=True)}")
         ax.legend()
     fig.tight_layout()
     style_figure(fig)

@@ -15,7 +15,7 @@ import numpy as np
 
 from .._plots import WIDTH_IN, new_figure, save_figure
 from .._residual_analysis import (PHASES, cross_correlation, cumulated_periodogram,
-                                 pooled_autocorrelation, residuals_by_phase)
+                                 ljung_box, pooled_autocorrelation, residuals_by_phase)
 from ._diagnostics import (_check_runs, _dt, _label, _phases, _signals, _split_inputs,
                            lag_span, slowest_time_constant)
 
@@ -89,9 +89,14 @@ def _acf_figure(columns, res, dt: float, shortest: int, lag: int, title: str):
         band = 1.96 / math.sqrt(max(n, 1))
         ax.axhspan(-band, band, color="0.85")
         ax.axhline(0, color="k", lw=0.5)
-        ax.set_ylim(-1.05, 1.05)
+        # scaled to what is there (a fixed ±1 axis flattens a small but significant
+        # correlation into the band): at least four bands, at most ±1.05
+        top = min(1.05, max(4 * band, 1.15 * float(np.nanmax(np.abs(rho), initial=0.0))))
+        ax.set_ylim(-top, top)
         ax.set_ylabel("autocorrelation")
-        ax.set_title(f"{c}")
+        _, p_lb, lb_lags = ljung_box(res[j])
+        ax.set_title(f"{c}: Ljung–Box p = {p_lb:.2g} over {lb_lags} lags"
+                     + (" (not white)" if p_lb < 0.05 else ""))
     axes[-1, 0].set_xlabel("lag, s")
     fig.suptitle(f"{title}\nresidual autocorrelation, runs pooled "
                  "(grey: ±1.96/√N, where white noise stays)")
@@ -172,26 +177,32 @@ def _phases_figure(columns, runs, res, input_names, boundary_inputs, units, titl
     chamber, powers = _split_inputs(input_names, boundary_inputs)
     ph = [_phases(r, input_names, chamber, powers) for r in runs]
     groups = _by_unit(columns, units)
+    by_column = {c: residuals_by_phase(res[columns.index(c)], ph) for c in columns}
+    # only the phases the runs have (no empty "power step" slot in a run without power)
+    shown = [k for k in PHASES if any(by_column[c][k]["mean"] is not None for c in columns)] \
+        or list(PHASES)
+    absent = [k.replace("_", " ") for k in PHASES if k not in shown]
     fig = new_figure(figsize=(WIDTH_IN, 4.5))
     axes = np.atleast_1d(fig.subplots(1, len(groups), squeeze=False)[0])
-    x = np.arange(len(PHASES))
+    x = np.arange(len(shown))
     colors = _colors()
     for ax, (unit, cols) in zip(axes, groups):
         width = 0.8 / max(len(cols), 1)
         for j, c in enumerate(cols):
-            by = residuals_by_phase(res[columns.index(c)], ph)
-            means = [by[k]["mean"] if by[k]["mean"] is not None else 0.0 for k in PHASES]
+            by = by_column[c]
+            means = [by[k]["mean"] if by[k]["mean"] is not None else 0.0 for k in shown]
             ax.bar(x + (j - (len(cols) - 1) / 2) * width, means, width, label=c,
                    color=colors[columns.index(c) % len(colors)])
         ax.axhline(0, color="k", lw=0.5)
         ax.set_xticks(x)
-        ax.set_xticklabels([k.replace("_", " ") for k in PHASES],
+        ax.set_xticklabels([k.replace("_", " ") for k in shown],
                            rotation=15 if len(groups) > 1 else 0)
         ax.set_ylabel(f"mean residual, {unit}")
         ax.legend()
         if len(groups) > 1:
             ax.set_title(f"columns in {unit}")
-    fig.suptitle(f"{title}\nmean residual per chamber phase")
+    fig.suptitle(f"{title}\nmean residual per chamber phase"
+                 + (f" (none in the runs: {', '.join(absent)})" if absent else ""))
     return fig
 
 

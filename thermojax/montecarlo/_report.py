@@ -86,8 +86,7 @@ def _markdown(r: dict) -> str:
 
 
 def _plots(out: Path, results: dict, r: dict, atomic_write) -> list[str]:
-
-
+    """Per-unit peak-error histograms, one outline per compensation method."""
     from .._plots import new_figure, save_figure
 
     files = []
@@ -96,10 +95,14 @@ def _plots(out: Path, results: dict, r: dict, atomic_write) -> list[str]:
                               "temperature per unit", "K")):
         fig = new_figure(figsize=(12, 6))
         ax = fig.add_subplot(1, 1, 1)
+        values = {m: np.maximum(results[f"{m}_{key}"], 1e-12) for m in r["methods"]}
+        lo = min(float(v.min()) for v in values.values())
+        hi = max(float(v.max()) for v in values.values())
+        bins = np.logspace(np.log10(lo) - 0.05, np.log10(hi) + 0.05, 40)   # shared bins
         for m, label in r["methods"].items():
-            v = np.maximum(results[f"{m}_{key}"], 1e-12)
-            bins = np.logspace(np.log10(v.min()) - 0.05, np.log10(v.max()) + 0.05, 30)
-            ax.hist(v, bins=bins, alpha=0.6, label=label)
+            # outlines, not translucent fills: overlaps keep each method's own colour,
+            # the one its legend entry shows
+            ax.hist(values[m], bins=bins, histtype="step", lw=1.8, label=label)
         if key == "bias_peak":
             ax.axvline(r["bias_limit"], color="k", ls="--",
                        label=f"specification {r['bias_limit']:g} {unit}")
