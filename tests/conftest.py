@@ -7,8 +7,12 @@ import jax
 import pytest
 
 # Commands run in-process enable the persistent compilation cache: keep the suite's
-# entries out of the user's cache folder.
-os.environ.setdefault("THERMOJAX_CACHE_DIR", tempfile.mkdtemp(prefix="thermojax-test-cache-"))
+# entries out of the user's cache folder, in one folder per test run that the xdist
+# workers share (a program one worker compiled, the other loads; writes are atomic).
+_RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+os.environ.setdefault("THERMOJAX_CACHE_DIR", os.path.join(
+    tempfile.gettempdir(), f"thermojax-test-cache-{_RUN}") if _RUN else
+    tempfile.mkdtemp(prefix="thermojax-test-cache-"))
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")

@@ -230,25 +230,98 @@ def test_fit_names_the_unit_mistake_even_when_dropping(capsys, tmp_path, scale_t
     assert_refused(rc, err, "a.csv", words)
 
 
-def test_fit_after_dropping_recovers_the_truth(capsys, tmp_path, monkeypatch):
-    """A 1e300 sensor cell in a.csv and a 1e6 W heater cell in b.csv, dropped: the fit
-    finds the parameters that generated the data, and says what it dropped."""
-    import json
+SPIKE_ROW = 305  # a plausible 100 K spike (T_sheath spans about 16-40 °C): no unit rules it out
 
-    folder = tmp_path / "data"
+
+def _glitched_runs(folder, *edits):
     write_runs(folder)
-    for name, edit in (("a.csv", glitch("T_core", 1e300)), ("b.csv", glitch("P_heater", 1e6))):
+    for name, edit in edits:
         t = read_telemetry(folder / name)
         channels = {k: np.array(v) for k, v in t.channels.items()}
         edit(channels)
         write_telemetry(folder / name, t.ts, channels)
+
+
+def _spike(channels):
+    channels["T_sheath"][SPIKE_ROW] += 100.0
+
+
+def test_fit_after_dropping_recovers_the_truth(capsys, tmp_path, monkeypatch):
+    """A 1e300 sensor cell and a plausible 100 K spike in a.csv and a 1e6 W heater cell in
+    b.csv, dropped (the spike after the fit finds it alone carries the sensor's error): the
+    fit finds the parameters that generated the data and says, on stderr and in
+    report.json, what it dropped."""
+    import json
+
+    folder = tmp_path / "data"
+    _glitched_runs(folder, ("a.csv", lambda c: (glitch("T_core", 1e300)(c), _spike(c))),
+                   ("b.csv", glitch("P_heater", 1e6)))
     monkeypatch.chdir(folder)
     rc, out, err = run(capsys, "fit", "--model", "rtd2h.toml", "--data", "a.csv", "--data",
                        "b.csv", "--out", tmp_path / "out", "--outliers", "drop", "--quiet")
     assert rc == 0, err
     assert "a.csv: dropped 1 implausible cell" in err and f"line {LINE}" in err
     assert "b.csv: dropped 1 implausible cell" in err
+    assert f"a.csv: dropped line {SPIKE_ROW + 2}, column 'T_sheath'" in err
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     for name, value in RTD2H_TRUTH.items():
         assert report["parameters"][name]["value"] == pytest.approx(value, rel=0.05), name
     assert report["rmse"]["T_core"] < 0.02
+    assert report["converged"] and report["dominant_samples"] == []
+    cells = sorted((c["file"], c["line"], c["column"]) for c in report["dropped_cells"])
+    assert cells == [("a.csv", LINE, "T_core"), ("a.csv", SPIKE_ROW + 2, "T_sheath"),
+                     ("b.csv", LINE, "P_heater")]
+
+
+def test_a_fit_that_follows_one_sample_is_not_converged(capsys, tmp_path, monkeypatch):
+    """Without --outliers drop, the plausible spike is kept and the least-squares fit
+    follows it: exit 0 with the fit written, but not "converged", the sample named."""
+    import json
+
+    folder = tmp_path / "data"
+    _glitched_runs(folder, ("a.csv", _spike))
+    monkeypatch.chdir(folder)
+    rc, out, err = run(capsys, "fit", "--model", "rtd2h.toml", "--data", "a.csv", "--data",
+                       "b.csv", "--out", tmp_path / "out", "--quiet")
+    assert rc == 0, err
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert not report["converged"]
+    (d,) = report["dominant_samples"]
+    assert (d["run_name"], d["column"], d["row"]) == ("a.csv", "T_sheath", SPIKE_ROW)
+    assert d["share"] > 0.9 and d["residual"] == pytest.approx(100.0, abs=5.0)
+    assert f"data row {SPIKE_ROW + 1}" in report["message"]  # 1-based, as every message
+    assert "--outliers drop" in report["message"]
+    assert "**not converged**" in (tmp_path / "out" / "report.md").read_text()
+    assert report["dropped_cells"] == []
+
+
+def test_gaussian_noise_and_model_error_never_dominate_but_a_spike_does():
+    """`dominant_samples` on residuals built by hand: white noise over 200-2000 samples,
+    a first-order lag misfit after one step (the error of a missed lag of 8 and of 1
+    sample periods: 22 % and 86 % of the squared sum in one sample) and one spike."""
+    from thermojax.fitting._dominance import MIN_SAMPLES, dominant_samples
+    from thermojax.measurements._data import Experiment
+
+    rng = np.random.default_rng(3)
+
+    def runs(residual):
+        n = residual.size
+        ts = np.arange(n, dtype=float)
+        e = Experiment(ts, np.zeros((n, 1)), (20.0 + residual)[:, None], name="r.csv")
+        return [e], [np.full((n, 1), 20.0)]
+
+    for n in (MIN_SAMPLES, 500, 2000):
+        for _ in range(20):
+            assert dominant_samples(["T"], *runs(rng.standard_normal(n))) == []
+    k = np.arange(1000.0)
+    for tau in (8.0, 1.0):  # a missed lag of tau samples after one step: no glitch
+        lag = np.where(k >= 400, 5.0 * np.exp(-(k - 400) / tau), 0.0)
+        assert dominant_samples(["T"], *runs(lag + 0.01 * rng.standard_normal(1000))) == []
+    spiked = 0.05 * rng.standard_normal(1000)
+    spiked[123] = 3.0  # 60 sigma
+    (d,) = dominant_samples(["T"], *runs(spiked))
+    assert (d.row, d.column, d.time_s) == (123, "T", 123.0)
+    assert d.share == pytest.approx(9.0 / np.sum(spiked ** 2))
+    few = 0.05 * rng.standard_normal(MIN_SAMPLES - 1)
+    few[0] = 3.0
+    assert dominant_samples(["T"], *runs(few)) == []  # too few samples to judge

@@ -194,17 +194,52 @@ def cmd_demo(args) -> int:
 
 
 def _load_runs(spec, paths: list[str], outliers: str = "stop"):
+    """`(experiments, telemetry, dropped)`: the runs checked for plausibility
+    (`--outliers`), their telemetry and the cells dropped, one dict each."""
     from ..measurements._data import Experiment
 
-    return [Experiment.from_telemetry(spec, t, name=p)
-            for p, t in zip(paths, _plausible(spec, _read_runs(paths), outliers))]
+    checked = _checked(spec, _read_runs(paths), outliers)
+    dropped = [{"file": p, "line": o.line, "column": o.column, "value": o.value,
+                "reason": o.reason} for p, (_, found) in zip(paths, checked) for o in found]
+    telemetry = [t for t, _ in checked]
+    return ([Experiment.from_telemetry(spec, t, name=p) for p, t in zip(paths, telemetry)],
+            telemetry, dropped)
+
+
+MAX_DROP_ROUNDS = 3  # refits after leaving out samples that alone decided the fit
+
+
+def _fit_dropping(args, spec, experiments, telemetry, dropped, outliers: str):
+    """`fit`, then (`--outliers drop`) again without the samples that alone decided it
+    (`fitting._dominance`), at most `MAX_DROP_ROUNDS` times; each dropped one is said and
+    appended to `dropped`."""
+    from ..fitting._dominance import without_samples
+    from ..fitting._fit import fit
+
+    result = fit(spec, experiments, likelihood=args.likelihood, n_starts=args.starts,
+                 progress=args.progress)
+    for _ in range(MAX_DROP_ROUNDS):
+        if outliers != "drop" or not result.dominant:
+            break
+        for d in result.dominant:
+            line = telemetry[d.run].lines[d.row]
+            print(f"warning: {d.run_name}: dropped line {line}, column '{d.column}' = "
+                  f"{d.value:.6g}: it alone carried {100 * d.share:.0f} % of the column's "
+                  "squared error (--outliers drop); refitting", file=sys.stderr)
+            dropped.append({"file": d.run_name, "line": int(line), "column": d.column,
+                            "value": d.value, "reason": f"carried {100 * d.share:.0f} % of "
+                            "the column's squared error in the fit"})
+        experiments = without_samples(experiments, result.dominant, spec.sensor_columns)
+        result = fit(spec, experiments, likelihood=args.likelihood, n_starts=args.starts,
+                     progress=args.progress)
+    return result, experiments
 
 
 def cmd_fit(args) -> int:
     import warnings
 
     from .. import io
-    from ..fitting._fit import fit, profile_interval
+    from ..fitting._fit import profile_interval
     from ..fitting._fit_report import (file_values, comparison_table, format_parameter_table,
                                        parameter_rows, write_fit_outputs)
 
@@ -212,13 +247,14 @@ def cmd_fit(args) -> int:
     check_output_folder(out, args.force)
     spec = io.load_model(_resolve_model(args.model))
     _check_profile_names(spec, args.profile or [], args.likelihood)
-    experiments = _load_runs(spec, args.data, getattr(args, "outliers", "stop"))
+    outliers = getattr(args, "outliers", "stop")
+    experiments, telemetry, dropped = _load_runs(spec, args.data, outliers)
     args.progress(f"fitting {len(experiments)} run(s) under the {args.likelihood} likelihood "
                   "(the first evaluation compiles the model)")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = fit(spec, experiments, likelihood=args.likelihood, n_starts=args.starts,
-                     progress=args.progress)
+        result, experiments = _fit_dropping(args, spec, experiments, telemetry, dropped,
+                                            outliers)
         profiles = {}
         for name in args.profile or []:
             args.progress(f"profile likelihood of {name}")
@@ -228,7 +264,7 @@ def cmd_fit(args) -> int:
         print(f"warning: {w.message}", file=sys.stderr)
     with staged_folder(out) as tmp:
         report = write_fit_outputs(result, experiments, tmp, list(args.data), profiles,
-                                   initial=spec)
+                                   initial=spec, dropped=dropped)
     print(format_parameter_table(parameter_rows(report, file_values(spec))))
     print()
     print(comparison_table(result))
@@ -318,7 +354,8 @@ def _add_fit_arguments(p) -> None:
                    help="a cell the model's units and the other samples rule out: stop (the "
                    "default, naming each by line and column) or drop it (a sensor cell becomes "
                    "a dropped sample, an input cell is filled from its neighbours as its hold "
-                   "says)")
+                   "says); fit also drops a sensor sample that alone decided the fit, and "
+                   "refits")
     _add_force(p, "an existing --out folder")
     _add_quiet(p)
 
@@ -346,13 +383,18 @@ def _read_runs(paths: list[str]):
 def _plausible(spec, runs, outliers: str = "stop", others: bool = False):
     """Each run checked for plausibility against the model (--outliers); drops said.
     `others`: the columns the model does not read too (candidate inputs)."""
+    return [t for t, _ in _checked(spec, runs, outliers, others)]
+
+
+def _checked(spec, runs, outliers: str = "stop", others: bool = False):
+    """`_plausible`'s runs, each with the outliers dropped from it: `[(telemetry, [Outlier])]`."""
     from ..measurements._plausibility import check_plausibility, describe_dropped
 
     checked = [check_plausibility(spec, t, outliers, others=others) for t in runs]
     for t, dropped in checked:
         if dropped:
             print(f"warning: {describe_dropped(t, dropped)}", file=sys.stderr)
-    return [t for t, _ in checked]
+    return checked
 
 
 def cmd_diagnose(args) -> int:

@@ -36,6 +36,7 @@ def fit_report(result: FitResult, runs: list[str]) -> dict:
         "per_run": result.per_run,
         "converged": result.converged,
         "message": result.message,
+        "dominant_samples": [d.to_json() for d in result.dominant],
         "n_steps": result.n_steps,
         "wall_time_s": result.wall_time_s,
         # ETD2 steps per sample period the fit integrated nonlinear effects with
@@ -44,12 +45,14 @@ def fit_report(result: FitResult, runs: list[str]) -> dict:
 
 
 def write_fit_outputs(result: FitResult, experiments, out: Path, runs: list[str],
-                      profiles: dict | None = None, initial=None) -> dict:
+                      profiles: dict | None = None, initial=None,
+                      dropped: list[dict] | None = None) -> dict:
     """Write model.toml, report.json, report.md, one PNG per run and (Kalman) the smoothed
     node temperatures `smoothed_run<i>.csv` into `out`; return the report.
 
     `initial`: the model as given (its file values flag parameters "at bound" and say
-    whether a sensor's noise was given or estimated)."""
+    whether a sensor's noise was given or estimated). `dropped`: the cells `--outliers drop`
+    left out, one dict each (`dropped_cells`)."""
     from .._plots import plot_fit
     from ..measurements._telemetry import write_telemetry
 
@@ -58,6 +61,7 @@ def write_fit_outputs(result: FitResult, experiments, out: Path, runs: list[str]
                header=f"fitted by thermojax ({result.likelihood}) from {', '.join(runs)}")
     report = fit_report(result, runs)
     report.update(whiteness(result.spec.sensor_columns, experiments, result.predictions))
+    report["dropped_cells"] = json_safe(dropped or [])
     if profiles:
         report["profile_intervals"] = json_safe(profiles)
     for r, (mean, std) in enumerate(result.smoothed):

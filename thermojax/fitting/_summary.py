@@ -21,6 +21,7 @@ from ..model._spec import ModelSpec, Parameter
 from ..model.effects import Lowered, raise_effects
 from ._bias import BiasFit, bias_fit_at, bias_parameters, bias_to_spec, fit_bias
 from ._bias_residuals import node_temperatures, spec_strains
+from ._dominance import DominantSample, dominance_message, dominant_samples
 from ._output_error import bias_coefficient_jacobian
 from ._identifiability import Identifiability, identifiability
 from ._kalman_fit import kalman_smoothed
@@ -65,6 +66,9 @@ class FitResult:
     lowered_as: dict[str, tuple[float, float]] = field(repr=False, default_factory=dict)
     # Bias channels (docs/formats.md §4): column -> `BiasFit` on the fitted model's states.
     biases: dict[str, BiasFit] = field(repr=False, default_factory=dict)
+    # Samples that alone carry a quarter or more of their sensor's squared error
+    # (`_dominance`); the fit is then not converged.
+    dominant: list[DominantSample] = field(default_factory=list)
 
 
 def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) -> FitResult:
@@ -100,7 +104,12 @@ def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) ->
         smoothed = [(np.asarray(m_s[r, :n]), np.asarray(s_s[r, :n]))
                     for r, n in enumerate(data.lengths)]
     renames = prep.lowered.renames()
-    message = ("converged" if sol.converged
+    in_fit = [dataclasses.replace(e, outputs=np.where(
+        np.asarray(data.mask)[r, :e.n_times], e.outputs, np.nan))
+        for r, e in enumerate(prep.experiments)]  # a held-out run counts no sample
+    dominant = dominant_samples(spec.sensor_columns, in_fit, predictions)
+    converged = sol.converged and not dominant
+    message = (dominance_message(dominant) if dominant else "converged" if sol.converged
                else f"stopped after {sol.n_steps} steps without converging")
     raised = raise_effects(prep.lowered, fitted_spec)
     for b in biases.values():
@@ -114,7 +123,7 @@ def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) ->
         n_params=n_params, n_samples=n_samples, rmse=metrics["rmse"],
         fit_percent=metrics["fit_percent"], per_run=metrics["per_run"],
         identifiability=_rename_identifiability(ident, {k: v[0] for k, v in renames.items()}),
-        n_steps=sol.n_steps, converged=sol.converged, message=message,
+        n_steps=sol.n_steps, converged=converged, message=message, dominant=dominant,
         n_evaluations=sol.n_evaluations, wall_time_s=time.perf_counter() - t_start, predictions=predictions,
         smoothed=smoothed, theta=sol.theta, problem=sol.problem,
         lowered_as={target: (scale, power) for target, scale, power in renames.values()},
