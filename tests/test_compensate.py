@@ -77,6 +77,14 @@ def test_compensate_mistakes_are_named(tmp_path, capsys):
                  "T_fluid", "--out", str(tmp_path / "g.csv"), "--quiet"])
     err = capsys.readouterr().err
     assert code == 2 and "resample" in err and "line 12" in err
+    glitched = tmp_path / "glitch.csv"  # a logger glitch: refused by line, never absorbed
+    tj.write_telemetry(glitched, ts, {"T_core": np.where(np.arange(ts.size) == 40, 1e300,
+                                                          reading)})
+    code = main(["compensate", "--model", model, "--data", str(glitched), "--input",
+                 "T_fluid", "--out", str(tmp_path / "k.csv"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "line 42" in err and "'T_core'" in err and "every sample" in err
+    assert "--outliers" not in err  # compensate has no such option
     nonlinear = tmp_path / "rad.toml"
     nonlinear.write_text((CONFIGS / "rtd2.toml").read_text() + '\n[[effects]]\nkind = '
                          '"radiation"\nwhere = ["sheath", "T_fluid"]\ncoefficient = 1e-10\n')

@@ -325,3 +325,41 @@ def test_gaussian_noise_and_model_error_never_dominate_but_a_spike_does():
     few = 0.05 * rng.standard_normal(MIN_SAMPLES - 1)
     few[0] = 3.0
     assert dominant_samples(["T"], *runs(few)) == []  # too few samples to judge
+
+
+# ---------------------------------------------------------------------------
+# thermojax run CONFIG: the same checks, chosen by `options.outliers`
+
+
+def _config(folder, outliers=None):
+    option = "" if outliers is None else f'outliers = "{outliers}"'
+    path = folder / "cfg.toml"
+    path.write_text(f'name = "glitch"\nmodel = "rtd2h.toml"\nout = "results"\n'
+                    f'data = ["a.csv", "b.csv"]\n\n[options]\n{option}\n')
+    return path
+
+
+def test_run_config_refuses_before_making_a_folder(capsys, tmp_path):
+    folder = tmp_path / "data"
+    _glitched_runs(folder, ("a.csv", glitch("T_core", 1e300)))
+    rc, _, err = run(capsys, "run", _config(folder))
+    assert_refused(rc, err, "a.csv", f"line {LINE}", "'T_core'", "--outliers drop")
+    assert not (folder / "results").exists()
+    rc, _, err = run(capsys, "run", _config(folder, "sometimes"))
+    assert_refused(rc, err, "cfg.toml", "options.outliers", '"drop"')
+
+
+def test_run_config_drops_what_it_is_told_to_and_records_it(capsys, tmp_path):
+    import json
+
+    folder = tmp_path / "data"
+    _glitched_runs(folder, ("a.csv", lambda c: (glitch("T_core", 1e300)(c), _spike(c))))
+    rc, out, err = run(capsys, "run", _config(folder, "drop"))
+    assert rc == 0, err
+    (result,) = (folder / "results").iterdir()
+    report = json.loads((result / "report.json").read_text())
+    cells = sorted((c["line"], c["column"]) for c in report["dropped_cells"])
+    assert cells == [(LINE, "T_core"), (SPIKE_ROW + 2, "T_sheath")]
+    assert report["converged"]
+    for name, value in RTD2H_TRUTH.items():
+        assert report["parameters"][name]["value"] == pytest.approx(value, rel=0.05), name

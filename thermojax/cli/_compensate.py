@@ -10,6 +10,7 @@ from ._outputs import check_output_file, staged_file
 
 def cmd_compensate(args) -> int:
     from .. import io
+    from ..measurements._plausibility import check_plausibility
     from ..observer._compensate import compensate
     from ._main import _resolve_model
 
@@ -24,6 +25,8 @@ def cmd_compensate(args) -> int:
                          file=str(figure), field="--out")
     spec = io.load_model(_resolve_model(args.model))
     telemetry = io.read_telemetry(args.data)
+    if args.input in spec.input_columns:  # else `compensate` names the inputs to choose from
+        check_plausibility(spec, telemetry, unread=(args.input,), can_drop=False)
     args.progress(f"reconstructing {args.input} from {', '.join(spec.sensor_columns)}")
     result = compensate(spec, telemetry, args.input, args.input_noise, say=args.progress)
     how = "chosen by maximum likelihood" if result.chosen else "given"

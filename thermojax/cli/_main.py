@@ -16,6 +16,8 @@ import numpy as np
 
 from .._errors import InputError
 from ._progress import Progress
+from ._checked_runs import fit_dropping, load_runs
+from ._checked_runs import plausible as _plausible, read_runs as _read_runs
 from ._compensate import add_compensate
 from ._export import add_export
 from ._playback import add_playback
@@ -193,48 +195,6 @@ def cmd_demo(args) -> int:
     return 0
 
 
-def _load_runs(spec, paths: list[str], outliers: str = "stop"):
-    """`(experiments, telemetry, dropped)`: the runs checked for plausibility
-    (`--outliers`), their telemetry and the cells dropped, one dict each."""
-    from ..measurements._data import Experiment
-
-    checked = _checked(spec, _read_runs(paths), outliers)
-    dropped = [{"file": p, "line": o.line, "column": o.column, "value": o.value,
-                "reason": o.reason} for p, (_, found) in zip(paths, checked) for o in found]
-    telemetry = [t for t, _ in checked]
-    return ([Experiment.from_telemetry(spec, t, name=p) for p, t in zip(paths, telemetry)],
-            telemetry, dropped)
-
-
-MAX_DROP_ROUNDS = 3  # refits after leaving out samples that alone decided the fit
-
-
-def _fit_dropping(args, spec, experiments, telemetry, dropped, outliers: str):
-    """`fit`, then (`--outliers drop`) again without the samples that alone decided it
-    (`fitting._dominance`), at most `MAX_DROP_ROUNDS` times; each dropped one is said and
-    appended to `dropped`."""
-    from ..fitting._dominance import without_samples
-    from ..fitting._fit import fit
-
-    result = fit(spec, experiments, likelihood=args.likelihood, n_starts=args.starts,
-                 progress=args.progress)
-    for _ in range(MAX_DROP_ROUNDS):
-        if outliers != "drop" or not result.dominant:
-            break
-        for d in result.dominant:
-            line = telemetry[d.run].lines[d.row]
-            print(f"warning: {d.run_name}: dropped line {line}, column '{d.column}' = "
-                  f"{d.value:.6g}: it alone carried {100 * d.share:.0f} % of the column's "
-                  "squared error (--outliers drop); refitting", file=sys.stderr)
-            dropped.append({"file": d.run_name, "line": int(line), "column": d.column,
-                            "value": d.value, "reason": f"carried {100 * d.share:.0f} % of "
-                            "the column's squared error in the fit"})
-        experiments = without_samples(experiments, result.dominant, spec.sensor_columns)
-        result = fit(spec, experiments, likelihood=args.likelihood, n_starts=args.starts,
-                     progress=args.progress)
-    return result, experiments
-
-
 def cmd_fit(args) -> int:
     import warnings
 
@@ -248,13 +208,14 @@ def cmd_fit(args) -> int:
     spec = io.load_model(_resolve_model(args.model))
     _check_profile_names(spec, args.profile or [], args.likelihood)
     outliers = getattr(args, "outliers", "stop")
-    experiments, telemetry, dropped = _load_runs(spec, args.data, outliers)
+    experiments, telemetry, dropped = load_runs(spec, args.data, outliers)
     args.progress(f"fitting {len(experiments)} run(s) under the {args.likelihood} likelihood "
                   "(the first evaluation compiles the model)")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result, experiments = _fit_dropping(args, spec, experiments, telemetry, dropped,
-                                            outliers)
+        result, experiments = fit_dropping(spec, experiments, telemetry, dropped, outliers,
+                                           args.progress, likelihood=args.likelihood,
+                                           n_starts=args.starts)
         profiles = {}
         for name in args.profile or []:
             args.progress(f"profile likelihood of {name}")
@@ -372,29 +333,6 @@ def _add_fit(sub):
                    help="also compute a 95 %% profile-likelihood interval of this free "
                    "parameter, by its dotted name (repeatable; output error only)")
     p.set_defaults(func=cmd_fit)
-
-
-def _read_runs(paths: list[str]):
-    from ..measurements._telemetry import read_telemetry
-
-    return [read_telemetry(p) for p in paths]
-
-
-def _plausible(spec, runs, outliers: str = "stop", others: bool = False):
-    """Each run checked for plausibility against the model (--outliers); drops said.
-    `others`: the columns the model does not read too (candidate inputs)."""
-    return [t for t, _ in _checked(spec, runs, outliers, others)]
-
-
-def _checked(spec, runs, outliers: str = "stop", others: bool = False):
-    """`_plausible`'s runs, each with the outliers dropped from it: `[(telemetry, [Outlier])]`."""
-    from ..measurements._plausibility import check_plausibility, describe_dropped
-
-    checked = [check_plausibility(spec, t, outliers, others=others) for t in runs]
-    for t, dropped in checked:
-        if dropped:
-            print(f"warning: {describe_dropped(t, dropped)}", file=sys.stderr)
-    return checked
 
 
 def cmd_diagnose(args) -> int:

@@ -25,6 +25,7 @@ seed = 0
 [options]
 starts = 1
 perturb = 0.3                      # start every free parameter this far off (relative)
+outliers = "stop"                  # or "drop": as `fit --outliers`
 ```
 """
 
@@ -43,7 +44,7 @@ import numpy as np
 from .._errors import InputError
 
 _KEYS = {"name", "model", "likelihood", "out", "data", "synthetic", "options"}
-_OPTIONS = {"starts", "perturb", "max_steps"}
+_OPTIONS = {"starts", "perturb", "max_steps", "outliers"}
 
 
 def load_config(path: str | Path) -> dict:
@@ -84,6 +85,10 @@ def load_config(path: str | Path) -> dict:
     if set(cfg["options"]) - _OPTIONS:
         raise InputError(f"unknown option(s) {sorted(set(cfg['options']) - _OPTIONS)}; allowed "
                          f"are {sorted(_OPTIONS)}.", file=str(path), field="options")
+    if cfg["options"].get("outliers", "stop") not in ("stop", "drop"):
+        raise InputError(f"options.outliers must be \"stop\" or \"drop\", got "
+                         f"{cfg['options']['outliers']!r}.", file=str(path),
+                         field="options.outliers")
     if "data" in raw:
         if not isinstance(raw["data"], list) or not raw["data"]:
             raise InputError("data must be a non-empty list of CSV paths.", file=str(path),
@@ -178,12 +183,15 @@ def run_config(path: str | Path, progress=print, out: str | Path | None = None) 
     """Run one config; return the new results folder (under `out` when given, else
     under the config's own `out`)."""
     from .. import io
-    from ..measurements._data import Experiment
-    from ..fitting._fit import fit
     from ..fitting._fit_report import comparison_table, write_fit_outputs
+    from ._checked_runs import fit_dropping, load_runs
 
     cfg = load_config(path)
     spec = io.load_model(cfg["model"])
+    opts = cfg["options"]
+    outliers = opts.get("outliers", "stop")
+    # the runs checked (and refused) before a folder is made
+    loaded = load_runs(spec, cfg["data"], outliers) if "data" in cfg else None
     folder = new_run_folder(Path(out if out is not None else cfg["out"]), cfg["name"])
     (folder / "versions.json").write_text(json.dumps(package_versions(), indent=2))
     if "synthetic" in cfg:
@@ -193,13 +201,13 @@ def run_config(path: str | Path, progress=print, out: str | Path | None = None) 
         data = cfg["data"]
     cfg["resolved_data"] = data
     (folder / "config.json").write_text(json.dumps(cfg, indent=2))
-    opts = cfg["options"]
+    experiments, telemetry, dropped = loaded or load_runs(spec, data, outliers)
     if "perturb" in opts:
         spec = perturbed(spec, float(opts["perturb"]))
-    experiments = [Experiment.from_telemetry(spec, io.read_telemetry(p), name=p) for p in data]
-    result = fit(spec, experiments, likelihood=cfg["likelihood"],
-                 n_starts=int(opts.get("starts", 1)), max_steps=int(opts.get("max_steps", 200)),
-                 progress=progress)
-    write_fit_outputs(result, experiments, folder, data)
+    result, experiments = fit_dropping(
+        spec, experiments, telemetry, dropped, outliers, progress,
+        likelihood=cfg["likelihood"], n_starts=int(opts.get("starts", 1)),
+        max_steps=int(opts.get("max_steps", 200)))
+    write_fit_outputs(result, experiments, folder, data, dropped=dropped)
     progress(comparison_table(result))
     return folder

@@ -71,7 +71,8 @@ class Outlier:
 
 
 def check_plausibility(spec: ModelSpec, telemetry: Telemetry, outliers: str = "stop", *,
-                       others: bool = False) -> tuple[Telemetry, list[Outlier]]:
+                       others: bool = False, unread: tuple[str, ...] = (),
+                       can_drop: bool = True) -> tuple[Telemetry, list[Outlier]]:
     """Check a run's values against the model's units and against each other.
 
     **Arguments:**
@@ -86,6 +87,10 @@ def check_plausibility(spec: ModelSpec, telemetry: Telemetry, outliers: str = "s
     - `others`: also look in the columns the model does not read (those `diagnose` and
       `investigate` offer as candidate inputs) for cells of magnitude 1e12 or more (their
       meaning is unknown, so nothing finer); dropped, they are interpolated linearly.
+    - `unread`: model columns the command does not read (`compensate`'s reconstructed
+      input, which the log may lack): not checked.
+    - `can_drop`: False for a command without `--outliers drop` (its refusal then says
+      to correct the data).
 
     **Returns:** `(telemetry, dropped)`: the run (a new one when cells were dropped) and
     the outliers dropped (empty unless `outliers="drop"`).
@@ -97,7 +102,7 @@ def check_plausibility(spec: ModelSpec, telemetry: Telemetry, outliers: str = "s
     if outliers not in OUTLIER_CHOICES:
         raise InputError(f"outliers must be one of {', '.join(OUTLIER_CHOICES)}, got "
                          f"{outliers!r}.", field="outliers")
-    kinds = _column_kinds(spec)
+    kinds = {c: k for c, k in _column_kinds(spec).items() if c not in unread}
     if others:
         kinds.update({c: "other" for c in telemetry.channels if c not in kinds})
     values = {c: telemetry.column(c) for c in kinds}
@@ -115,9 +120,11 @@ def check_plausibility(spec: ModelSpec, telemetry: Telemetry, outliers: str = "s
         more = f"; and {len(found) - 10} more" if len(found) > 10 else ""
         raise InputError(
             f"{len(found)} implausible cell{'s' if len(found) > 1 else ''} for the model "
-            f"'{spec.name}': {listed}{more}. Correct the data, or run again with "
-            "--outliers drop to drop them (a sensor cell becomes a dropped sample, an input "
-            "cell is filled from its neighbours as its hold says).",
+            f"'{spec.name}': {listed}{more}. "
+            + ("Correct the data, or run again with --outliers drop to drop them (a sensor "
+               "cell becomes a dropped sample, an input cell is filled from its neighbours "
+               "as its hold says)." if can_drop else "Correct the data (or cut the log): "
+               "this command needs every sample."),
             file=telemetry.path, line=first.line, field=first.column)
     holds = dict(zip(spec.input_columns, spec.input_holds))
     holds.update({c: "foh" for c, kind in kinds.items() if kind == "other"})
