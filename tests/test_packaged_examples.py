@@ -43,3 +43,21 @@ def test_make_example_data_writes_a_config_that_reads_its_logs(tmp_path, capsys)
     assert [r.name for r in config.runs] == ["plateaus", "transients", "holdout"]
     assert all(Path(r.temperature).parent == out and Path(r.temperature).is_file()
                for r in config.runs)
+
+
+def test_make_example_data_takes_the_folder_lock_before_any_work(tmp_path, capsys,
+                                                                  monkeypatch):
+    """A second writer into the example folder is refused, naming the holder, before a
+    single log is simulated (issue 32, item 2)."""
+    import os
+
+    import thermojax.calibration._synthetic as synthetic
+    from thermojax.cli._outputs import output_lock
+
+    monkeypatch.setattr(synthetic, "synthetic_imu_logs", lambda out: pytest.fail("simulated"))
+    out = tmp_path / "example"
+    with output_lock(out, "calibrate"):
+        rc = main(["calibrate", "--make-example-data", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "another thermojax run" in err and f"pid {os.getpid()}" in err
+    assert "Traceback" not in err and not out.exists()

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .._errors import InputError
-from ._outputs import check_output_folder, staged_folder
+from ._outputs import check_output_folder, claim_output_folder, staged_folder
 
 
 def cmd_calibrate(args) -> int:
@@ -17,6 +17,7 @@ def cmd_calibrate(args) -> int:
         from ..calibration._synthetic import synthetic_imu_logs, write_example_config
 
         out = Path(args.make_example_data)
+        claim_output_folder(out)  # one writer at a time, and room for the logs
         args.progress(f"simulating the example runs (truth: configs/imu6_bias.toml) into {out}")
         runs = synthetic_imu_logs(out)
         for r in runs.values():

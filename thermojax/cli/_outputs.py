@@ -333,6 +333,17 @@ def _claim(path: Path, room: int, in_place: bool, shared: str | None) -> None:
     check_room(path, room)
 
 
+def claim_output_folder(path: Path) -> None:
+    """Lock a folder the command fills beside what it holds (`calibrate
+    --make-example-data DIR`), and check it is writable and has room, before any work,
+    without judging what the folder already holds (nothing in it is removed)."""
+    _check_parent(path)
+    if path.is_file():
+        raise InputError("is a file, but this names a folder; choose a folder name.",
+                         file=str(path))
+    _claim(path, ROOM_FOLDER, True, None)
+
+
 def _current_command() -> str | None:
     return _session.command if _session is not None else None
 

@@ -31,6 +31,7 @@ from ._kalman_fit import fit_kalman, standardized_innovations
 from ._output_error import fit_output_error, output_error_at
 from ._problem import LIKELIHOODS, Solution, prepare
 from ._size import check_fit_size
+from ._plateau import GAIN, invisible_nodes, plateau_note, visible_start
 from ._profile import profile_interval
 from ._summary import FitResult, summarize
 
@@ -43,7 +44,8 @@ __all__ = ["FitResult", "LIKELIHOODS", "fit", "output_error_at", "profile_interv
 
 def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "output_error",
         solver=None, max_steps: int = 100, prior_log_std: float = 3.0, n_starts: int = 1,
-        seed: int = 0, progress=None, holdout: int | None = None) -> FitResult:
+        seed: int = 0, progress=None, holdout: int | None = None,
+        restart_plateaus: bool = True) -> FitResult:
     """Fit the free parameters of `spec` to several runs at once.
 
     **Arguments:**
@@ -69,6 +71,10 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     - `progress`: optional callable taking a one-line string.
     - `holdout`: index of a run left out of the likelihood (its measurements are masked;
       it is still simulated, so `predictions` hold its out-of-sample prediction).
+    - `restart_plateaus`: when the fit stops with a node's time constant far outside the
+      data's time scales and its parameters unidentifiable, fit again with that node at
+      a time constant the data can see and keep the better (`_plateau`); the message
+      says which happened.
 
     **Returns:** a `FitResult`.
     """
@@ -87,7 +93,32 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     else:
         sol = fit_output_error(prep, solver, max_steps, n_starts, seed, say)
     result = summarize(prep, sol, likelihood, t_start)
+    if restart_plateaus:
+        result = _off_plateau(result, experiments, say, likelihood=likelihood, solver=solver,
+                              max_steps=max_steps, prior_log_std=prior_log_std,
+                              n_starts=n_starts, seed=seed, holdout=holdout)
+        result.wall_time_s = time.perf_counter() - t_start
     say(f"fit done: -log L = {result.nll:.2f}, {result.n_params} parameters, {result.message}")
+    return result
+
+
+def _off_plateau(result: FitResult, experiments, say, **options) -> FitResult:
+    """`result`, or a refit from a start where its invisible nodes are visible when that
+    fits better by `GAIN` (`_plateau`); either way the message says what was found."""
+    invisible = invisible_nodes(result.spec, result.identifiability.unidentifiable_parameters,
+                                min(e.dt for e in experiments),
+                                max(float(e.ts[-1] - e.ts[0]) for e in experiments))
+    if not invisible:
+        return result
+    say(f"{invisible[0].describe()}: the data cannot move its parameters there; refitting "
+        "from a time constant they can see")
+    again = fit(visible_start(result.spec, invisible), experiments, progress=say,
+                restart_plateaus=False, **options)
+    gain = result.nll - again.nll
+    if np.isfinite(gain) and gain > GAIN:
+        again.message += plateau_note(invisible, gain)
+        return again
+    result.message += plateau_note(invisible, None)
     return result
 
 

@@ -105,8 +105,10 @@ def evaluate(spec: ModelSpec, runs: list[Telemetry], likelihood: str, progress=N
              holdout: int | None = None, n_starts: int = 1) -> Step:
     """Fit `spec` to the runs, its bias channels with it (docs/formats.md §4), and measure
     the fit (docs/formats.md §5 keys). `n_starts` > 1 adds perturbed output-error starts."""
+    # Plateau restarts (`fitting._plateau`) stay with `fit`: here a candidate's node
+    # beyond the data is evidence against it, and each step's fit is compared as it is.
     result = fit(spec, _experiments(spec, runs), likelihood=likelihood, progress=progress,
-                 holdout=holdout, n_starts=n_starts)
+                 holdout=holdout, n_starts=n_starts, restart_plateaus=False)
     biases = result.biases
     spec_out = result.spec
     nll, n_params, n = result.nll, result.n_params, result.n_samples
@@ -734,7 +736,8 @@ def _fit_without(spec, experiments, fold, likelihood="output_error"):
         masked = [*experiments[:r], dataclasses.replace(e, outputs=y), *experiments[r + 1:]]
     holdout = r if span is None else None
     for solver in ((_WARM_START, None) if likelihood == "output_error" else (None,)):
-        res = fit(spec, masked, likelihood=likelihood, holdout=holdout, solver=solver)
+        res = fit(spec, masked, likelihood=likelihood, holdout=holdout, solver=solver,
+                  restart_plateaus=False)
         if res.converged:
             break
     if not np.isfinite(res.nll) or not all(np.all(np.isfinite(p)) for p in res.predictions):
@@ -1247,8 +1250,9 @@ def _write_outputs(out: Path, report: dict, final: Step, traces, runs,
     out.mkdir(parents=True, exist_ok=True)
     save_model(final.spec, out / "model_final.toml",
                header="thermojax investigate: the final model")
-    (out / "report.json").write_text(json.dumps(json_safe(report), indent=2,
-                                                allow_nan=False))
+    tmp = out / "report.json.tmp"  # whole or not at all: a reader never sees half of it
+    tmp.write_text(json.dumps(json_safe(report), indent=2, allow_nan=False))
+    tmp.replace(out / "report.json")
     cols, inputs, boundary, units = _report_columns(final.spec)
     for step_traces in traces:  # every step's plots against the final model's inputs
         for r, tr in enumerate(step_traces or []):

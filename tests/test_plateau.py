@@ -1,0 +1,70 @@
+"""Fits that stop on a plateau (issue 32, item 4): started 100× or 1000× off in C and G,
+a node's time constant falls far outside the data's time scales, its parameters stop
+mattering, and Gauss-Newton stops there "converged". `fit` restarts such a node where
+the data can see it and keeps the restart when it fits better. The truth is the rtd2h
+model that generated the data (a NumPy simulator independent of thermojax)."""
+
+from __future__ import annotations
+
+import re
+import warnings
+
+import numpy as np
+import pytest
+
+import thermojax as tj
+from thermojax.fitting import fit
+from thermojax.fitting._plateau import FAST, SLOW, invisible_nodes
+
+from helpers import RTD2H_TEXT, RTD2H_TRUTH, rtd2h_experiments
+
+
+def _started_off(c_factor: float, g_factor: float):
+    """rtd2h with every capacitance times `c_factor` and conductance times `g_factor`."""
+    text = re.sub(r"capacitance = ([0-9.]+)",
+                  lambda m: f"capacitance = {float(m.group(1)) * c_factor}", RTD2H_TEXT)
+    text = re.sub(r"^conductance = ([0-9.]+)",
+                  lambda m: f"conductance = {float(m.group(1)) * g_factor}", text, flags=re.M)
+    return tj.parse_model(text, source="far.toml")
+
+
+def _fit(spec, **options):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "the run is shorter than the slowest constant"
+        return fit(spec, rtd2h_experiments(1), **options)
+
+
+@pytest.mark.parametrize("c_factor, g_factor, where", [(0.01, 100.0, "far below"),
+                                                       (0.001, 1000.0, "far below")])
+def test_a_fit_stopped_on_a_plateau_is_restarted_and_finds_the_truth(c_factor, g_factor,
+                                                                      where):
+    stuck = _fit(_started_off(c_factor, g_factor), restart_plateaus=False)
+    assert "nodes.core.capacitance" in stuck.identifiability.unidentifiable_parameters
+    assert stuck.parameters["nodes.core.capacitance"]["value"] < 0.05  # truth 0.1
+    result = _fit(_started_off(c_factor, g_factor))
+    for name, value in RTD2H_TRUTH.items():
+        assert result.parameters[name]["value"] == pytest.approx(value, rel=0.05), name
+    assert result.converged
+    assert "restarted from a plateau" in result.message and "'core'" in result.message
+    assert where in result.message and "--starts" in result.message
+    gain = float(re.search(r"fell by ([0-9.e+]+?)\.? ", result.message).group(1))
+    assert gain == pytest.approx(stuck.nll - result.nll, rel=1e-3)
+
+
+def test_a_fit_from_a_near_start_is_not_restarted():
+    result = _fit(tj.parse_model(RTD2H_TEXT, source="rtd2h.toml"))
+    assert result.message == "converged"
+
+
+def test_invisible_nodes_are_those_outside_the_data_time_scales_and_undetermined():
+    spec = _started_off(1.0, 1.0)  # sheath tau = 0.8 / (1/12 + 0.2) = 2.82 s, core 1.2 s
+    undetermined = {"nodes.core.capacitance", "nodes.sheath.capacitance"}
+    assert invisible_nodes(spec, undetermined, 1.0, 600.0) == []
+    assert [v.node for v in invisible_nodes(spec, undetermined, 1.2 / FAST * 1.01, 1e4)] == [
+        "core"]
+    assert [v.node for v in invisible_nodes(spec, undetermined, 1e-3, 1.2 / SLOW * 0.99)
+            ] == ["core", "sheath"]
+    assert invisible_nodes(spec, set(), 20.0, 600.0) == []  # determined: nothing to do
+    (v,) = invisible_nodes(spec, undetermined, 20.0, 600.0)  # 1.2 s < 2 s < 2.82 s
+    assert v.node == "core" and v.tau == pytest.approx(1.2) and np.isclose(v.sample_period, 20)
+    assert "far below the 20 s sample period" in v.describe()
