@@ -317,7 +317,10 @@ def test_a_disk_that_fills_while_fit_writes_leaves_no_partial_folder(capsys, mon
     import thermojax.fitting._fit as fit_module
     import thermojax.fitting._fit_report as report_module
 
-    monkeypatch.setattr(fit_module, "fit", lambda *a, **k: object())
+    import types
+
+    fitted = types.SimpleNamespace(likelihood="output_error", problem=None, dominant=[])
+    monkeypatch.setattr(fit_module, "fit", lambda *a, **k: fitted)
 
     def write_fit_outputs(result, experiments, folder, *args, **kwargs):
         disk_fills_up(folder / "model.toml", named=True)

@@ -200,6 +200,7 @@ def cmd_fit(args) -> int:
 
     from .. import io
     from ..fitting._fit import profile_interval
+    from ..fitting._interval_check import check_intervals
     from ..fitting._fit_report import (file_values, comparison_table, format_parameter_table,
                                        parameter_rows, write_fit_outputs)
 
@@ -216,8 +217,11 @@ def cmd_fit(args) -> int:
         result, experiments = fit_dropping(spec, experiments, telemetry, dropped, outliers,
                                            args.progress, likelihood=args.likelihood,
                                            n_starts=args.starts)
-        profiles = {}
+        profiles = ({} if getattr(args, "no_interval_check", False)
+                    else check_intervals(result, args.progress))
         for name in args.profile or []:
+            if name in profiles:
+                continue
             args.progress(f"profile likelihood of {name}")
             lower, upper = profile_interval(result, name)
             profiles[name] = {"level": 0.95, "lower": lower, "upper": upper}
@@ -332,6 +336,10 @@ def _add_fit(sub):
     p.add_argument("--profile", action="append", metavar="PARAM",
                    help="also compute a 95 %% profile-likelihood interval of this free "
                    "parameter, by its dotted name (repeatable; output error only)")
+    p.add_argument("--no-interval-check", action="store_true",
+                   help="skip the automatic profile-likelihood check of Wald intervals where "
+                   "the curvature is weak or the model has a near-null direction (output "
+                   "error; the report says where the two disagree and what trades)")
     p.set_defaults(func=cmd_fit)
 
 

@@ -6,6 +6,7 @@ import json
 import math
 from pathlib import Path
 
+from ._interval_check import interval_lines
 from ._summary import FitResult
 from .._plots import column_unit
 from .._json import json_safe
@@ -302,7 +303,9 @@ def write_fit_markdown(out: Path, report: dict, rows: list[dict], plots: list[st
              "sample period." if report.get("etd2_substeps") else ""),
           "", "## Parameters", ""]
     md += _md_parameter_table(rows) + [
-        "", "95 % interval: profile likelihood where computed (`--profile`); else Wald, "
+        "", "95 % interval: profile likelihood where computed (`--profile`, and the "
+        "automatic check where the curvature is weak or the model has a near-null "
+        "direction); else Wald, "
         "value ± 1.96 std, taken on the log scale, exp(log value ± 1.96 std/value), for "
         "positive parameters. Flags: fixed (given in the model file), unidentifiable (no "
         "std: the data do not determine it), at bound (a positive parameter driven to "
@@ -312,6 +315,8 @@ def write_fit_markdown(out: Path, report: dict, rows: list[dict], plots: list[st
     for d in ident.get("unidentifiable") or []:
         if d.get("message"):
             md.append(f"- unidentifiable: {d['message']}")
+    md += interval_lines({k: v for k, v in (report.get("profile_intervals") or {}).items()
+                          if "agrees" in v})
     md += ["", "## Error per sensor", "",
            "Noise: the sensor's std from the model file when fixed there (a yardstick for "
            "the error); when estimated, the fit's own estimate (RMSE / noise ≈ 1 then holds "

@@ -11,8 +11,8 @@ from ._solver import TruncatedGaussNewton
 from ._summary import FitResult
 
 
-def profile_interval(result: FitResult, name: str, level: float = 0.95, max_refits: int = 24
-                     ) -> tuple[float | None, float | None]:
+def profile_interval(result: FitResult, name: str, level: float = 0.95, max_refits: int = 24,
+                     ends_theta: list | None = None) -> tuple[float | None, float | None]:
     """Profile-likelihood confidence interval of one free parameter (output error).
 
     The parameter is pinned at trial values (a stiff prior row in the same compiled
@@ -23,6 +23,10 @@ def profile_interval(result: FitResult, name: str, level: float = 0.95, max_refi
     unidentifiable side) is None. An effect parameter fitted through a lowered entry (a
     sensor lag's `tau` as the conductance `C / tau`) is profiled in that entry and its
     ends mapped back.
+
+    `ends_theta`: a list that, when given, receives the refitted `theta` (every free
+    parameter, `result.free_names` order) at the refit nearest each end found, lower then
+    upper (None for an open end): what the other parameters did as this one moved.
 
     **Returns:** `(lower, upper)` in the parameter's physical units.
     """
@@ -41,12 +45,15 @@ def profile_interval(result: FitResult, name: str, level: float = 0.95, max_refi
     pin = np.zeros_like(theta_hat)
     pin[j] = 1e7
 
+    refits: dict[float, np.ndarray] = {}
+
     def excess(value: float) -> float:
         start = theta_hat.copy()
         start[j] = value
         pinned = make_problem(problem.template, problem.index, problem.data, problem.sigma,
                               start, pin, bias=problem.bias)
         theta = _solve_oe(start, pinned, TruncatedGaussNewton(), 100)[0]
+        refits[value] = np.asarray(theta)
         return _chi_square(theta, problem) - base - threshold
 
     std = result.parameters[name]["std"]
@@ -54,6 +61,9 @@ def profile_interval(result: FitResult, name: str, level: float = 0.95, max_refi
     log = _is_log(name)
     step = (std / result.parameters[name]["value"] if log else std) if std else 0.5
     ends = [_end(excess, value, sign, 1.96 * step, max_refits) for sign in (-1.0, 1.0)]
+    if ends_theta is not None:
+        ends_theta.extend(None if e is None else refits[min(refits, key=lambda v: abs(v - e))]
+                          for e in ends)
     ends = [None if e is None else float(np.exp(e)) if log else e for e in ends]
     if name in result.lowered_as:  # value = scale * lowered ** power, monotone
         scale, power = result.lowered_as[name]

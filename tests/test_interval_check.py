@@ -1,0 +1,156 @@
+"""Wald intervals checked against the profile likelihood (issue 32, item 4). One noisy,
+short run of the rtd2h truth leaves the core's capacitance and link weakly determined;
+`check_intervals` profiles them, and its ends are checked against a profile computed
+independently: a NumPy exact-hold simulator of the same network (matrices written out by
+hand) refitted by `scipy.optimize.least_squares` at each pinned value, the ends found by
+`scipy.optimize.brentq`."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import scipy.optimize
+import scipy.stats
+
+import thermojax as tj
+from thermojax.fitting import fit
+from thermojax.fitting._interval_check import (MOVED_RELATIVE, check_intervals,
+                                               interval_lines, intervals_to_check)
+from thermojax.measurements._data import Experiment
+
+from helpers import RTD2H_TEXT, np_simulate, np_steady, rtd2h_inputs
+
+NOISE, N, OFFSET = 0.3, 300, 3.0  # °C on both sensors (fixed in the model), samples, core start
+TEXT = RTD2H_TEXT.replace("noise = { value = 0.02, fixed = true }",
+                          f"noise = {{ value = {NOISE}, fixed = true }}").replace(
+    "noise = 0.01", f"noise = {{ value = {NOISE}, fixed = true }}")
+HOLDS = ["foh", "zoh"]  # T_fluid, P_heater
+
+
+def _matrices(cs, cc, gl, gb):
+    """rtd2h by hand: states (sheath, core), inputs (T_fluid, P_heater)."""
+    A = np.array([[-(gl + gb) / cs, gl / cs], [gl / cc, -gl / cc]])
+    B = np.array([[gb / cs, 1.0 / cs], [0.0, 0.0]])
+    return A, B
+
+
+CY = np.array([[0.0, 1.0], [1.0, 0.0]])  # T_core, T_sheath
+
+
+def _outputs(p, U):
+    """Sensor readings for p = (log Cs, log Cc, log Gl, log Gb, core initial °C)."""
+    A, B = _matrices(*np.exp(p[:4]))
+    x0 = np_steady(A, B, U[0])
+    x0[1] = p[4]
+    return np_simulate(A, B, CY, x0, U, 1.0, HOLDS)[1]
+
+
+@pytest.fixture(scope="module")
+def case():
+    rng = np.random.default_rng(0)
+    ts, U = rtd2h_inputs(N, 1.0, rng)
+    truth = np.log([0.8, 0.1, 1 / 12, 0.2])
+    A, B = _matrices(*np.exp(truth))
+    core0 = np_steady(A, B, U[0])[1] + OFFSET
+    Y = _outputs(np.r_[truth, core0], U) + NOISE * rng.standard_normal((N, 2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = fit(tj.parse_model(TEXT, source="weak.toml"), [Experiment(ts, U, Y,
+                                                                           name="w.csv")])
+    return U, Y, result, check_intervals(result)
+
+
+def _independent_profile(U, Y, j: int, start):
+    """95 % profile interval of parameter j (log units) and the refitted parameters at its
+    ends, by SciPy on the hand-written simulator."""
+    def residuals(p):
+        return ((_outputs(p, U) - Y) / NOISE).ravel()
+
+    best = scipy.optimize.least_squares(residuals, start, x_scale=1.0, xtol=1e-12,
+                                        ftol=1e-12)
+    chi_min = 2 * best.cost
+    free = [k for k in range(5) if k != j]
+
+    def pinned(v):
+        def r(q):
+            p = best.x.copy()
+            p[free] = q
+            p[j] = v
+            return residuals(p)
+        sol = scipy.optimize.least_squares(r, best.x[free], xtol=1e-12, ftol=1e-12)
+        p = best.x.copy()
+        p[free], p[j] = sol.x, v
+        return 2 * sol.cost - chi_min - scipy.stats.chi2.ppf(0.95, 1), p
+
+    ends, at = [], []
+    for sign in (-1.0, 1.0):
+        far = best.x[j] + sign * 2.0  # a factor e² away: beyond the 95 % end
+        e = scipy.optimize.brentq(lambda v: pinned(v)[0], best.x[j], far, xtol=1e-6)
+        ends.append(math.exp(e))
+        at.append(pinned(e)[1])
+    return ends, at, best.x
+
+
+def test_weak_parameters_are_profiled_and_their_ends_match_an_independent_profile(case):
+    U, Y, result, checks = case
+    weak = intervals_to_check(result)
+    assert set(weak) == {"nodes.core.capacitance", "links.sheath-core.conductance"}
+    assert "boundaries.sheath-T_fluid.conductance" not in checks  # 0.6 %: the Wald stands
+    start = np.r_[np.log([result.parameters[n]["value"] for n in (
+        "nodes.sheath.capacitance", "nodes.core.capacitance", "links.sheath-core.conductance",
+        "boundaries.sheath-T_fluid.conductance")]), result.parameters[
+        "runs.0.nodes.core.initial"]["value"]]
+    for name, j in (("nodes.core.capacitance", 1), ("links.sheath-core.conductance", 2)):
+        c = checks[name]
+        (lo, hi), at, best = _independent_profile(U, Y, j, start)
+        assert c["lower"] == pytest.approx(lo, rel=0.01), name
+        assert c["upper"] == pytest.approx(hi, rel=0.01), name
+        # the partner the profile names moved with it in the independent profile too
+        assert "nodes.core.capacitance" in c["trades_with"] or j == 1
+        assert "links.sheath-core.conductance" in c["trades_with"] or j == 2
+        other = 3 - j  # core capacitance (1) <-> link conductance (2)
+        assert max(abs(p[other] - best[other]) for p in at) > math.log1p(MOVED_RELATIVE)
+        # the Wald interval, symmetric in log, misses the profile's skew: said, not hidden
+        assert c["agrees"] is False
+        assert c["wald_lower"] == pytest.approx(
+            result.parameters[name]["value"] * math.exp(
+                -1.96 * result.parameters[name]["std"] / result.parameters[name]["value"]))
+    lines = interval_lines(checks)
+    assert len(lines) == 2 and all("trade against each other" in ln for ln in lines)
+
+
+def test_a_well_determined_fit_checks_nothing():
+    from helpers import rtd2h_experiments
+
+    result = fit(tj.parse_model(RTD2H_TEXT, source="rtd2h.toml"), rtd2h_experiments(1))
+    assert intervals_to_check(result) == {} and check_intervals(result) == {}
+
+
+def test_fit_reports_the_check_and_can_skip_it(case, tmp_path, capsys):
+    import json
+
+    from thermojax.cli import main
+
+    U, Y, _, checks = case
+    (tmp_path / "weak.toml").write_text(TEXT)
+    tj.write_telemetry(tmp_path / "w.csv", np.arange(N, dtype=float), {
+        "T_fluid": U[:, 0], "P_heater": U[:, 1], "T_core": Y[:, 0], "T_sheath": Y[:, 1]})
+    for skip in (False, True):
+        out = tmp_path / f"out{skip}"
+        assert main(["fit", "--model", str(tmp_path / "weak.toml"), "--data",
+                     str(tmp_path / "w.csv"), "--out", str(out), "--quiet",
+                     *(["--no-interval-check"] if skip else [])]) == 0
+        report = json.loads((out / "report.json").read_text())
+        md = (out / "report.md").read_text()
+        if skip:
+            assert "profile_intervals" not in report and "profile check" not in md
+            continue
+        got = report["profile_intervals"]
+        assert set(got) == set(checks)
+        for name, c in got.items():
+            assert c["lower"] == pytest.approx(checks[name]["lower"], rel=1e-6)
+            assert f"profile check of {name}" in md
+        assert "| profile |" in md  # the parameter table shows the profile interval
