@@ -184,6 +184,7 @@ def run_config(path: str | Path, progress=print, out: str | Path | None = None) 
     under the config's own `out`)."""
     from .. import io
     from ..fitting._fit_report import comparison_table, write_fit_outputs
+    from ..fitting._interval_check import check_intervals
     from ._checked_runs import fit_dropping, load_runs
 
     cfg = load_config(path)
@@ -208,6 +209,7 @@ def run_config(path: str | Path, progress=print, out: str | Path | None = None) 
         spec, experiments, telemetry, dropped, outliers, progress,
         likelihood=cfg["likelihood"], n_starts=int(opts.get("starts", 1)),
         max_steps=int(opts.get("max_steps", 200)))
-    write_fit_outputs(result, experiments, folder, data, dropped=dropped)
+    profiles = check_intervals(result, progress)  # as `fit` does (output error)
+    write_fit_outputs(result, experiments, folder, data, profiles, dropped=dropped)
     progress(comparison_table(result))
     return folder
