@@ -92,7 +92,12 @@ def test_a_fit_whose_effect_grows_integrates_more_finely():
     u = np.stack([cols[c] for c in inputs], 1)
     y = np.stack([cols[c] for c in spec.sensor_columns], 1)
     said = []
-    result = fit(spec, [Experiment(ts, u, y)], progress=said.append)
+    # a fresh memory of substeps: an earlier fit of this structure in the same worker
+    # (whichever test xdist ran before) would otherwise start this one at its count
+    from thermojax.fitting._integration import substep_memory
+
+    with substep_memory({}):
+        result = fit(spec, [Experiment(ts, u, y)], progress=said.append)
     fitted = result.state.model.etd2_substeps
     assert fitted > 1 and any("solving again" in m for m in said), said
     assert fit_report(result, ["run0.csv"])["etd2_substeps"] == fitted
