@@ -117,7 +117,8 @@ def test_weak_parameters_are_profiled_and_their_ends_match_an_independent_profil
         assert c["agrees"] is False
         assert c["wald_lower"] == pytest.approx(
             result.parameters[name]["value"] * math.exp(
-                -1.96 * result.parameters[name]["std"] / result.parameters[name]["value"]))
+                -scipy.stats.norm.ppf(0.975) * result.parameters[name]["std"]
+                / result.parameters[name]["value"]))
     lines = interval_lines(checks)
     assert len(lines) == 2 and all("trade against each other" in ln for ln in lines)
 

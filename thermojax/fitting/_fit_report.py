@@ -6,7 +6,8 @@ import json
 import math
 from pathlib import Path
 
-from ._interval_check import interval_lines
+from ._interval_check import interval_lines, wald_interval
+from ._interval_check import is_log_parameter as _is_log_parameter
 from ._summary import FitResult
 from .._plots import column_unit
 from .._json import json_safe
@@ -135,7 +136,6 @@ def comparison_table(result: FitResult) -> str:
 _EFFECT_UNITS = {"coefficient": "W/K⁴", "alpha": "1/K", "beta": "1/K", "offset": "°C",
                  "gain": "1", "time_constant": "s", "tau": "s", "capacitance": "J/K",
                  "conductance": "W/K", "conductance_b": "W/K"}
-_Z95 = 1.959963984540054
 _AT_BOUND = 1e-6  # a positive parameter below this fraction of its file value
 
 
@@ -185,17 +185,6 @@ def parameter_unit(name: str, column_units: dict | None = None) -> str:
     return ""
 
 
-def _is_log_parameter(name: str) -> bool:
-    """Whether the fit moves this parameter's log (its Wald interval is then taken on the
-    log scale): every positive parameter, that is all but initial temperatures and the
-    signed effect parameters."""
-    from ..model._spec import EFFECT_KINDS
-
-    parts = name.split(".")
-    if parts[0] == "effects" and len(parts) >= 3:
-        kind = EFFECT_KINDS.get(parts[1])
-        return kind is not None and parts[-1] in kind.positive
-    return not name.endswith(".initial")
 
 
 def parameter_rows(report: dict, initial: dict | None = None,
@@ -229,11 +218,7 @@ def parameter_rows(report: dict, initial: dict | None = None,
         if prof and prof.get("lower") is not None and prof.get("upper") is not None:
             lo, hi, how = float(prof["lower"]), float(prof["upper"]), "profile"
         elif free and sd is not None and v is not None and math.isfinite(sd):
-            if log and v > 0:
-                half = _Z95 * sd / v
-                lo, hi, how = v * math.exp(-half), v * math.exp(half), "Wald, log scale"
-            else:
-                lo, hi, how = v - _Z95 * sd, v + _Z95 * sd, "Wald"
+            (lo, hi), how = wald_interval(name, v, sd)
         rows.append({"name": name, "value": v, "std": sd, "lower": lo, "upper": hi,
                      "interval": how, "unit": parameter_unit(name, column_units),
                      "flags": flags})

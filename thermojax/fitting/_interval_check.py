@@ -18,9 +18,9 @@ import math
 import numpy as np
 
 from ._profile import profile_interval
-from ._problem import _is_log
 from ._summary import FitResult
 
+Z95 = 1.959963984540054  # the two-sided 95 % normal quantile
 WEAK_RELATIVE = 0.2  # a relative Wald std above this is weak curvature
 MAX_PROFILED = 8  # the weakest this many parameters at most
 AGREE = 0.25  # each end within this fraction of the Wald half-width (θ units): agreement
@@ -67,7 +67,7 @@ def check_intervals(result: FitResult, say=None, level: float = 0.95) -> dict[st
         lower, upper = profile_interval(result, name, level, ends_theta=ends_theta)
         j = result.free_names.index(name)
         value, std = result.parameters[name]["value"], result.parameters[name]["std"]
-        wald = _wald(name, value, std)
+        wald, _ = wald_interval(name, value, std)
         out[name] = {"level": level, "lower": lower, "upper": upper,
                      "wald_lower": wald[0], "wald_upper": wald[1], "why": why,
                      "agrees": _agree(name, (lower, upper), wald, stds[j]),
@@ -75,19 +75,36 @@ def check_intervals(result: FitResult, say=None, level: float = 0.95) -> dict[st
     return out
 
 
-def _wald(name: str, value: float, std: float) -> tuple[float, float]:
-    if _is_log(name) and value > 0:
-        half = 1.96 * std / value
-        return value * math.exp(-half), value * math.exp(half)
-    return value - 1.96 * std, value + 1.96 * std
+def is_log_parameter(name: str) -> bool:
+    """Whether the fit moves this parameter's log (its Wald interval is then taken on the
+    log scale): every positive parameter, that is all but initial temperatures and the
+    signed effect parameters."""
+    from ..model._spec import EFFECT_KINDS
+
+    parts = name.split(".")
+    if parts[0] == "effects" and len(parts) >= 3:
+        kind = EFFECT_KINDS.get(parts[1])
+        return kind is not None and parts[-1] in kind.positive
+    return not name.endswith(".initial")
+
+
+
+def wald_interval(name: str, value: float, std: float) -> tuple[tuple[float, float], str]:
+    """95 % Wald interval of a parameter and its kind: value ± 1.96 std ("Wald"), or for a
+    positive (log-parameterized) one exp(log value ± 1.96 std / value) ("Wald, log
+    scale")."""
+    if is_log_parameter(name) and value > 0:
+        half = Z95 * std / value
+        return (value * math.exp(-half), value * math.exp(half)), "Wald, log scale"
+    return (value - Z95 * std, value + Z95 * std), "Wald"
 
 
 def _agree(name: str, profile, wald, std_theta: float) -> bool:
     if None in profile:
         return False
-    log = _is_log(name) and min(*profile, *wald) > 0
+    log = is_log_parameter(name) and min(*profile, *wald) > 0
     to_theta = math.log if log else float
-    half = 1.96 * std_theta
+    half = Z95 * std_theta
     return all(abs(to_theta(p) - to_theta(w)) <= AGREE * half for p, w in zip(profile, wald))
 
 
@@ -111,7 +128,7 @@ def _partners(result: FitResult, j: int, theta_hat, ends_theta, stds) -> list[st
             if k == j or name.endswith(".initial"):
                 continue
             step = abs(float(theta[k] - theta_hat[k]))
-            floor = math.log1p(MOVED_RELATIVE) if _is_log(name) else \
+            floor = math.log1p(MOVED_RELATIVE) if is_log_parameter(name) else \
                 MOVED_RELATIVE * max(abs(float(theta_hat[k])), 1e-12)
             if step > floor and not step <= MOVED_STDS * float(stds[k]):  # inf: undetermined
                 moved.add(name)
