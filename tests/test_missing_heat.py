@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 import thermojax as tj
 from thermojax import Experiment, parse_model
@@ -86,3 +87,23 @@ def test_description_on_known_series():
     assert describe([t], [pulses]).startswith("pulses: 5 episodes of about 300 s")
     assert describe([t], [1e-4 * t]).startswith("a drift of 0.36 W per hour")
     assert describe([t], [np.sin(2 * np.pi * t / 600)]) == "a periodic component of period 600 s"
+
+
+def test_an_intensity_whose_filter_fails_is_no_candidate():
+    """PRBS1 showed NaN log-likelihoods from 1e-5 up, and `argmax` took the first NaN:
+    progress said "log L +nan" and every node was made a carrier. A concave log L with NaN
+    above 1e-5 must give its finite maximum; all NaN gives -inf."""
+    from thermojax.discovery._missing_heat import GRID, _best_intensity
+
+    class Fake:
+        def __init__(self, fail_from):
+            self.fail_from = fail_from
+
+        def logliks(self, carriers, s):
+            s = np.asarray(s, float)
+            ll = -(np.log10(s) + 6.5) ** 2  # the maximum at 10^-6.5
+            return np.where(s >= self.fail_from, np.nan, ll)
+
+    s, ll = _best_intensity(Fake(1e-5), [0])
+    assert s == pytest.approx(10 ** -6.5, rel=0.2) and ll == pytest.approx(0.0, abs=0.05)
+    assert _best_intensity(Fake(GRID.min() / 10), [0])[1] == -np.inf

@@ -216,12 +216,19 @@ class _ErrorModel:
         return float(self.logliks([0], [0.0])[0])
 
 
+def _finite_or_worst(lls) -> np.ndarray:
+    lls = np.asarray(lls, float)
+    return np.where(np.isfinite(lls), lls, -np.inf)
+
+
 def _best_intensity(em: _ErrorModel, carriers) -> tuple[float, float]:
-    """`(s, log L)` maximizing the likelihood over `GRID`, then a finer grid around it."""
-    lls = em.logliks(carriers, GRID)
+    """`(s, log L)` maximizing the likelihood over `GRID`, then a finer grid around it.
+    An intensity whose filter fails (a non-finite log L: seen on PRBS1 from 1e-5 up) is
+    no candidate; where every one fails, log L is -inf and no carrier is added."""
+    lls = _finite_or_worst(em.logliks(carriers, GRID))
     i = int(np.argmax(lls))
     fine = GRID[i] * np.logspace(-0.5, 0.5, GRID.size)  # one shape: one compiled filter
-    lls_f = em.logliks(carriers, fine)
+    lls_f = _finite_or_worst(em.logliks(carriers, fine))
     j = int(np.argmax(lls_f))
     return (float(fine[j]), float(lls_f[j])) if lls_f[j] >= lls[i] else (float(GRID[i]),
                                                                           float(lls[i]))
@@ -248,7 +255,7 @@ def missing_heat(result, nodes: tuple[str, ...] | None = None, say=None) -> Miss
     while remaining:
         trials = [(j, *_best_intensity(em, carriers + [j])) for j in remaining]
         j, s, ll = max(trials, key=lambda t: t[2])
-        if carriers and ll - best_ll < penalty:
+        if not np.isfinite(ll) or (carriers and ll - best_ll < penalty):
             break
         carriers.append(j)
         remaining.remove(j)
