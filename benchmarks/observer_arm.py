@@ -40,8 +40,8 @@ def count(model, sensors, build, folder):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         export_observer(ROOT / "configs" / f"{model}.toml", 20.0, folder, sensors=sensors,
-                        c_float="float32", fixed="q16.16" if build == "q16.16" else None)
-    prefix = "tj_observer" if build == "float32" else "tj_observer_q16_16"
+                        c_float="float32", fixed=None if build == "float32" else build)
+    prefix = "tj_observer" if build == "float32" else f"tj_observer_{build.replace('.', '_')}"
     obj = folder / f"{prefix}.o"
     subprocess.run(["arm-none-eabi-gcc", "-std=c99", "-O2", "-ffp-contract=off", *M4_FLAGS,
                     "-c", "-o", str(obj), str(folder / f"{prefix}.c")], check=True)
@@ -54,17 +54,18 @@ def count(model, sensors, build, folder):
 def main():
     print("| model, sensors | n, m, p | MACs (seed formula) | nonzero MACs | seed M4 cycles "
           "(float32) | float32 step instructions (FPU, loads/stores, branches) | "
-          "Q16.16 step instructions |")
-    print("|---|---|---|---|---|---|---|")
+          "Q16.16 step instructions | Q31 step instructions |")
+    print("|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for k, (model, sensors, shape) in enumerate(CASES):
             f32, nz, (n, m, p) = count(model, sensors, "float32", pathlib.Path(tmp) / f"f{k}")
             q16, _, _ = count(model, sensors, "q16.16", pathlib.Path(tmp) / f"q{k}")
+            q31, _, _ = count(model, sensors, "q31", pathlib.Path(tmp) / f"r{k}")
             macs = n * n + n * m + n * p + p * n
             seed = SEED.get((n, m, p), "–")
             print(f"| {model}, {' '.join(sensors)} | {n}, {m}, {p} | {macs} | {nz} | {seed} | "
                   f"{f32['instructions']} ({f32['fpu']}, {f32['loads_stores']}, "
-                  f"{f32['branches']}) | {q16['instructions']} |")
+                  f"{f32['branches']}) | {q16['instructions']} | {q31['instructions']} |")
 
 
 if __name__ == "__main__":

@@ -73,7 +73,7 @@ def test_long_playback_jax_reference_artifact_and_c(tmp_path):
     assert np.array_equal(c.states, got.states)
 
 
-@pytest.mark.parametrize("fmt", ["q16.16", "q8.24"])
+@pytest.mark.parametrize("fmt", ["q16.16", "q8.24", "q31"])
 def test_fixed_c_from_artifact_is_bit_exact_with_faults(fmt, tmp_path):
     export_observer(CONFIGS / "imu6.toml", 1 / DT, tmp_path, fixed=fmt)
     art = ref.load_observer(tmp_path)

@@ -39,12 +39,12 @@ def _observers():
     u, y, oc = u[:STEPS], y[:STEPS], oc[:STEPS] | np.isnan(y[:STEPS])
     obs = {"float64": ref.FloatObserver(system, FAULTS, dtype=np.float64),
            "float32": ref.FloatObserver(system, FAULTS, dtype=np.float32)}
-    for fmt in ("q16.16", "q8.24"):
+    for fmt in ("q16.16", "q8.24", "q31"):
         obs[fmt] = ref.FixedObserver(system, fmt, IMU6_SCALING[fmt], FAULTS)
     return obs, (x0, u, y, oc)
 
 
-@pytest.mark.parametrize("build", ["float64", "float32", "q16.16", "q8.24"])
+@pytest.mark.parametrize("build", ["float64", "float32", "q16.16", "q8.24", "q31"])
 def test_armhf_build_under_qemu_is_bit_exact(build, tmp_path):
     _need(LINUX_CC, QEMU)
     observers, (x0, u, y, oc) = _observers()
@@ -72,7 +72,7 @@ def test_armhf_build_under_qemu_is_bit_exact(build, tmp_path):
         assert np.array_equal(getattr(got, f), getattr(want, f))
 
 
-@pytest.mark.parametrize("build", ["float32", "q16.16"])
+@pytest.mark.parametrize("build", ["float32", "q16.16", "q31"])
 def test_cortex_m4_build_compiles_and_is_counted(build, tmp_path):
     _need(M4_CC)
     observers, _ = _observers()

@@ -169,7 +169,7 @@ def faulted(steps=36_000, seed=7):
 FAULTS = ref.FaultConfig(residual_threshold=0.5, wire_break_after=10, recover_after=20)
 
 
-@pytest.mark.parametrize("fmt", ["q16.16", "q8.24", "q15"])
+@pytest.mark.parametrize("fmt", ["q16.16", "q8.24", "q15", "q31"])
 def test_fixed_bias_c_bit_exact(artifact, fmt, tmp_path):
     u, y, x0, oc = faulted()
     fx = fixed_observer(artifact, fmt, FAULTS)

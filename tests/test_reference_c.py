@@ -25,7 +25,7 @@ FAULTS = ref.FaultConfig(rails=[(-np.inf, np.inf)] * 2 + [(-60.0, 1e9)],
                          residual_threshold=0.5, wire_break_after=10, recover_after=20)
 
 
-@pytest.mark.parametrize("fmt", ["q16.16", "q8.24", "q15"])
+@pytest.mark.parametrize("fmt", ["q16.16", "q8.24", "q15", "q31"])
 def test_fixed_c_bit_exact(fmt, tmp_path):
     system, u, y, x0, oc = faulted_playback()
     fx = ref.FixedObserver(system, fmt, IMU6_SCALING[fmt], FAULTS)

@@ -32,7 +32,7 @@ def _bound_setup(fmt, x_float, u, r_float, fixed, margin=0.5):
                                                              u_env, r_env)
 
 
-@pytest.mark.parametrize("fmt", ["q16.16", "q8.24"])
+@pytest.mark.parametrize("fmt", ["q16.16", "q8.24", "q31"])
 def test_fixed_within_derived_bound_one_hour_numpy(fmt):
     system, u, y, _, x0 = playback(72_000)  # 1 h at 20 Hz through the NumPy reference
     x64 = fault_free_observer(system, x0, u, y)
@@ -105,7 +105,7 @@ def test_q15_loses_weak_couplings_bias_not_divergence():
 
 def test_coefficients_quantized_once_with_recorded_error():
     system = imu6_system()
-    for fmt in ("q16.16", "q8.24", "q15"):
+    for fmt in ("q16.16", "q8.24", "q15", "q31"):
         fx = ref.FixedObserver(system, fmt, IMU6_SCALING[fmt])
         for name in fx.MATRICES:
             half = 2.0 ** -fx.coef_frac[name] / 2
@@ -113,3 +113,25 @@ def test_coefficients_quantized_once_with_recorded_error():
             assert np.all(np.abs(fx.coef_error[name]) <= half * np.max(scale) * (1 + 1e-12))
         if fmt == "q15":
             assert fx.coef_frac["C"] == 14     # C = 1 does not fit Q15: one right shift
+
+
+def test_q31_takes_headroom_where_an_int64_sum_could_overflow():
+    """Q31's 32-bit codes with 31 fractional bits: a row of Phi, B0, B1 summing to about
+    one at 2**31 per operand reaches 2**62, so those matrices give up one bit (checked
+    here against the worst sum written out by hand); the states keep Q8.24's LSB and the
+    coefficients' extra bits make Q31 the closer to float64 of the two."""
+    system = imu6_system()
+    q31 = ref.FixedObserver(system, "q31", IMU6_SCALING["q31"])
+    assert q31.lsb == 2.0 ** -24
+    assert [q31.coef_frac[k] for k in ("Phi", "B0", "B1", "C", "D", "L")] == [30] * 5 + [31]
+    for names in (("Phi", "B0", "B1"), ("C", "D"), ("L",)):
+        rows = sum(np.abs(q31.coef[k]).sum(axis=-1) for k in names)   # equal bits: no shift
+        assert int(rows.max()) * 2**31 < 2**62                          # now: fits
+        with_one_more_bit = int(rows.max()) * 2 * 2**31
+        assert names == ("L",) or with_one_more_bit >= 2**62            # one bit more: not
+    system_, u, y, _, x0 = playback(18_000)
+    x64 = fault_free_observer(system_, x0, u, y)
+    err = {fmt: np.abs(ref.FixedObserver(system_, fmt, IMU6_SCALING[fmt])
+                       .run_physical(x0, u, y).states - x64).max()
+           for fmt in ("q8.24", "q31")}
+    assert err["q31"] < err["q8.24"] / 5, err

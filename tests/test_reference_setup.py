@@ -56,6 +56,7 @@ IMU6_SCALING = {  # T_chamber is a temperature (offset 35 °C), P_asic a power (
     "q16.16": ref.FixedScaling(T_REF, T_REF, (T_REF, 0.0), (1.0, 1.0)),
     "q8.24": ref.FixedScaling(T_REF, T_REF, (T_REF, 0.0), (1.0, 1.0)),
     "q15": ref.FixedScaling(T_REF, T_REF, (T_REF, 0.0), (128.0, 1.0)),
+    "q31": ref.FixedScaling(T_REF, T_REF, (T_REF, 0.0), (128.0, 1.0)),
 }
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from .._errors import InputError
 from ._outputs import check_output_folder, staged_folder
 
-FORMATS = ("q16.16", "q8.24", "q15")
+FORMATS = ("q16.16", "q8.24", "q15", "q31")
 
 
 def _count(text: str) -> int:

@@ -134,7 +134,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
       `ThermalModel`.
     - `rate_hz`: the observer rate (Hz); the sample period is `1 / rate_hz`.
     - `out_dir`: the folder to write (created; existing files of the same names replaced).
-    - `fixed`: `None`, `"q16.16"`, `"q8.24"`, `"q15"` or a `thermojax.reference.FixedFormat`.
+    - `fixed`: `None`, `"q16.16"`, `"q8.24"`, `"q15"`, `"q31"` or a
+      `thermojax.reference.FixedFormat`.
     - `method`: `"kalman"` (steady-state Kalman gains) or `"poles"` (the seed's rule).
     - `sensors`: sensor column names to use (default all).
     - `operating_point`: `T_op` (°C) of the linearization of a nonlinear model.

@@ -1,7 +1,7 @@
 """The reference observer a firmware engineer can run and trust bit for bit.
 
 NumPy and the standard library only (no JAX): the filter-form observer with
-first-order-hold inputs in float64/float32 and in fixed point (Q16.16, Q8.24, Q15), the
+first-order-hold inputs in float64/float32 and in fixed point (Q16.16, Q8.24, Q15, Q31), the
 bias channels evaluated from the estimate (polynomial,
 gradients, exact rates, viscoelastic strain states), the firmware's channel supervision (plausibility, open circuit, ADC rails, wire break,
 reduced-order fallback gains; untrusted inputs held at their last good value, state
@@ -16,7 +16,7 @@ from ._c_source import CSource, generate_c
 from ._faults import ChannelMonitor, FaultConfig, default_input_limits
 from ._fixed import FixedObserver, FixedScaling
 from ._float import FloatObserver
-from ._formats import (FORMATS, Q15, Q8_24, Q16_16, FixedFormat, decode, encode, fixed_format,
+from ._formats import (FORMATS, Q15, Q31, Q8_24, Q16_16, FixedFormat, decode, encode, fixed_format,
                        round_shift, saturate)
 from ._multirate import BiasInterpolator, DoubleBuffer, MultiRateRun, run_multirate
 from ._multirate_c import generate_multirate_c, pack_multirate
@@ -27,7 +27,7 @@ __all__ = [
     "ArtifactError", "BiasChannel", "BiasEvaluator", "FixedBiasEvaluator", "BiasInterpolator", "CSource", "ChannelMonitor", "DoubleBuffer",
     "ErrorBound", "FORMATS", "FaultConfig", "FixedFormat", "FixedObserver", "FixedScaling",
     "FloatObserver", "MultiRateRun", "ObserverArtifact", "ObserverRun", "ObserverSystem",
-    "Q15", "Q16_16", "Q8_24", "decode", "encode", "error_series", "fixed_format",
+    "Q15", "Q16_16", "Q31", "Q8_24", "decode", "encode", "error_series", "fixed_format",
     "bias_channels_from_metadata", "default_input_limits", "generate_c", "generate_multirate_c", "pack_multirate", "load_observer", "quantization_error_bound", "round_shift",
     "run_multirate", "saturate",
 ]

@@ -1,20 +1,23 @@
-"""The fixed-point observer (Q16.16, Q8.24, Q15): int64 accumulation, rounding, saturation.
+"""The fixed-point observer (Q16.16, Q8.24, Q15, Q31): int64 accumulation, rounding, saturation.
 
 Representation (stated once, used by NumPy and the generated C alike):
 
 - A state, a measurement or a temperature input is stored as its offset from a reference
   (default 35 °C, the middle of −55…+125 °C, so every state lies within ±90 K), divided by
-  the format's `state_scale` (1 K for Q16.16 and Q8.24, 128 K for Q15), as a code with
-  `frac_bits` fractional bits. Q16.16 then holds ±32768 K, Q8.24 and Q15 ±128 K: −93…+163 °C.
+  the format's `state_scale` (1 K for Q16.16 and Q8.24, 128 K for Q15 and Q31), as a code with
+  `frac_bits` fractional bits. Q16.16 then holds ±32768 K, Q8.24, Q15 and Q31 ±128 K: −93…+163 °C.
 - A non-temperature input (a power) has its own offset and scale (`FixedScaling`).
 - Coefficients are the matrices in these scaled units (`B` and `D` times
   `input_scale / state_scale`), quantized once, in the data word (int32, or int16 for Q15)
   with the format's fractional bits. A matrix whose largest entry does not fit gets `h`
-  fewer fractional bits (a per-matrix right shift), the smallest `h` that fits.
+  fewer fractional bits (a per-matrix right shift), the smallest `h` that fits. Where a
+  sum could still overflow int64 with every operand at its word limit (Q31: 32-bit codes
+  with 31 fractional bits), every matrix of that sum gets one bit fewer at a time until
+  it cannot (imu6 in Q31: Phi, B and C at 30 bits, L at 31).
 - Products are summed exactly in int64; terms of matrices with different fractional bits
   are aligned by left shifts; each sum is rounded once to the data format (nearest, ties
-  toward +inf) and saturated to the data word. Overflow of int64 is excluded at
-  construction: the largest possible sum, with every operand at its word limit, is checked.
+  toward +inf) and saturated to the data word. Overflow of int64 is thereby excluded at
+  construction.
 
 Step (integer codes throughout):
 
@@ -51,6 +54,8 @@ from ._run import ObserverRun, play
 from ._system import ObserverSystem
 
 _ACC_LIMIT = 1 << 62
+# The int64 sums of a step, each rounded once: the prediction, the output, the correction.
+_SUMS = (("Phi", "B0", "B1"), ("C", "D"), ("L",))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,7 +102,7 @@ class FixedObserver:
     **Arguments:**
 
     - `system`: an `ObserverSystem` (float64 matrices, physical units).
-    - `fmt`: `"q16.16"`, `"q8.24"`, `"q15"` or a `FixedFormat`.
+    - `fmt`: `"q16.16"`, `"q8.24"`, `"q15"`, `"q31"` or a `FixedFormat`.
     - `scaling`: a `FixedScaling` (offsets and input scales).
     - `faults`: a `FaultConfig` (limits, rails and thresholds are encoded once).
     - `biases`: an optional float `BiasEvaluator`: its channels are evaluated in fixed point
@@ -154,12 +159,8 @@ class FixedObserver:
         unscale = {"Phi": 1.0, "B0": s / self.u_scale, "B1": s / self.u_scale, "C": 1.0,
                    "D": s / self.u_scale, "L": 1.0}
         self.coef, self.coef_frac, self.coef_error = {}, {}, {}
-        for name, M in scaled.items():
-            q, fr = _quantize(M, f, F, name)
-            self.coef[name], self.coef_frac[name] = q, fr
-            exact = {"Phi": system.Phi, "B0": system.B0, "B1": system.B1, "C": system.C,
-                     "D": system.D, "L": system.gain_table}[name]
-            self.coef_error[name] = q * 2.0 ** -fr * unscale[name] - exact
+        for names in _SUMS:
+            self._quantize_sum(names, scaled, unscale)
         cf = self.coef_frac
         self.f_pred = max(cf["Phi"], cf["B0"], cf["B1"])
         self.f_out = max(cf["C"], cf["D"])
@@ -167,7 +168,6 @@ class FixedObserver:
         self.shift = {"Phi": self.f_pred - cf["Phi"], "B0": self.f_pred - cf["B0"],
                       "B1": self.f_pred - cf["B1"], "C": self.f_out - cf["C"],
                       "D": self.f_out - cf["D"]}
-        self._check_overflow()
         # channel supervision, encoded once
         self.limit_codes = np.stack([encode(self.faults.limits[0], f, F, self.y_ref, s),
                                      encode(self.faults.limits[1], f, F, self.y_ref, s)], 1)
@@ -197,17 +197,31 @@ class FixedObserver:
             biases, F, self.x_ref, self.u_ref, self.u_scale, self.faults.limits)
 
     # -- the representation -------------------------------------------------------------
-    def _check_overflow(self):
-        big = float(-self.fmt.word_min)
-        worst = lambda name: (np.abs(self.coef[name]).sum(axis=-1) * big
-                              * 2.0 ** self.shift.get(name, 0))
-        pred = worst("Phi") + worst("B0") + worst("B1")
-        out = worst("C") + worst("D")
-        gain = np.abs(self.coef["L"]).sum(axis=-1).max(axis=0) * big
-        if max(pred.max(), out.max(), gain.max()) >= _ACC_LIMIT:
-            raise ValueError(f"`FixedObserver(fmt={self.fmt.name!r})`: an int64 accumulator "
-                             f"could overflow with operands at the word limits; reduce the "
-                             f"coefficients' fractional bits.")
+    def _quantize_sum(self, names, scaled, unscale):
+        """Quantize the matrices of one int64 sum (`_SUMS`): each with the format's
+        fractional bits, fewer where its largest entry does not fit the word, and all of
+        them fewer by one more bit at a time while the sum could overflow int64 with every
+        operand at its word limit (Q31's 32-bit coefficient and data codes: their products
+        reach 2**62)."""
+        exact = {"Phi": self.system.Phi, "B0": self.system.B0, "B1": self.system.B1,
+                 "C": self.system.C, "D": self.system.D, "L": self.system.gain_table}
+        f = self.fmt.frac_bits
+        for headroom in range(f + 1):
+            quantized = {name: _quantize(scaled[name], f - headroom, self.fmt, name)
+                         for name in names}
+            top = max(fr for _, fr in quantized.values())
+            worst = sum(np.abs(q).sum(axis=-1) * 2.0 ** (top - fr)
+                        for q, fr in quantized.values()) * float(-self.fmt.word_min)
+            if np.max(worst, initial=0.0) < _ACC_LIMIT:
+                break
+        else:
+            raise ValueError(f"`FixedObserver(fmt={self.fmt.name!r})`: the sum of "
+                             f"{'/'.join(names)} could overflow an int64 accumulator even "
+                             f"with no fractional bits; scale the inputs "
+                             f"(`FixedScaling(input_scale=...)`).")
+        for name, (q, fr) in quantized.items():
+            self.coef[name], self.coef_frac[name] = q, fr
+            self.coef_error[name] = q * 2.0 ** -fr * unscale[name] - exact[name]
 
     @property
     def lsb(self) -> float:

@@ -25,12 +25,12 @@ class FixedFormat:
 
     **Arguments:**
 
-    - `name`: the format's name (`"q16.16"`, `"q8.24"`, `"q15"`).
+    - `name`: the format's name (`"q16.16"`, `"q8.24"`, `"q15"`, `"q31"`).
     - `word_bits`: 32 or 16; coefficients are stored in the same word size.
     - `frac_bits`: fractional bits of states, inputs, measurements and (unless a matrix
       needs a right shift to fit) coefficients.
     - `state_scale`: kelvin per unit of the format for states and measurements (1 K for
-      Q16.16 and Q8.24; 128 K for Q15, whose values must lie in `[-1, 1)`).
+      Q16.16 and Q8.24; 128 K for Q15 and Q31, whose values must lie in `[-1, 1)`).
     """
 
     name: str
@@ -60,11 +60,13 @@ class FixedFormat:
 Q16_16 = FixedFormat("q16.16", 32, 16, 1.0)
 Q8_24 = FixedFormat("q8.24", 32, 24, 1.0)
 Q15 = FixedFormat("q15", 16, 15, 128.0)
-FORMATS = {f.name: f for f in (Q16_16, Q8_24, Q15)}
+Q31 = FixedFormat("q31", 32, 31, 128.0)
+FORMATS = {f.name: f for f in (Q16_16, Q8_24, Q15, Q31)}
 
 
 def fixed_format(fmt: FixedFormat | str) -> FixedFormat:
-    """`fmt` itself, or the built-in format of that name (`"q16.16"`, `"q8.24"`, `"q15"`)."""
+    """`fmt` itself, or the built-in format of that name (`"q16.16"`, `"q8.24"`, `"q15"`,
+    `"q31"`)."""
     if isinstance(fmt, FixedFormat):
         return fmt
     key = str(fmt).lower().replace("_", ".")
