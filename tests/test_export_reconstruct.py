@@ -141,3 +141,80 @@ def test_reconstruct_mistakes_are_named(tmp_path, capsys, flags, field):
     assert main(["export", "--model", MODEL, "--rate", "10", "--out", str(tmp_path / "o"),
                  *flags, "--quiet"]) == 2
     assert field in capsys.readouterr().err
+
+
+TWO_SENSORS = (CONFIGS / "rtd2.toml").read_text().replace('name = "rtd2"', 'name = "rtd2_room"') + """
+[[nodes]]
+name = "room_probe"
+capacitance = 0.5
+
+[[boundaries]]
+node = "room_probe"
+input = "T_room"
+conductance = 0.05
+
+[[sensors]]
+node = "room_probe"
+column = "T_probe"
+noise = 0.01
+"""
+
+
+def test_a_sensor_subset_blind_to_the_input_holds_it(tmp_path):
+    """An RTD in the fluid plus a probe in the room air: the probe alone cannot see the
+    fluid, so its gain is the Kalman gain of the model without the input state (SciPy's
+    DARE) with a zero row for the input, `observer.json` says "held", and while the RTD's
+    channel is open the estimate of the fluid stays where it was (NumPy and C alike)."""
+    model = tmp_path / "rtd2_room.toml"
+    model.write_text(TWO_SENSORS)
+    out = tmp_path / "obs"
+    assert main(["export", "--model", str(model), "--rate", str(RATE), "--out", str(out),
+                 "--reconstruct", "T_fluid", "--input-noise", "0.5", "--fixed", "q16.16",
+                 "--quiet"]) == 0
+    meta = json.loads((out / "observer.json").read_text())
+    probe_only = next(s for s in meta["subsets"] if s["sensors"] == ["T_probe"])
+    assert probe_only["method"].startswith("kalman, T_fluid held")
+    both = next(s for s in meta["subsets"] if s["sensors"] == ["T_core", "T_probe"])
+    assert "held" not in both["method"]
+    art = ref.load_observer(out)
+    # the held subset's gain: SciPy's Kalman gain of the plain model, zero for the fluid
+    m = model_matrices(model)
+    dt = 1.0 / RATE
+    Phi = scipy.linalg.expm(m["A"] * dt)
+    q = np.where(m["q"] > 0, m["q"], 1e-3)   # docs/observer.md §4: the default q
+    Qd = np_van_loan(m["A"], np.diag(q ** 2), dt)
+    C = m["Cy"][1:2]
+    R = np.diag(m["noise"][1:2] ** 2)
+    P = scipy.linalg.solve_discrete_are(Phi.T, C.T, Qd, R)
+    L = P @ C.T @ np.linalg.inv(C @ P @ C.T + R)
+    fluid_row = [s["name"] for s in meta["states"]].index("T_fluid")
+    table = art.system.gain_table[0b10]
+    np.testing.assert_allclose(np.delete(table, fluid_row, axis=0)[:, 1:], L,
+                               rtol=1e-7, atol=1e-12)
+    assert np.all(table[fluid_row] == 0)
+    # playback: the fluid steps at 50 s, the RTD's channel opens for 20 s from 51 s
+    ts = dt * np.arange(int(150.0 / dt) + 1)
+    fluid = np.where(ts < 50.0, 25.0, 80.0)
+    u = np.full((ts.size, 1), 22.0)                          # T_room, a known input
+    x = np.linalg.solve(m["A"], -m["B"] @ np.array([25.0, 22.0]))
+    _, y, _ = scipy.signal.lsim((m["A"], m["B"], m["Cy"], np.zeros((2, 2))),
+                                np.column_stack([fluid, u[:, 0]]), ts, X0=x, interp=False)
+    oc = np.zeros(y.shape, bool)
+    window = (ts >= 51.0) & (ts < 71.0)
+    oc[window, 0] = True
+    x0 = np.insert(x, fluid_row, 25.0)
+    fl = art.float_observer().run(x0, u, y, oc)
+    held = fl.states[window, fluid_row]
+    assert np.all(fl.in_use[window] == 0b10)
+    np.testing.assert_allclose(held, held[0], rtol=0, atol=1e-9)   # Phi's row: 1 to roundoff
+    assert 25.5 < held[0] < 79.0                              # held mid-way, not tracking
+    assert abs(fl.states[-1, fluid_row] - 80.0) < 0.5         # back on the fluid after
+    fx = art.fixed_observer()
+    X0, U, Y = fx.encode_states(x0), fx.encode_inputs(u), fx.encode_outputs(y)
+    want = fx.run(X0, U, Y, oc)
+    assert len(set(want.states[window, fluid_row].tolist())) == 1
+    prefix = "tj_observer_q16_16"
+    src = ref.generate_c(fx, prefix, art.names)
+    got = run_c(src, compile_artifact(out, prefix), out, X0, U, Y, oc)
+    assert np.array_equal(got.states.astype(np.int64), want.states)
+    assert np.array_equal(got.in_use, want.in_use)

@@ -84,8 +84,19 @@ def steady_state_kalman(system, process_covariance, measurement_covariance) -> K
     P = 0.5 * (P + P.T)
     S = C @ P @ C.T + R
     L = np.linalg.solve(S, C @ P).T  # P Cᵀ S⁻¹ (S symmetric)
+    # SciPy returns a "solution" for some undetectable pairs too (a random walk no sensor
+    # sees: its gain ~1e-8, its error pole 1 - 1e-16): the error must decay.
+    rho = float(np.abs(np.linalg.eigvals((np.eye(n) - L @ C) @ Phi)).max())
+    if not np.isfinite(rho) or rho >= 1.0 - _MARGINAL:
+        raise InputError(f"`steady_state_kalman`: the Riccati equation has no stabilizing "
+                         f"solution (an error pole at |z| = {rho:.16g}): the sensors leave a "
+                         "mode that does not decay unobserved (`observability`).")
     Pf = (np.eye(n) - L @ C) @ P
     return KalmanGain(L, P, 0.5 * (Pf + Pf.T))
+
+
+# An error pole this close to the unit circle does not decay: a mode no sensor sees.
+_MARGINAL = 1e-12
 
 
 def discrete_process_covariance(A, process_noise, dt: float) -> np.ndarray:
