@@ -107,3 +107,29 @@ def test_an_intensity_whose_filter_fails_is_no_candidate():
     s, ll = _best_intensity(Fake(1e-5), [0])
     assert s == pytest.approx(10 ** -6.5, rel=0.2) and ll == pytest.approx(0.0, abs=0.05)
     assert _best_intensity(Fake(GRID.min() / 10), [0])[1] == -np.inf
+
+
+def test_error_dynamics_of_a_stiff_network_over_a_long_sample():
+    """A sensing element of 0.05 s beside a 500 s mass, sampled every 60 s (a building's
+    sensor lag at 1-min data): one Van Loan block would hold e^{1200} and cancel into an
+    indefinite Q. Against SciPy: `expm` for F, adaptive quadrature of the integral for Q."""
+    import jax.numpy as jnp
+    import scipy.linalg
+
+    from helpers import np_van_loan
+    from thermojax.discovery._missing_heat import _augmented
+
+    C = np.array([500.0, 0.05])                       # J/K: time constants 500 s, 0.05 s
+    G = np.array([[-1.0 - 1.0, 1.0], [1.0, -1.0]])    # W/K, the mass also to ambient
+    A = G / C[:, None]
+    q_x = np.array([1e-3, 0.0])
+    sigma = np.array([2e-3 * C[0]])                   # W/√s on the mass
+    dt = 60.0
+    F, Q = (np.asarray(a) for a in _augmented(jnp.asarray(A), jnp.asarray(C), [0],
+                                               jnp.asarray(q_x), jnp.asarray(sigma), dt))
+    Ac = np.block([[A, np.array([[1.0 / C[0]], [0.0]])], [np.zeros((1, 3))]])
+    Lc = np.diag(np.concatenate([q_x ** 2, sigma ** 2]))
+    np.testing.assert_allclose(F, scipy.linalg.expm(Ac * dt), rtol=0, atol=1e-12)
+    want = np_van_loan(Ac, Lc, dt)
+    np.testing.assert_allclose(Q, want, rtol=1e-8, atol=1e-12 * np.abs(want).max())
+    assert np.linalg.eigvalsh(Q).min() > -1e-12 * np.abs(want).max()

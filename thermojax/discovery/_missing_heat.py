@@ -28,6 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..dynamics._discretize import discretize_process_noise
+
 GRID = np.logspace(-8.0, -1.0, 15)  # s, K/s/√s: from no heat to a jump per sample
 _MISSING_R = 1e12  # °C², the noise of an unmeasured sample (so it carries no weight)
 
@@ -120,12 +122,9 @@ def _augmented(A, capacitance, carriers, q_x, sigma, dt):
         1.0 / capacitance[jnp.asarray(carriers)])
     Ac = jnp.block([[A, G], [jnp.zeros((k, n)), jnp.zeros((k, k))]])
     Lc = jnp.diag(jnp.concatenate([q_x ** 2, sigma ** 2]))
-    N = n + k
-    M = jnp.block([[-Ac, Lc], [jnp.zeros((N, N)), Ac.T]]) * dt
-    E = jax.scipy.linalg.expm(M)
-    F = E[N:, N:].T
-    Q = F @ E[:N, N:]
-    return F, 0.5 * (Q + Q.T)
+    # scaled and squared: one Van Loan block over a period many times a node's time
+    # constant overflows and cancels into an indefinite Q (a NaN log L)
+    return discretize_process_noise(Ac, Lc, dt)
 
 
 @jax.jit
