@@ -72,7 +72,7 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="cannot hold the limits"):
         ref.FixedObserver(system, ref.FixedFormat("q4.28", 32, 28, 1.0), IMU6_SCALING["q16.16"])
     with pytest.raises(ValueError, match="unknown format"):
-        ref.fixed_format("q31")
+        ref.fixed_format("q12.20")
 
 
 def test_reference_imports_without_jax():
