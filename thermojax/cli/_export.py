@@ -7,9 +7,10 @@ import warnings
 from pathlib import Path
 
 from .._errors import InputError
+from ..reference._formats import FORMATS as _FIXED_FORMATS
 from ._outputs import check_output_folder, staged_folder
 
-FORMATS = ("q16.16", "q8.24", "q15", "q31")
+FORMATS = tuple(_FIXED_FORMATS)  # `--fixed` offers every built-in format, in its order
 
 
 def _count(text: str) -> int:
