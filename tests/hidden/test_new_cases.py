@@ -52,7 +52,7 @@ def test_kalman_zero_process_noise_finds_the_effect_and_reaches_zero_noise(tmp_p
     their zero boundary (`at_bound`) or negligible and insignificant (the start is
     0.002 °C/√s; before the heat source is in, the pcb's absorbs it at ~0.02)."""
     info, report, _ = _run("kalman_zero_process_noise", tmp_path, likelihood="kalman",
-                           max_steps=2)
+                           max_steps=1)
     _check_report_keys(report)
     steps = report["steps"]
     assert len(steps) >= 2, steps[0]["candidates"][:3]
