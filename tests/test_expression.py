@@ -162,3 +162,16 @@ def test_export_linearizes_an_expression_as_the_kind_it_writes(tmp_path):
     with pytest.warns(UserWarning):
         b = export_observer(rad, 20, tmp_path / "b")
     np.testing.assert_allclose(a.arrays["Phi"], b.arrays["Phi"], rtol=0, atol=1e-14)
+
+
+def test_a_run_without_the_column_an_expression_reads_is_named():
+    """A model whose law reads `air_speed`, given runs built for the model without it:
+    the fit names the columns it reads instead of failing inside the simulation."""
+    spec = parse_model(_chain3(QUADRATIC.format(c=0.03, k=0.015)))
+    ts = np.arange(0.0, 600.0, 1.0)
+    run = Experiment(ts, np.zeros((ts.size, 2)), np.zeros((ts.size, 2)) + 25.0, "bench.csv")
+    with pytest.raises(tj.InputError) as err:
+        tj.fit(spec, [run])
+    message = str(err.value)
+    assert "bench.csv" in message and "2 input column(s)" in message, message
+    assert "T_chamber, P_die, air_speed" in message, message

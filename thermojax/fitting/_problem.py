@@ -157,6 +157,7 @@ def prepare(spec: ModelSpec, experiments: list[Experiment], likelihood: str,
                          field="--likelihood")
     lowered = lower_effects(spec)
     spec = lowered.spec
+    _check_shapes(lowered.original, spec, experiments)
     experiments = _reorder_inputs(experiments, lowered.original.input_columns,
                                   spec.input_columns)
     _check_runs(spec, experiments)
@@ -295,6 +296,21 @@ def _slowest_time_constant(spec: ModelSpec) -> float:
     with np.errstate(divide="ignore"):
         return float(time_constants(np.array([n.capacitance.value for n in spec.nodes]),
                                     K)[-1])
+
+
+def _check_shapes(original: ModelSpec, lowered: ModelSpec,
+                  experiments: list[Experiment]) -> None:
+    """Each run holds one input column per input of the model (`original`'s order) and
+    one output column per sensor: otherwise the message says which, not a shape error
+    deep in the first simulation."""
+    for e in experiments:
+        for what, got, want in (("input", e.inputs.shape[1], original.input_columns),
+                                ("sensor", e.outputs.shape[1], lowered.sensor_columns)):
+            if got != len(want):
+                raise InputError(f"the run has {got} {what} column(s) but the model reads "
+                                 f"{len(want)}: {', '.join(want)} (in this order); build "
+                                 f"the Experiment from the model's {what} columns.",
+                                 file=e.name, field=f"{what}s")
 
 
 def _check_runs(spec: ModelSpec, experiments: list[Experiment]) -> None:
