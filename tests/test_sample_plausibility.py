@@ -327,6 +327,42 @@ def test_gaussian_noise_and_model_error_never_dominate_but_a_spike_does():
     assert dominant_samples(["T"], *runs(few)) == []  # too few samples to judge
 
 
+def test_bursts_and_scattered_glitches_dominate_together_but_offsets_and_lags_do_not():
+    """Glitches that no single sample makes decisive: a connector reading 3 K off for 5
+    samples (each 18 % of the squared sum), five 1.5 K spikes over the run (each 14 %);
+    and what must stay a model error: the same 3 K lasting 40 samples (an offset the
+    model lacks), a 3 K missed lag of 3 samples, a sinusoidal misfit with spikes small
+    beside it."""
+    from thermojax.fitting._dominance import dominant_samples
+    from thermojax.measurements._data import Experiment
+
+    rng = np.random.default_rng(5)
+
+    def found(residual):
+        n = residual.size
+        e = Experiment(np.arange(n, dtype=float), np.zeros((n, 1)),
+                       (20.0 + residual)[:, None], name="r.csv")
+        return sorted(d.row for d in dominant_samples(["T"], [e], [np.full((n, 1), 20.0)]))
+
+    noise = lambda: 0.05 * rng.standard_normal(2000)  # noqa: E731
+    burst = noise()
+    burst[700:705] += 3.0
+    assert found(burst) == [700, 701, 702, 703, 704]
+    scattered = noise()
+    rows = [150, 600, 1111, 1500, 1900]
+    scattered[rows] += 1.5
+    assert found(scattered) == rows
+    assert found(noise()) == []
+    lasting = noise()
+    lasting[700:740] += 3.0
+    assert found(lasting) == []
+    k = np.arange(2000.0)
+    assert found(noise() + np.where(k >= 700, 3.0 * np.exp(-(k - 700) / 3.0), 0.0)) == []
+    wavy = noise() + 0.5 * np.sin(k / 50.0)
+    wavy[rows] += 1.0
+    assert found(wavy) == []  # glitches there, but not what decides the fit
+
+
 # ---------------------------------------------------------------------------
 # thermojax run CONFIG: the same checks, chosen by `options.outliers`
 
