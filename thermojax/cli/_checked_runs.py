@@ -61,8 +61,9 @@ def fit_dropping(spec, experiments, telemetry, dropped: list[dict], outliers: st
         for d in result.dominant:
             line = int(telemetry[d.run].lines[d.row])
             print(f"warning: {d.run_name}: dropped line {line}, column '{d.column}' = "
-                  f"{d.value:.6g}: it alone carried {100 * d.share:.0f} % of the column's "
-                  "squared error (--outliers drop); refitting", file=sys.stderr)
+                  f"{d.value:.6g}: a glitch the fit followed, carrying {100 * d.share:.0f} % "
+                  "of the column's squared error (--outliers drop); refitting",
+                  file=sys.stderr)
             dropped.append({"file": d.run_name, "line": line, "column": d.column,
                             "value": d.value, "reason": f"carried {100 * d.share:.0f} % of "
                             "the column's squared error in the fit"})
