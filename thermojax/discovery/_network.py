@@ -1,20 +1,22 @@
 """A learned heat term where the library has no form: a small `equinox` network in the
 model's right-hand side, trained on the measurements through the model's own dynamics,
-then distilled into the library form that best matches it (docs/formats.md §3a).
+then distilled into the library form that best matches it (docs/formats.md §3a,
+docs/extensions.md).
 
 The fitted model is held; the network adds a heat flow (W) into one node,
 
     C_a dT_a/dt = (the fitted network's terms) + q_net(features),
 
 a function of that node's temperature, its neighbours' (nodes or boundary columns) and
-the recorded columns that are not sensors. Simulated by the model's ETD2 integrator
-(`dynamics._nonlinear`: the linear part exact, the network's heat linear in time over
-each substep), so its gradients go through the exact discretization; trained by Levenberg–Marquardt
-(`optimistix`) on the same weighted output error as a fit, started from zero heat (the
-last layer's weights at zero). The network's heat along its own trajectory is then
-regressed on every library term at the node (`LIBRARY`) at its trial shapes; the best
-match by R² is the proposal, an `expression` effect the caller can
-add and refit like any other candidate.
+the recorded columns that are not sensors. It starts as a regression on the node's
+missing heat (`missing_heat`, over the smoothed temperatures), or from zero heat where
+that start fits worse through the dynamics than none; then Levenberg–Marquardt
+(`optimistix`) trains it on the same weighted output error as a fit, simulated by the
+model's ETD2 integrator (`dynamics._nonlinear`: the linear part exact, the network's
+heat linear in time over each substep), so its gradients go through the exact
+discretization. The network's heat along its own trajectory is then regressed on every
+library term at the node (`LIBRARY`) at its trial shapes; the best match by R² is the
+proposal, an `expression` effect the caller adds and refits like any other candidate.
 """
 
 from __future__ import annotations
