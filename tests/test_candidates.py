@@ -143,7 +143,8 @@ def test_investigate_resumes_from_its_checkpoint(tmp_path, capsys):
 @pytest.mark.slow
 def test_investigate_under_the_kalman_likelihood(tmp_path):
     """The loop runs on the Kalman likelihood too (innovations for whiteness; refits
-    with the exact-Hessian Newton solver). Scaled down: short runs, one step, one refit (the offset ranks first by its score)."""
+    with the exact-Hessian Newton solver). Scaled down: short runs, one step, one refit
+    (the offset ranks first by its score)."""
     import thermojax
 
     files = _write("sensor_offset", tmp_path / "data", 900.0)
