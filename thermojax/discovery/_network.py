@@ -108,6 +108,7 @@ def _padded(system: LinearSystem, n_extra: int) -> LinearSystem:
                         capacitance=system.capacitance)
 
 
+@eqx.filter_jit  # one program per model type (held model, with network), not per call
 def _simulate(model, system, runs, run_initial):
     """Readings (runs, times, sensors) and states of every run (lists of arrays)."""
     def one(ts, u, r0):
