@@ -89,7 +89,9 @@ def cmd_export(args) -> int:
     if m["multirate"] is not None:
         mr = m["multirate"]
         print(f"multi-rate: {', '.join(mr['bias_channels'])} interpolated at "
-              f"{mr['inertial_rate_hz']:g} Hz ({mr['ratio']} ticks per observer step)")
+              f"{mr['inertial_rate_hz']:g} Hz ({mr['ratio']} ticks per observer step)"
+              + (f"; fixed build: {mr['fixed']['prefix']}.c on int32 codes"
+                 if mr.get("fixed") else ""))
     for name, size in result.files.items():
         print(f"  {out / name}  ({size} bytes)")
     return 0
@@ -182,7 +184,8 @@ def add_export(sub):
     p.add_argument("--inertial-rate", type=_positive_float, default=None, metavar="HZ",
                    help="with bias channels: also write the multi-rate split (tj_multirate.c: "
                    "double buffer and interpolation of the bias corrections at this rate, a "
-                   "whole multiple of --rate, e.g. 2000)")
+                   "whole multiple of --rate, e.g. 2000; with --fixed also "
+                   "tj_multirate_<fmt>.c on the int32 bias codes)")
     g = p.add_argument_group("channel supervision (recorded in observer.json 'faults', "
                              "honoured by the reference and the C)")
     g.add_argument("--limits", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,

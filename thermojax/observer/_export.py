@@ -419,7 +419,17 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                                                if ch["coefficients"] is not None],
                              "use": f"after each {FLOAT_PREFIX}_step: {MULTIRATE_PREFIX}_publish("
                                     f"{FLOAT_PREFIX}_bias); every inertial tick: "
-                                    f"{MULTIRATE_PREFIX}_tick()"}
+                                    f"{MULTIRATE_PREFIX}_tick()", "fixed": None}
+        if fixed_obs is not None:   # the fixed build's int32 bias codes, ramped in integers
+            mr_fixed, obs_fixed = multirate_prefix(fmt.name), fixed_prefix(fmt.name)
+            sources.append(ref.generate_multirate_c(mr_fixed, bias_eval.n_channels, ratio,
+                                                    word="int32_t"))
+            meta["multirate"]["fixed"] = {
+                "prefix": mr_fixed, "word": "int32_t",
+                "bias_frac_bits": [int(g) for g in fixed_obs.biases.g],
+                "use": f"after each {obs_fixed}_step: {mr_fixed}_publish({obs_fixed}_bias); "
+                       f"every inertial tick: {mr_fixed}_tick() (int32 bias codes: value = "
+                       "code * 2**-bias_frac_bits[channel])"}
     for src in sources:
         for key, path in src.write(out).items():
             meta["files"][path.name] = key
@@ -467,6 +477,11 @@ def _augment(system, names, inputs, power_inputs, q, column, input_noise, method
 
 
 MULTIRATE_PREFIX = "tj_multirate"
+
+
+def multirate_prefix(fmt_name: str) -> str:
+    """The C prefix of a fixed build's multi-rate split: `tj_multirate_q16_16`, ..."""
+    return f"{MULTIRATE_PREFIX}_{fmt_name.replace('.', '_')}"
 
 
 def _ratio(inertial_rate_hz, rate_hz, bias_eval, where) -> int:

@@ -12,6 +12,11 @@ linear ramp from the value it is *currently outputting* to the new target, over
 output (not from the previous target) keeps the output continuous even when a
 publication comes early or late; with regular publications each ramp ends exactly where
 the next starts, and the largest tick-to-tick change is `max_k |b[k] - b[k-1]| / ratio`.
+
+A fixed-point observer (`FixedObserver` with bias channels) publishes int32 bias codes and
+the ramp stays in integers: `out = start + ⌊(2 (target − start) i + R) / 2R⌋` (the nearest
+code to `start + (target − start) i / R`, ties toward +inf; exact in int64), so the C
+(`generate_multirate_c(..., word="int32_t")`) repeats it bit for bit without a float unit.
 """
 
 from __future__ import annotations
@@ -20,14 +25,15 @@ import dataclasses
 
 import numpy as np
 
-from ._bias import BiasEvaluator
+from ._bias import BiasEvaluator, FixedBiasEvaluator
+from ._formats import saturate
 
 
 class DoubleBuffer:
     """Two slots, an index of the published one and a sequence number."""
 
-    def __init__(self, size: int):
-        self.slots = [np.zeros(size), np.zeros(size)]
+    def __init__(self, size: int, dtype=np.float64):
+        self.slots = [np.zeros(size, dtype), np.zeros(size, dtype)]
         self.published = 0
         self.sequence = 0
 
@@ -42,13 +48,15 @@ class DoubleBuffer:
 
 
 class BiasInterpolator:
-    """The inertial task's reader: linear ramps between published bias vectors."""
+    """The inertial task's reader: linear ramps between published bias vectors, in double
+    or (`codes=True`) on integer bias codes."""
 
-    def __init__(self, size: int, ratio: int, initial=None):
+    def __init__(self, size: int, ratio: int, initial=None, codes: bool = False):
         if int(ratio) < 1:
             raise ValueError(f"`BiasInterpolator(ratio={ratio})`: need ratio >= 1.")
-        self.ratio = int(ratio)
-        self.output = np.zeros(size) if initial is None else np.array(initial, float)
+        self.ratio, self.codes = int(ratio), bool(codes)
+        dtype = np.int64 if codes else np.float64
+        self.output = np.zeros(size, dtype) if initial is None else np.array(initial, dtype)
         self.start = self.output.copy()
         self.target = self.output.copy()
         self.tick_in_ramp = self.ratio
@@ -62,6 +70,9 @@ class BiasInterpolator:
             self.tick_in_ramp += 1
             if self.tick_in_ramp == self.ratio:
                 self.output = self.target.copy()
+            elif self.codes:   # the nearest code, ties toward +inf: floor division
+                step = 2 * (self.target - self.start) * self.tick_in_ramp + self.ratio
+                self.output = self.start + step // (2 * self.ratio)
             else:
                 self.output = self.start + (self.target - self.start) * (self.tick_in_ramp
                                                                           / self.ratio)
@@ -80,12 +91,14 @@ class MultiRateRun:
 
 def run_multirate(observer, x0, u, y, bias_matrix=None, bias_offset=None, ratio: int = 100,
                   open_circuit=None, delay_ticks=None) -> MultiRateRun:
-    """Run `observer` (a `FloatObserver`) at the thermal rate and interpolate its bias
-    corrections to the inertial rate.
+    """Run `observer` (a `FloatObserver`, or a `FixedObserver` with bias channels) at the
+    thermal rate and interpolate its bias corrections to the inertial rate.
 
     **Arguments:**
 
-    - `observer`, `x0`, `u (T, m)`, `y (T, p)`, `open_circuit`: as `FloatObserver.run`.
+    - `observer`, `x0`, `u (T, m)`, `y (T, p)`, `open_circuit`: as `observer.run` (codes
+      for a `FixedObserver`, whose int32 bias codes are then ramped in integers: `bias`
+      and `inertial` are int64 codes, `observer.decode_bias` converts them).
     - `bias_matrix`: a `BiasEvaluator` (e.g. `load_observer(DIR).bias_evaluator()`): the
       bias channels evaluated at the thermal rate from the corrected estimates `x[k]` and
       `u[k]` (strain states from rest at `x[0]`); or `None`: the observer's own
@@ -98,6 +111,17 @@ def run_multirate(observer, x0, u, y, bias_matrix=None, bias_offset=None, ratio:
     The interpolator starts at the bias of `x0` (for bias channels: `x0` and `u[0]`, strain
     states at rest).
     """
+    if isinstance(getattr(observer, "biases", None), FixedBiasEvaluator):
+        if bias_matrix is not None or bias_offset is not None:
+            raise ValueError("`run_multirate`: a fixed-point observer ramps its own bias "
+                             "channels' codes; pass no bias_matrix or bias_offset.")
+        run = observer.run(x0, u, y, open_circuit)
+        ev = observer.biases
+        ev.reset()
+        initial = ev.step(saturate(np.asarray(x0, np.int64), observer.fmt),
+                          saturate(np.asarray(u, np.int64)[0], observer.fmt))
+        ev.reset()
+        return _ramped(run.bias, initial, ratio, delay_ticks, codes=True)
     if bias_matrix is None:
         bias_matrix = getattr(observer, "biases", None)
         if not isinstance(bias_matrix, BiasEvaluator):
@@ -121,15 +145,20 @@ def run_multirate(observer, x0, u, y, bias_matrix=None, bias_offset=None, ratio:
         b0 = np.zeros(K.shape[0]) if bias_offset is None else np.asarray(bias_offset, float)
         bias = b0 + np.asarray(run.states, float) @ K.T
         initial = b0 + K @ np.asarray(x0, float)
-    q = bias.shape[1]
-    T = bias.shape[0]
+    return _ramped(bias, initial, ratio, delay_ticks, codes=False)
+
+
+def _ramped(bias, initial, ratio: int, delay_ticks, codes: bool) -> MultiRateRun:
+    """Publish `bias (T, q)` through a `DoubleBuffer` at its ticks and ramp to each."""
+    T, q = bias.shape
     delay = np.zeros(T, int) if delay_ticks is None else np.asarray(delay_ticks, int)
     if np.any(delay < 0) or np.any(delay >= ratio):
         raise ValueError(f"`run_multirate(delay_ticks=...)` must lie in 0..{ratio - 1}.")
     at = np.arange(T) * ratio + delay
-    buf = DoubleBuffer(q)
-    reader = BiasInterpolator(q, ratio, initial=initial)
-    out = np.empty((T * ratio, q))
+    dtype = np.int64 if codes else np.float64
+    buf = DoubleBuffer(q, dtype)
+    reader = BiasInterpolator(q, ratio, initial=initial, codes=codes)
+    out = np.empty((T * ratio, q), dtype)
     k = 0
     for t in range(T * ratio):
         while k < T and at[k] == t:
