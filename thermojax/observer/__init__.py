@@ -3,6 +3,7 @@ steady-state Kalman filter), the observer in JAX, and lag compensation by input
 reconstruction."""
 
 from .. import _x64  # noqa: F401  (float64 before any array is made)
+from ._adaptive import AdaptiveRun, track_conductances
 from ._design import design_observer
 from ._export import ExportResult, export_observer
 from ._input_reconstruction import augment_unknown_input, reconstruction_observer
@@ -15,10 +16,10 @@ from ._pole_placement import ObserverPoles, observer_poles, place_observer_gain
 from ._response import estimate_noise_std, rise_time
 
 __all__ = [
-    "ExportResult", "KalmanGain", "Observability", "Observer", "ObserverPoles", "ObserverRun",
+    "AdaptiveRun", "ExportResult", "KalmanGain", "Observability", "Observer", "ObserverPoles", "ObserverRun",
     "SensorSet", "augment_unknown_input", "design_observer", "discrete_process_covariance",
     "estimate_noise_std", "export_observer", "observability", "observability_gramian",
     "observability_matrix", "observability_rank", "observer_poles", "place_observer_gain",
     "reconstruction_observer", "rise_time", "run_observer", "sensor_placement",
-    "steady_state_kalman",
+    "steady_state_kalman", "track_conductances",
 ]
