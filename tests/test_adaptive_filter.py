@@ -1,4 +1,5 @@
-"""The adaptive extended Kalman filter (issue 35, item 4) against an independent simulator.
+"""The adaptive extended Kalman filter (issue 35, item 4) against an independent simulator,
+in JAX (the study version) and for firmware (the NumPy reference and its C, bit for bit).
 
 A three-node sensor module (die on a board in a case, the chamber outside) whose
 die-attach conductance drifts or steps. The truth is simulated here in NumPy/SciPy:
@@ -8,12 +9,15 @@ middle (the drift is hours, a period two seconds), the power held, the chamber h
 
 from __future__ import annotations
 
+import subprocess
+
 import numpy as np
 import pytest
 import scipy.linalg
 
+import thermojax.reference as ref
 from thermojax.io import parse_model
-from thermojax.observer import track_conductances
+from thermojax.observer import adaptive_design, track_conductances
 
 MODEL = """
 name = "module3"
@@ -147,3 +151,53 @@ def test_mistakes_are_named(spec):
     y_bad[17, 1] = np.nan
     with pytest.raises(ValueError, match="sample 17"):
         track_conductances(spec, [ATTACH], u, y_bad, DT, drift=1e-3)
+
+
+# -- the firmware version: NumPy reference and C --------------------------------------------
+
+def test_the_firmware_filter_follows_the_drift_like_the_study_version(spec):
+    """`AdaptiveReference` (Tustin substeps, conductances in W/K, plain float64) on the
+    drifting attach: the truth within its 3σ at ≥ 95 % of samples after half an hour, the
+    end within 1 %, and the study version (matrix exponential, logs) within 2 %."""
+    hours = 3.0
+    g = lambda s: 0.05 * (1.0 - 0.3 * s / (hours * 3600))  # noqa: E731
+    t, u, x, y = truth(g, hours * 3600, seed=3)
+    design = adaptive_design(spec, [ATTACH], DT, drift=2e-3, ceiling=0.5)
+    run = ref.AdaptiveReference(design).run(x[0], u, y)
+    z = (run.conductances[:, 0] - g(t)) / np.sqrt(run.variances[:, 3])
+    settled = t > 1800
+    assert np.mean(np.abs(z[settled]) < 3) >= 0.95
+    assert abs(run.conductances[-1, 0] / g(t[-1]) - 1) < 0.01
+    assert np.abs(run.states - x)[settled].max() < 5 * NOISE
+    study = track_conductances(spec, [ATTACH], u, y, DT, drift=2e-3, ceiling=0.5, x0=x[0])
+    assert np.abs(study.conductances[settled, 0] / run.conductances[settled, 0] - 1).max() \
+        < 0.02
+
+
+def test_the_firmware_filter_in_c_is_bit_exact(spec, tmp_path):
+    """The generated C against `AdaptiveReference`, bit for bit (states, conductances,
+    covariance diagonal, NIS, flags), at -O2 and -O3: a first-order-hold chamber, three
+    Tustin substeps, the attach and the case's boundary tracked, through a delamination
+    that is flagged and reacquired."""
+    foh = parse_model(MODEL.replace('hold = "zoh"', 'hold = "foh"', 1))
+    design = adaptive_design(foh, [ATTACH, "boundaries.case-T_chamber.conductance"], DT,
+                             drift=[2e-4, 1e-4], ceiling=[0.5, 0.3], substeps=3)
+    assert design.holds == ("foh", "zoh")
+    t, u, x, y = truth(lambda s: 0.05 if s < 3600 else 0.025, 2 * 3600, seed=4)
+    want = ref.AdaptiveReference(design).run(x[0], u, y)
+    assert want.flags.any() and not want.flags[t < 3600].any()
+    src = ref.generate_adaptive_c(design, "tj_adaptive")
+    for name, text in (("tj_adaptive.h", src.header), ("tj_adaptive.c", src.source),
+                       ("main.c", src.harness)):
+        (tmp_path / name).write_text(text)
+    (tmp_path / "in.bin").write_bytes(ref.pack_adaptive(x[0], u, y))
+    for opt in ("-O2", "-O3"):
+        exe = tmp_path / f"prog{opt}"
+        subprocess.run(["gcc", "-std=c99", opt, "-Wall", "-Wextra", "-pedantic", "-Werror",
+                        "-ffp-contract=off", "-o", str(exe), str(tmp_path / "tj_adaptive.c"),
+                        str(tmp_path / "main.c"), "-lm"], check=True, capture_output=True)
+        subprocess.run([str(exe), str(tmp_path / "in.bin"), str(tmp_path / "out.bin")],
+                       check=True)
+        got = ref.unpack_adaptive((tmp_path / "out.bin").read_bytes(), 3, 2)
+        for field in ("states", "conductances", "variances", "nis", "flags"):
+            assert np.array_equal(getattr(got, field), getattr(want, field)), (opt, field)

@@ -3,7 +3,7 @@ steady-state Kalman filter), the observer in JAX, and lag compensation by input
 reconstruction."""
 
 from .. import _x64  # noqa: F401  (float64 before any array is made)
-from ._adaptive import AdaptiveRun, track_conductances
+from ._adaptive import AdaptiveRun, adaptive_design, track_conductances
 from ._design import design_observer
 from ._export import ExportResult, export_observer
 from ._input_reconstruction import augment_unknown_input, reconstruction_observer
@@ -16,7 +16,7 @@ from ._pole_placement import ObserverPoles, observer_poles, place_observer_gain
 from ._response import estimate_noise_std, rise_time
 
 __all__ = [
-    "AdaptiveRun", "ExportResult", "KalmanGain", "Observability", "Observer", "ObserverPoles", "ObserverRun",
+    "AdaptiveRun", "ExportResult", "adaptive_design", "KalmanGain", "Observability", "Observer", "ObserverPoles", "ObserverRun",
     "SensorSet", "augment_unknown_input", "design_observer", "discrete_process_covariance",
     "estimate_noise_std", "export_observer", "observability", "observability_gramian",
     "observability_matrix", "observability_rank", "observer_poles", "place_observer_gain",

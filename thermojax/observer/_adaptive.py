@@ -185,6 +185,76 @@ def track_conductances(spec, tracked: Sequence[str], u, y, dt: float, drift, *,
       probability `alarm` per window; `reacquire`: reset the conductances' covariance to
       the ceiling on a detection.
     """
+    st = _settings(spec, tracked, dt, drift, ceiling, process_noise, sensor_noise,
+                   window_s, alarm)
+    network, index, n = st.network, st.index, st.network.topology.n_nodes
+    u, y = _checked_log(network, u, y)
+    if x0 is None:
+        x0 = np.asarray(network.linear_system().steady_state(jnp.asarray(u[0])))
+    every = np.concatenate([np.asarray(network.log_conductance),
+                            np.asarray(network.log_boundary_conductance)])
+    z0 = np.concatenate([np.asarray(x0, float), every[list(index)]])
+    P0 = np.diag(np.concatenate([np.full(n, initial_std ** 2), st.ceiling ** 2]))
+    zs, vs, nis, flags = _filter(network, index, jnp.asarray(dt), jnp.asarray(st.q),
+                                 jnp.asarray(st.drift), jnp.diag(jnp.asarray(st.r) ** 2),
+                                 jnp.asarray(st.ceiling), st.threshold,
+                                 jnp.asarray(reacquire), jnp.asarray(float(excitation)),
+                                 jnp.asarray(z0), jnp.asarray(P0), jnp.asarray(u),
+                                 jnp.asarray(y), st.window)
+    zs, sd = np.asarray(zs), np.sqrt(np.asarray(vs))
+    return AdaptiveRun(zs[:, :n], sd[:, :n], np.exp(zs[:, n:]), sd[:, n:], np.asarray(nis),
+                       np.asarray(flags), st.threshold, tuple(tracked))
+
+
+def adaptive_design(spec, tracked: Sequence[str], dt: float, drift, *, ceiling=0.5,
+                    process_noise=None, sensor_noise=None, initial_std: float = 1.0,
+                    excitation: float = 3.0, window_s: float = 300.0, alarm: float = 1e-6,
+                    reacquire: bool = True, substeps: int | None = None):
+    """The firmware filter's `thermojax.reference.AdaptiveDesign` (NumPy reference and
+    C): the same settings as `track_conductances` (`drift` and `ceiling` then relative,
+    per √s and as a fraction of `g`: equal to the log ones to first order), integrated with
+    `substeps` Tustin steps a sample (default: each at most half the network's fastest
+    time constant)."""
+    from ..reference._adaptive import AdaptiveDesign
+
+    st = _settings(spec, tracked, dt, drift, ceiling, process_noise, sensor_noise,
+                   window_s, alarm)
+    net = st.network
+    t = net.topology
+    if substeps is None:
+        tau = 1.0 / np.max(np.abs(np.linalg.eigvals(np.asarray(net.linear_system().A))))
+        substeps = max(1, int(np.ceil(2.0 * dt / tau)))
+    g, gb, gain = (np.asarray(a, float).tolist() for a in (net.conductance,
+                                                           net.boundary_conductance,
+                                                           net.heat_gain))
+    return AdaptiveDesign(
+        capacitance=tuple(np.asarray(net.capacitance, float).tolist()),
+        links=tuple((a, b, v) for (a, b), v in zip(t.links, g)),
+        boundaries=tuple((a, c, v) for a, c, v in zip(t.boundary_nodes, t.boundary_inputs,
+                                                       gb)),
+        heats=tuple((a, c, v) for a, c, v in zip(t.heat_nodes, t.heat_inputs, gain)),
+        sensors=tuple(t.sensor_nodes), holds=tuple(t.input_holds), tracked=st.index,
+        dt=float(dt), substeps=int(substeps), process_noise=tuple(st.q.tolist()),
+        sensor_noise=tuple(st.r.tolist()), drift=tuple(st.drift.tolist()),
+        ceiling=tuple(st.ceiling.tolist()), excitation=float(excitation), window=st.window,
+        threshold=st.threshold, reacquire=bool(reacquire), initial_std=float(initial_std))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Settings:
+    network: ThermalNetwork
+    index: tuple[int, ...]
+    drift: np.ndarray
+    ceiling: np.ndarray
+    q: np.ndarray
+    r: np.ndarray
+    window: int
+    threshold: float
+
+
+def _settings(spec, tracked, dt, drift, ceiling, process_noise, sensor_noise, window_s,
+              alarm) -> _Settings:
+    """The filter's numbers from the model and the arguments, checked."""
     import scipy.stats
 
     from ..model._model import ThermalModel
@@ -199,37 +269,31 @@ def track_conductances(spec, tracked: Sequence[str], u, y, dt: float, drift, *,
     if unknown or not tracked:
         raise InputError(f"no conductance {unknown or '(none given)'} to track; the model's "
                          f"conductances are {names}.", field="tracked")
-    index = tuple(names.index(t) for t in tracked)
+    if not (np.isfinite(dt) and dt > 0):
+        raise InputError(f"the sample period must be positive, got {dt}.", field="dt")
+    k, n = len(tracked), network.topology.n_nodes
+    p = len(network.topology.sensor_nodes)
+    q = (np.maximum(np.asarray(model.process_noise), 1e-4) if process_noise is None
+         else np.broadcast_to(np.asarray(process_noise, float), (n,)).copy())
+    r = (np.asarray(model.noise) if sensor_noise is None
+         else np.broadcast_to(np.asarray(sensor_noise, float), (p,)).copy())
+    window = max(1, int(round(window_s / dt)))
+    return _Settings(network, tuple(names.index(t) for t in tracked),
+                     np.broadcast_to(np.asarray(drift, float), (k,)).copy(),
+                     np.broadcast_to(np.asarray(ceiling, float), (k,)).copy(), q, r, window,
+                     float(scipy.stats.chi2.isf(alarm, p * window)))
+
+
+def _checked_log(network, u, y):
+    """`u`, `y` as float arrays of the model's shapes, every sample finite."""
     u, y = np.asarray(u, float), np.asarray(y, float)
-    n, p = network.topology.n_nodes, len(network.topology.sensor_nodes)
+    p, m = len(network.topology.sensor_nodes), len(network.topology.input_names)
     if u.ndim != 2 or y.ndim != 2 or u.shape[0] != y.shape[0] or y.shape[1] != p \
-            or u.shape[1] != len(network.topology.input_names):
-        raise InputError(f"u and y must be (T, {len(network.topology.input_names)}) and "
-                         f"(T, {p}) with the same T; got {u.shape} and {y.shape}.")
+            or u.shape[1] != m:
+        raise InputError(f"u and y must be (T, {m}) and (T, {p}) with the same T; got "
+                         f"{u.shape} and {y.shape}.")
     bad = np.argwhere(~np.isfinite(u).all(1) | ~np.isfinite(y).all(1))
     if bad.size:
         raise InputError(f"sample {int(bad[0, 0])} is not finite: the adaptive filter needs "
                          "every input and reading (drop or fill the gap first).")
-    k = len(index)
-    drift = np.broadcast_to(np.asarray(drift, float), (k,))
-    ceiling = np.broadcast_to(np.asarray(ceiling, float), (k,))
-    q = (np.maximum(np.asarray(model.process_noise), 1e-4) if process_noise is None
-         else np.broadcast_to(np.asarray(process_noise, float), (n,)))
-    r = (np.asarray(model.noise) if sensor_noise is None
-         else np.broadcast_to(np.asarray(sensor_noise, float), (p,)))
-    if x0 is None:
-        x0 = np.asarray(network.linear_system().steady_state(jnp.asarray(u[0])))
-    every = np.concatenate([np.asarray(network.log_conductance),
-                            np.asarray(network.log_boundary_conductance)])
-    z0 = np.concatenate([np.asarray(x0, float), every[list(index)]])
-    P0 = np.diag(np.concatenate([np.full(n, initial_std ** 2), ceiling ** 2]))
-    window = max(1, int(round(window_s / dt)))
-    threshold = float(scipy.stats.chi2.isf(alarm, p * window))
-    zs, vs, nis, flags = _filter(network, index, jnp.asarray(dt), jnp.asarray(q),
-                                 jnp.asarray(drift), jnp.diag(jnp.asarray(r) ** 2),
-                                 jnp.asarray(ceiling), threshold, jnp.asarray(reacquire),
-                                 jnp.asarray(float(excitation)), jnp.asarray(z0), jnp.asarray(P0), jnp.asarray(u),
-                                 jnp.asarray(y), window)
-    zs, sd = np.asarray(zs), np.sqrt(np.asarray(vs))
-    return AdaptiveRun(zs[:, :n], sd[:, :n], np.exp(zs[:, n:]), sd[:, n:], np.asarray(nis),
-                       np.asarray(flags), threshold, tuple(tracked))
+    return u, y

@@ -5,10 +5,13 @@ first-order-hold inputs in float64/float32 and in fixed point (Q16.16, Q8.24, Q1
 bias channels evaluated from the estimate (polynomial,
 gradients, exact rates, viscoelastic strain states), the firmware's channel supervision (plausibility, open circuit, ADC rails, wire break,
 reduced-order fallback gains; untrusted inputs held at their last good value, state
-health and fixed-point saturation counts), multi-rate bias interpolation through a double buffer,
+health and fixed-point saturation counts), multi-rate bias interpolation through a double buffer, an adaptive filter tracking drifting
+conductances,
 the derived fixed-point error bound, and a C99 generator that repeats all of it.
 """
 
+from ._adaptive import AdaptiveDesign, AdaptiveReference, AdaptiveReferenceRun
+from ._adaptive_c import generate_adaptive_c, pack_adaptive, unpack_adaptive
 from ._artifact import ArtifactError, ObserverArtifact, load_observer
 from ._bias import BiasChannel, BiasEvaluator, FixedBiasEvaluator, bias_channels_from_metadata
 from ._bound import ErrorBound, error_series, quantization_error_bound
@@ -24,7 +27,8 @@ from ._run import ObserverRun
 from ._system import ObserverSystem
 
 __all__ = [
-    "ArtifactError", "BiasChannel", "BiasEvaluator", "FixedBiasEvaluator", "BiasInterpolator", "CSource", "ChannelMonitor", "DoubleBuffer",
+    "AdaptiveDesign", "AdaptiveReference", "AdaptiveReferenceRun", "generate_adaptive_c",
+    "pack_adaptive", "unpack_adaptive", "ArtifactError", "BiasChannel", "BiasEvaluator", "FixedBiasEvaluator", "BiasInterpolator", "CSource", "ChannelMonitor", "DoubleBuffer",
     "ErrorBound", "FORMATS", "FaultConfig", "FixedFormat", "FixedObserver", "FixedScaling",
     "FloatObserver", "MultiRateRun", "ObserverArtifact", "ObserverRun", "ObserverSystem",
     "Q15", "Q16_16", "Q31", "Q8_24", "decode", "encode", "error_series", "fixed_format",
