@@ -201,3 +201,43 @@ def test_the_firmware_filter_in_c_is_bit_exact(spec, tmp_path):
         got = ref.unpack_adaptive((tmp_path / "out.bin").read_bytes(), 3, 2)
         for field in ("states", "conductances", "variances", "nis", "flags"):
             assert np.array_equal(getattr(got, field), getattr(want, field)), (opt, field)
+
+
+def test_export_writes_the_adaptive_filter_and_its_c_plays_back_bit_exact(tmp_path, capsys):
+    """`thermojax export --adaptive ... --adaptive-drift ...`: the artifact's design is
+    `adaptive_design`'s, `load_observer(DIR).adaptive_reference()` rebuilds the filter
+    from `observer.json`, and the artifact's own C file plays back bit-exact with it."""
+    from thermojax.cli import main
+
+    model = tmp_path / "module3.toml"
+    model.write_text(MODEL)
+    out = tmp_path / "obs"
+    assert main(["export", "--model", str(model), "--rate", str(1 / DT), "--out", str(out),
+                 "--adaptive", ATTACH, "--adaptive-drift", "2e-4", "--quiet"]) == 0
+    assert "adaptive filter: tracks links.die-board.conductance" in capsys.readouterr().out
+    art = ref.load_observer(out)
+    filt = art.adaptive_reference()
+    assert filt.d == adaptive_design(parse_model(MODEL), [ATTACH], DT, drift=2e-4,
+                                     ceiling=0.5)
+    t, u, x, y = truth(lambda s: 0.05 if s < 1800 else 0.03, 3600, seed=5)
+    want = filt.run(x[0], u, y)
+    assert want.flags.any()
+    exe = tmp_path / "prog"
+    subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-pedantic", "-Werror",
+                    "-ffp-contract=off", "-o", str(exe), str(out / "tj_adaptive.c"),
+                    str(out / "tj_adaptive_main.c"), "-lm"], check=True, capture_output=True)
+    (tmp_path / "in.bin").write_bytes(ref.pack_adaptive(x[0], u, y))
+    subprocess.run([str(exe), str(tmp_path / "in.bin"), str(tmp_path / "out.bin")],
+                   check=True)
+    got = ref.unpack_adaptive((tmp_path / "out.bin").read_bytes(), 3, 1)
+    for field in ("states", "conductances", "variances", "nis", "flags"):
+        assert np.array_equal(getattr(got, field), getattr(want, field)), field
+    # the mistakes a user makes, each named
+    assert main(["export", "--model", str(model), "--rate", "1", "--out",
+                 str(tmp_path / "a"), "--adaptive", ATTACH, "--quiet"]) == 2
+    assert "--adaptive-drift" in capsys.readouterr().err
+    assert main(["export", "--model", str(model), "--rate", "1", "--out",
+                 str(tmp_path / "b"), "--adaptive", "links.die-case.conductance",
+                 "--adaptive-drift", "1e-4", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "links.die-board.conductance" in err and "--adaptive" in err

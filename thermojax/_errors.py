@@ -19,6 +19,7 @@ class InputError(ValueError):
             where.append(f"field '{field}'")
         prefix = ", ".join(where)
         super().__init__(f"{prefix}: {message}" if prefix else message)
+        self.message = message  # without the location
         self.file = file
         self.line = line
         self.field = field

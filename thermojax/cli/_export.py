@@ -64,6 +64,7 @@ def cmd_export(args) -> int:
                                      reconstruct=args.reconstruct,
                                      input_noise=args.input_noise,
                                      inertial_rate_hz=args.inertial_rate,
+                                     adaptive=adaptive_config(args),
                                      operating_point=args.operating_point,
                                      c_float=args.c_float, c_layout=args.c_layout)
             load_observer(tmp)  # what was written reads back
@@ -92,9 +93,27 @@ def cmd_export(args) -> int:
               f"{mr['inertial_rate_hz']:g} Hz ({mr['ratio']} ticks per observer step)"
               + (f"; fixed build: {mr['fixed']['prefix']}.c on int32 codes"
                  if mr.get("fixed") else ""))
+    if m["adaptive"] is not None:
+        ad = m["adaptive"]
+        print(f"adaptive filter: tracks {', '.join(ad['tracked'])} "
+              f"({ad['design']['substeps']} Tustin substeps a step; {ad['prefix']}.c)")
     for name, size in result.files.items():
         print(f"  {out / name}  ({size} bytes)")
     return 0
+
+
+def adaptive_config(args) -> dict | None:
+    """The `adaptive` argument of `export_observer` from the `--adaptive*` flags."""
+    if not args.adaptive:
+        if args.adaptive_drift is not None:
+            raise InputError("--adaptive-drift without --adaptive: name the conductances to "
+                             "track.", field="--adaptive-drift")
+        return None
+    if args.adaptive_drift is None:
+        raise InputError("--adaptive needs --adaptive-drift RATE (per √s): how fast the "
+                         "tracked conductances may age.", field="--adaptive-drift")
+    return {"tracked": list(args.adaptive), "drift": args.adaptive_drift,
+            "ceiling": args.adaptive_ceiling}
 
 
 def fault_config(args):
@@ -186,6 +205,17 @@ def add_export(sub):
                    "double buffer and interpolation of the bias corrections at this rate, a "
                    "whole multiple of --rate, e.g. 2000; with --fixed also "
                    "tj_multirate_<fmt>.c on the int32 bias codes)")
+    a = p.add_argument_group("adaptive filter (docs/observer.md §11): drifting conductances "
+                             "tracked online, tj_adaptive.c bit-exact with the NumPy reference")
+    a.add_argument("--adaptive", action="append", metavar="CONDUCTANCE",
+                   help="track this conductance (repeatable), by its report name, e.g. "
+                   "links.pcb-asic.conductance or boundaries.housing-T_chamber.conductance")
+    a.add_argument("--adaptive-drift", type=_positive_float, default=None, metavar="RATE",
+                   help="relative random-walk intensity of the tracked conductances, per √s "
+                   "(the ageing you expect: RATE·√t is the relative change over t seconds)")
+    a.add_argument("--adaptive-ceiling", type=_positive_float, default=0.5, metavar="FRACTION",
+                   help="largest relative std of a tracked conductance, the unit-to-unit "
+                   "spread (default 0.5)")
     g = p.add_argument_group("channel supervision (recorded in observer.json 'faults', "
                              "honoured by the reference and the C)")
     g.add_argument("--limits", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,

@@ -119,7 +119,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                     faults=None, power_scale: float = 1.0, c_float: str = "float64",
                     c_layout: str = "rows", reconstruct: str | None = None,
                     input_noise: float | None = None,
-                    inertial_rate_hz: float | None = None) -> ExportResult:
+                    inertial_rate_hz: float | None = None,
+                    adaptive: dict | None = None) -> ExportResult:
     """Write the reference-observer artifact of a model (see the module docstring).
 
     The full sensor set must observe every state (else `InputError` naming the lost
@@ -154,6 +155,10 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     - `inertial_rate_hz`: with bias channels, also write the multi-rate split
       (`tj_multirate.c`/`.h`: double buffer and interpolation at this rate, an integer
       multiple of `rate_hz`; `thermojax.reference.generate_multirate_c`).
+    - `adaptive`: `{"tracked": [conductance names], "drift": per √s, "ceiling": relative
+      std}`: also write the firmware adaptive filter (`tj_adaptive.c`/`.h`, docs/observer.md
+      §11) at this rate, on the model's inputs and every sensor, its design in
+      `observer.json` `"adaptive"`.
 
     **Returns:** an `ExportResult`. Warnings (a nonlinear effect linearized, a coefficient
     that rounds to zero in the fixed format) are issued with `warnings.warn` and listed.
@@ -430,6 +435,9 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                 "use": f"after each {obs_fixed}_step: {mr_fixed}_publish({obs_fixed}_bias); "
                        f"every inertial tick: {mr_fixed}_tick() (int32 bias codes: value = "
                        "code * 2**-bias_frac_bits[channel])"}
+    meta["adaptive"] = None
+    if adaptive is not None:
+        sources.append(_adaptive_source(spec, model, adaptive, dt, where, meta))
     for src in sources:
         for key, path in src.write(out).items():
             meta["files"][path.name] = key
@@ -477,6 +485,31 @@ def _augment(system, names, inputs, power_inputs, q, column, input_noise, method
 
 
 MULTIRATE_PREFIX = "tj_multirate"
+ADAPTIVE_PREFIX = "tj_adaptive"
+
+
+def _adaptive_source(spec, model, adaptive: dict, dt: float, where, meta):
+    """The adaptive filter's C source; its design recorded in `meta["adaptive"]`."""
+    from .. import reference as ref
+    from ._adaptive import adaptive_design
+
+    if spec is None:
+        raise InputError("the adaptive filter is designed from a model file (its named "
+                         "conductances); export a model file, not a ThermalModel.",
+                         file=where, field="--adaptive")
+    if model.is_nonlinear:
+        raise InputError("the adaptive filter tracks conductances of a linear network; this "
+                         "model has nonlinear effects.", file=where, field="--adaptive")
+    try:
+        design = adaptive_design(spec, list(adaptive["tracked"]), dt, adaptive["drift"],
+                                 ceiling=adaptive.get("ceiling", 0.5))
+    except InputError as err:
+        raise InputError(err.message, file=where, field="--adaptive") from None
+    meta["adaptive"] = {"prefix": ADAPTIVE_PREFIX, "tracked": list(adaptive["tracked"]),
+                        "inputs": list(spec.input_columns),
+                        "sensors": list(spec.sensor_columns),
+                        "design": dataclasses.asdict(design)}
+    return ref.generate_adaptive_c(design, ADAPTIVE_PREFIX)
 
 
 def multirate_prefix(fmt_name: str) -> str:

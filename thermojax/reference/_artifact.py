@@ -96,6 +96,25 @@ class ObserverArtifact:
         """`(states, inputs, outputs)` names (used in the generated C's comments)."""
         return self.state_names, self.input_names, self.output_names
 
+    def adaptive_reference(self):
+        """The artifact's firmware adaptive filter (exported with `--adaptive`) as an
+        `AdaptiveReference`, from the design in `observer.json`."""
+        from ._adaptive import AdaptiveDesign, AdaptiveReference
+
+        ad = self.metadata.get("adaptive")
+        if ad is None:
+            raise ArtifactError("the artifact has no adaptive filter (exported without "
+                                "--adaptive).", file=str(self.folder / META), field="adaptive")
+        d = ad["design"]
+        try:
+            design = AdaptiveDesign(**{k: tuple(tuple(e) if isinstance(e, list) else e
+                                                for e in v) if isinstance(v, list) else v
+                                       for k, v in d.items()})
+        except TypeError as err:
+            raise ArtifactError(f"the adaptive design cannot be read ({err}).",
+                                file=str(self.folder / META), field="adaptive") from None
+        return AdaptiveReference(design)
+
     def float_observer(self, dtype=np.float64) -> FloatObserver:
         """The float reference observer (float64 or float32) of the artifact, evaluating its
         bias channels (`ObserverRun.bias`) when it has fitted ones."""
