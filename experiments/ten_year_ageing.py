@@ -41,17 +41,22 @@ writes `ageing.md`, `results.json` and `ageing.png`. `--quick`: 3 units, ages 0,
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import scipy.linalg
 
-from _study_cli import ROOT, results_folder, study_parser, write_results
-
+from thermojax._plots import new_figure, save_figure
 from thermojax.io import load_model
 from thermojax.model._parameters_by_name import spec_parameters, with_spec_parameters
 from thermojax.model._spec import Parameter
 from thermojax.observer import track_conductances
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "experiments"))
+from _study_cli import results_folder, study_parser, write_results  # noqa: E402
 
 MODEL = ROOT / "configs" / "imu6.toml"
 DT = 1.0
@@ -191,12 +196,13 @@ def run_unit(spec, losses, ages, u, mission, seed):
     return out
 
 
-def main() -> None:
+def main(argv=None) -> Path:
     parser = study_parser("ten_year_ageing", __doc__, "3 units, ages 0, 5 and 10 years")
-    parser.add_argument("--units", type=int, default=8)
-    args = parser.parse_args()
+    parser.add_argument("--units", type=int, default=None,
+                        help="units in the population (default 8; --quick 3)")
+    args = parser.parse_args(argv)
     folder = results_folder("ten_year_ageing", args.out, args.force)
-    units = 3 if args.quick else args.units
+    units = args.units or (3 if args.quick else 8)
     ages = (0.0, 5.0, 10.0) if args.quick else AGES
     spec = load_model(MODEL)
     u, mission = profile()
@@ -216,11 +222,12 @@ def main() -> None:
            "wall_time_s": time.time() - t0}
     write_results(folder, res, table, "ageing.md")
     plot(results, ages, folder / "ageing.png")
+    return folder
 
 
 def summarize(results, ages) -> str:
     lines = ["# The ten-year question: compensated gyro bias after ageing", "",
-             f"{len(results)} units; peak |bias error| over the mission, °/h (median, worst); "
+             f"{len(results)} unit{'s' if len(results) != 1 else ''}; peak |bias error| over the mission, °/h (median, worst); "
              f"units within the tactical {SPEC_DPH} °/h.", "",
              "| age (y) | factory median / worst / within | recalibrated "
              f"every {RECAL_YEARS:g} y | adaptive |", "|---|---|---|---|"]
@@ -243,11 +250,8 @@ def summarize(results, ages) -> str:
 
 
 def plot(results, ages, path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.2))
+    fig = new_figure()
+    ax = fig.add_subplot()
     for s, colour in (("factory", "C3"), ("recalibrated", "C1"), ("adaptive", "C0")):
         v = np.array([r[s] for r in results])          # (units, ages)
         ax.plot(ages, np.median(v, axis=0), "o-", color=colour, label=f"{s}: median")
@@ -259,9 +263,7 @@ def plot(results, ages, path) -> None:
     ax.set_yscale("log")
     ax.set_title("Six-node IMU: die-attach voiding and pad pump-out (assumed rates)")
     ax.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

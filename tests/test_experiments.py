@@ -160,6 +160,25 @@ def test_unit_variance_procurement_study(tmp_path):
         assert peak["own"]["p50"] <= peak["fitted"]["p50"] < 0.2 * peak["nominal"]["p50"], p
 
 
+@pytest.mark.slow
+def test_ten_year_ageing_study(tmp_path):
+    """One unit (--quick ages 0, 5, 10 y): the factory observer's error grows as the
+    conductances age, the adaptive filter ends within 2 % of the aged conductances (known:
+    the study made them) and keeps the bias within the tactical 0.5 °/h."""
+    study = load_study("ten_year_ageing")
+    folder = study.main(["--out", str(tmp_path / "ageing"), "--quick", "--units", "1"])
+    for name in ("ageing.md", "results.json", "ageing.png"):
+        assert (folder / name).is_file(), name
+    res = json.loads((folder / "results.json").read_text())
+    unit = res["per_unit"][0]
+    factory = unit["factory"]
+    assert res["ages_years"] == [0.0, 5.0, 10.0]
+    assert factory[0] < 0.01 and factory[0] < factory[1] < factory[2]
+    assert max(unit["adaptive"]) < res["spec_dph"]
+    assert all(abs(r - 1) < 0.02 for ratios in unit["adaptive_ratio"] for r in ratios)
+    assert unit["recalibrated"][2] < factory[2]   # recalibrated at 8 y, not at 0
+
+
 def test_prbs1_forward_selection_tests_each_step_as_the_paper_and_needs_its_data(
         tmp_path, capsys):
     from scipy import stats
