@@ -227,8 +227,9 @@ def main(argv=None) -> Path:
 
 def summarize(results, ages) -> str:
     lines = ["# The ten-year question: compensated gyro bias after ageing", "",
-             f"{len(results)} unit{'s' if len(results) != 1 else ''}; peak |bias error| over the mission, °/h (median, worst); "
-             f"units within the tactical {SPEC_DPH} °/h.", "",
+             f"{len(results)} unit{'s' if len(results) != 1 else ''}; peak |bias error| "
+             f"over the mission, °/h (median, worst); units within the tactical "
+             f"{SPEC_DPH} °/h.", "",
              "| age (y) | factory median / worst / within | recalibrated "
              f"every {RECAL_YEARS:g} y | adaptive |", "|---|---|---|---|"]
     for i, years in enumerate(ages):
