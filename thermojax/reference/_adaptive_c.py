@@ -344,8 +344,9 @@ int {prefix}_step(const double u[{P}_M], const double y[{P}_P]) {{
     return flag;
 }}
 """
-    harness = f"""/* Playback harness for {prefix}: int32 T, double x0[N], then per sample double u[M],
-   double y[P]; writes per sample double x[N], g[K], diag P[NK], nis, uint8 flag. */
+    harness = f"""/* Playback harness for {prefix}: int32 T, double x0[N], then per sample
+   double u[M], double y[P]; writes per sample double x[N], g[K], diag P[NK], nis,
+   uint8 flag. */
 #include <stdio.h>
 #include <stdint.h>
 #include "{prefix}.h"

@@ -51,7 +51,8 @@ def generate_multirate_c(prefix: str, q: int, ratio: int, word: str = "double") 
         helper = []
     else:   # the nearest code, ties toward +inf: a floor division in int64
         ramp = [f"            for (j = 0; j < {P}_Q; j++)",
-                f"                {prefix}_out[j] = (int32_t)({prefix}_start[j] + {prefix}_floordiv(",
+                f"                {prefix}_out[j] = (int32_t)({prefix}_start[j] + "
+                f"{prefix}_floordiv(",
                 f"                    2 * ((int64_t){prefix}_target[j] - {prefix}_start[j])"
                 f" * (int64_t){prefix}_i",
                 f"                    + {P}_RATIO, 2 * (int64_t){P}_RATIO));"]
