@@ -176,7 +176,7 @@ def track_conductances(spec, tracked: Sequence[str], u, y, dt: float, drift, *,
     - `ceiling`: largest std of a log-conductance (the unit-to-unit spread; also the
       starting std).
     - `process_noise (nodes,)` °C/√s, `sensor_noise (p,)` °C: default the model file's
-      (process noise 1e-4 where the file has none).
+      (a node without a process noise gets the model's default, 1e-3; at least 1e-4).
     - `x0 (nodes,)`: starting temperatures, std `initial_std`; default the steady state of
       `u[0]`.
     - `excitation`: the gate, in stds of the temperature difference across a conductance
