@@ -153,7 +153,7 @@ def main() -> None:
     kw = dict(drift=DRIFT, ceiling=CEILING, x0=x[0])
 
     t0 = time.perf_counter()
-    first = track_conductances(spec, tracked, u, y, study.DT, **kw)
+    track_conductances(spec, tracked, u, y, study.DT, **kw)  # compiles
     t_first = time.perf_counter() - t0
     t0 = time.perf_counter()
     warm = track_conductances(spec, tracked, u, y, study.DT, **kw)
