@@ -90,3 +90,77 @@ def test_cortex_m4_build_compiles_and_is_counted(build, tmp_path):
     assert count["instructions"] >= macs
     if build == "float32":   # single-precision FPU instructions, no double-precision calls
         assert count["fpu"] > 0 and count["soft_float_calls"] == 0
+
+
+def _run_armhf(src, tmp_path, data: bytes, exe_name: str):
+    """Cross-compile `src` (a `CSource`) for armhf, play `data` under qemu, return the
+    output bytes."""
+    paths = src.write(tmp_path)
+    exe = tmp_path / exe_name
+    subprocess.run([LINUX_CC, *WARN, "-static", "-mthumb", "-march=armv7-a",
+                    "-mfpu=vfpv3-d16", "-mfloat-abi=hard", "-o", str(exe),
+                    str(paths["source"]), str(paths["harness"]), "-lm"], check=True,
+                   capture_output=True, text=True)
+    (tmp_path / "in.bin").write_bytes(data)
+    subprocess.run([QEMU, str(exe), str(tmp_path / "in.bin"), str(tmp_path / "out.bin")],
+                   check=True, timeout=300)
+    return (tmp_path / "out.bin").read_bytes()
+
+
+def test_adaptive_filter_under_qemu_is_bit_exact_and_compiles_for_the_m4(tmp_path):
+    """The firmware adaptive filter (double, `sqrt`, LU solves) on armhf under qemu, bit
+    for bit against `AdaptiveReference` through a flagged delamination; and its object for
+    the Cortex-M4 (double in software there: FPv4-SP has no double unit)."""
+    _need(LINUX_CC, QEMU, M4_CC)
+    from test_adaptive_filter import ATTACH, DT, MODEL, truth
+
+    from thermojax.io import parse_model
+    from thermojax.observer import adaptive_design
+
+    design = adaptive_design(parse_model(MODEL), [ATTACH], DT, drift=2e-4, ceiling=0.5,
+                             substeps=2)
+    t, u, x, y = truth(lambda s: 0.05 if s < 1800 else 0.025, 3600, seed=6)
+    want = ref.AdaptiveReference(design).run(x[0], u, y)
+    assert want.flags.any()
+    src = ref.generate_adaptive_c(design, "tj_adaptive")
+    got = ref.unpack_adaptive(_run_armhf(src, tmp_path, ref.pack_adaptive(x[0], u, y),
+                                         "adaptive_arm"), design.n, design.k)
+    for field in ("states", "conductances", "variances", "nis", "flags"):
+        assert np.array_equal(getattr(got, field), getattr(want, field)), field
+    obj = tmp_path / "adaptive_m4.o"
+    subprocess.run([M4_CC, *WARN, *M4_FLAGS, "-c", "-o", str(obj),
+                    str(tmp_path / "tj_adaptive.c")], check=True, capture_output=True,
+                   text=True)
+    assert count_step_instructions(obj, "tj_adaptive")["soft_float_calls"] > 0
+
+
+def test_fixed_multirate_under_qemu_is_bit_exact(tmp_path):
+    """The fixed build's integer ramps (`word="int32_t"`, int64 floor division) on armhf
+    under qemu, bit for bit against `run_multirate`'s integer interpolator, with ramps of
+    both signs, ties and jitter; and no floating point in the Cortex-M4 object."""
+    _need(LINUX_CC, QEMU, M4_CC)
+    rng = np.random.default_rng(7)
+    T, q, ratio = 400, 3, 40
+    bias = np.cumsum(rng.integers(-(1 << 20), 1 << 20, (T, q)), axis=0)
+    bias[50:60] = bias[49]                       # holds: zero-length ramps
+    b0 = bias[0] - 12345
+    delay = rng.integers(0, ratio, T)
+    reader = ref.BiasInterpolator(q, ratio, initial=b0, codes=True)
+    buf = ref.DoubleBuffer(q, np.int64)
+    want, k = np.empty((T * ratio, q), np.int64), 0
+    at = np.arange(T) * ratio + delay
+    for t in range(T * ratio):
+        while k < T and at[k] == t:
+            buf.publish(bias[k])
+            k += 1
+        want[t] = reader.tick(buf)
+    src = ref.generate_multirate_c("mr", q, ratio, word="int32_t")
+    out = _run_armhf(src, tmp_path, ref.pack_multirate(b0, bias, delay, word="int32_t"),
+                     "mr_arm")
+    assert np.array_equal(np.frombuffer(out, np.int32).reshape(-1, q).astype(np.int64), want)
+    obj = tmp_path / "mr_m4.o"
+    subprocess.run([M4_CC, *WARN, *M4_FLAGS, "-c", "-o", str(obj), str(tmp_path / "mr.c")],
+                   check=True, capture_output=True, text=True)
+    disasm = subprocess.run(["arm-none-eabi-objdump", "-d", str(obj)], check=True,
+                            capture_output=True, text=True).stdout
+    assert "vadd" not in disasm and "vmul" not in disasm and "__aeabi_d" not in disasm
