@@ -65,6 +65,7 @@ def cmd_export(args) -> int:
                                      input_noise=args.input_noise,
                                      inertial_rate_hz=args.inertial_rate,
                                      adaptive=adaptive_config(args),
+                                     schedule=schedule_config(args),
                                      operating_point=args.operating_point,
                                      c_float=args.c_float, c_layout=args.c_layout)
             load_observer(tmp)  # what was written reads back
@@ -93,6 +94,10 @@ def cmd_export(args) -> int:
               f"{mr['inertial_rate_hz']:g} Hz ({mr['ratio']} ticks per observer step)"
               + (f"; fixed build: {mr['fixed']['prefix']}.c on int32 codes"
                  if mr.get("fixed") else ""))
+    if m["schedule"] is not None:
+        sc = m["schedule"]
+        print(f"gain schedule: {len(sc['points_C'])} points from {sc['points_C'][0]:g} to "
+              f"{sc['points_C'][-1]:g} °C, by {sc['by']} ({sc['prefix']}.c)")
     if m["adaptive"] is not None:
         ad = m["adaptive"]
         print(f"adaptive filter: tracks {', '.join(ad['tracked'])} "
@@ -100,6 +105,28 @@ def cmd_export(args) -> int:
     for name, size in result.files.items():
         print(f"  {out / name}  ({size} bytes)")
     return 0
+
+
+def schedule_config(args) -> dict | None:
+    """The `schedule` argument of `export_observer` from `--schedule` and `--schedule-by`."""
+    import numpy as np
+
+    if args.schedule is None:
+        if args.schedule_by is not None:
+            raise InputError("--schedule-by without --schedule LOW HIGH N.",
+                             field="--schedule-by")
+        return None
+    low, high, count = args.schedule
+    if not (np.isfinite(low) and np.isfinite(high) and low < high):
+        raise InputError(f"--schedule needs LOW < HIGH, got {low:g} {high:g}.",
+                         field="--schedule")
+    if count != int(count) or not 2 <= count <= 64:
+        raise InputError(f"--schedule N must be a whole number from 2 to 64, got {count:g}.",
+                         field="--schedule")
+    if args.schedule_by is None:
+        raise InputError("--schedule needs --schedule-by COLUMN: the sensor whose reading "
+                         "schedules.", field="--schedule-by")
+    return {"points": np.linspace(low, high, int(count)).tolist(), "by": args.schedule_by}
 
 
 def adaptive_config(args) -> dict | None:
@@ -205,6 +232,15 @@ def add_export(sub):
                    "double buffer and interpolation of the bias corrections at this rate, a "
                    "whole multiple of --rate, e.g. 2000; with --fixed also "
                    "tj_multirate_<fmt>.c on the int32 bias codes)")
+    sg = p.add_argument_group("gain scheduling (docs/observer.md §12): a nonlinear model's "
+                              "observer at several temperatures, interpolated at run time")
+    sg.add_argument("--schedule", type=float, nargs=3, metavar=("LOW", "HIGH", "N"),
+                    default=None, help="also write tj_scheduled.c, designed at N temperatures "
+                    "from LOW to HIGH °C (N >= 2; cover the range of the scheduling sensor "
+                    "and the gradients above it)")
+    sg.add_argument("--schedule-by", metavar="COLUMN", default=None,
+                    help="the sensor column whose reading schedules (required with "
+                    "--schedule)")
     a = p.add_argument_group("adaptive filter (docs/observer.md §11): drifting conductances "
                              "tracked online, tj_adaptive.c bit-exact with the NumPy reference")
     a.add_argument("--adaptive", action="append", metavar="CONDUCTANCE",

@@ -120,7 +120,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                     c_layout: str = "rows", reconstruct: str | None = None,
                     input_noise: float | None = None,
                     inertial_rate_hz: float | None = None,
-                    adaptive: dict | None = None) -> ExportResult:
+                    adaptive: dict | None = None,
+                    schedule: dict | None = None) -> ExportResult:
     """Write the reference-observer artifact of a model (see the module docstring).
 
     The full sensor set must observe every state (else `InputError` naming the lost
@@ -159,6 +160,9 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
       std}`: also write the firmware adaptive filter (`tj_adaptive.c`/`.h`, docs/observer.md
       §11) at this rate, on the model's inputs and every sensor, its design in
       `observer.json` `"adaptive"`.
+    - `schedule`: `{"points": [°C, ...], "by": sensor column}`: also write the
+      gain-scheduled observer of a nonlinear model (`tj_scheduled.c`/`.h`, docs/observer.md
+      §12), its matrices in `observer.npz` (`schedule_*`), `observer.json` `"schedule"`.
 
     **Returns:** an `ExportResult`. Warnings (a nonlinear effect linearized, a coefficient
     that rounds to zero in the fixed format) are issued with `warnings.warn` and listed.
@@ -435,6 +439,9 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                 "use": f"after each {obs_fixed}_step: {mr_fixed}_publish({obs_fixed}_bias); "
                        f"every inertial tick: {mr_fixed}_tick() (int32 bias codes: value = "
                        "code * 2**-bias_frac_bits[channel])"}
+    meta["schedule"] = None
+    if schedule is not None:
+        sources.append(_scheduled_source(spec, rate_hz, schedule, where, meta, arrays))
     meta["adaptive"] = None
     if adaptive is not None:
         sources.append(_adaptive_source(spec, model, adaptive, dt, where, meta))
@@ -486,6 +493,29 @@ def _augment(system, names, inputs, power_inputs, q, column, input_noise, method
 
 MULTIRATE_PREFIX = "tj_multirate"
 ADAPTIVE_PREFIX = "tj_adaptive"
+SCHEDULED_PREFIX = "tj_scheduled"
+
+
+def _scheduled_source(spec, rate_hz, schedule: dict, where, meta, arrays):
+    """The gain-scheduled observer's C; its matrices into `arrays`, its facts into
+    `meta["schedule"]`."""
+    from .. import reference as ref
+    from ._schedule import scheduled_design
+
+    if spec is None:
+        raise InputError("the gain schedule is designed from a model file; export a model "
+                         "file, not a ThermalModel.", file=where, field="--schedule")
+    design = scheduled_design(spec, rate_hz, schedule["points"], schedule["by"], where)
+    for name in ("points", "Phi", "B0", "B1", "L", "C", "D"):
+        arrays[f"schedule_{name}"] = np.asarray(getattr(design, name), float)
+    meta["schedule"] = {
+        "prefix": SCHEDULED_PREFIX, "by": schedule["by"], "by_index": int(design.by),
+        "points_C": [float(v) for v in design.points],
+        "inputs": list(spec.input_columns), "sensors": list(spec.sensor_columns),
+        "use": f"every step: {SCHEDULED_PREFIX}_step(u, y); the matrices and gains are "
+               f"interpolated linearly at the reading of {schedule['by']} (clamped to the "
+               "points, held while it is not finite)"}
+    return ref.generate_scheduled_c(design, SCHEDULED_PREFIX)
 
 
 def _adaptive_source(spec, model, adaptive: dict, dt: float, where, meta):

@@ -6,7 +6,7 @@ bias channels evaluated from the estimate (polynomial,
 gradients, exact rates, viscoelastic strain states), the firmware's channel supervision (plausibility, open circuit, ADC rails, wire break,
 reduced-order fallback gains; untrusted inputs held at their last good value, state
 health and fixed-point saturation counts), multi-rate bias interpolation through a double buffer, an adaptive filter tracking drifting
-conductances,
+conductances, a gain-scheduled observer,
 the derived fixed-point error bound, and a C99 generator that repeats all of it.
 """
 
@@ -24,6 +24,8 @@ from ._formats import (FORMATS, Q15, Q31, Q8_24, Q16_16, FixedFormat, decode, en
 from ._multirate import BiasInterpolator, DoubleBuffer, MultiRateRun, run_multirate
 from ._multirate_c import generate_multirate_c, pack_multirate
 from ._run import ObserverRun
+from ._scheduled import ScheduledDesign, ScheduledObserver, ScheduledRun
+from ._scheduled_c import generate_scheduled_c, pack_scheduled, unpack_scheduled
 from ._system import ObserverSystem
 
 __all__ = [
@@ -33,5 +35,6 @@ __all__ = [
     "FloatObserver", "MultiRateRun", "ObserverArtifact", "ObserverRun", "ObserverSystem",
     "Q15", "Q16_16", "Q31", "Q8_24", "decode", "encode", "error_series", "fixed_format",
     "bias_channels_from_metadata", "default_input_limits", "generate_c", "generate_multirate_c", "pack_multirate", "load_observer", "quantization_error_bound", "round_shift",
-    "run_multirate", "saturate",
+    "run_multirate", "saturate", "ScheduledDesign", "ScheduledObserver", "ScheduledRun",
+    "generate_scheduled_c", "pack_scheduled", "unpack_scheduled",
 ]

@@ -96,6 +96,28 @@ class ObserverArtifact:
         """`(states, inputs, outputs)` names (used in the generated C's comments)."""
         return self.state_names, self.input_names, self.output_names
 
+    def scheduled_observer(self):
+        """The artifact's gain-scheduled observer (exported with `--schedule`) as a
+        `ScheduledObserver`, from the `schedule_*` arrays."""
+        from ._scheduled import ScheduledDesign, ScheduledObserver
+
+        sc = self.metadata.get("schedule")
+        if sc is None:
+            raise ArtifactError("the artifact has no gain schedule (exported without "
+                                "--schedule).", file=str(self.folder / META), field="schedule")
+        names = ("points", "Phi", "B0", "B1", "L", "C", "D")
+        missing = [f"schedule_{k}" for k in names if f"schedule_{k}" not in self.arrays]
+        if missing:
+            raise ArtifactError(f"the arrays {missing} are missing.",
+                                file=str(self.folder / ARRAYS), field=missing[0])
+        try:
+            design = ScheduledDesign(*(self.arrays[f"schedule_{k}"] for k in names),
+                                     int(sc["by_index"]))
+        except (ValueError, KeyError) as err:
+            raise ArtifactError(f"the gain schedule cannot be read ({err}).",
+                                file=str(self.folder / META), field="schedule") from None
+        return ScheduledObserver(design)
+
     def adaptive_reference(self):
         """The artifact's firmware adaptive filter (exported with `--adaptive`) as an
         `AdaptiveReference`, from the design in `observer.json`."""

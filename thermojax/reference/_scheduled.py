@@ -1,0 +1,130 @@
+"""The gain-scheduled observer for firmware: matrices and gains designed at several
+operating points, interpolated at run time by a measured temperature, in float64,
+operation for operation as the generated C (`_scheduled_c.py`).
+
+A nonlinear network (temperature-dependent conductances, radiation) linearized at one
+temperature is right near it only. `thermojax.observer.scheduled_design` linearizes it
+at `K` uniform temperatures `T_0 < … < T_K−1` and designs the filter-form observer at
+each (`Phi_i`, `B0_i`, `B1_i`, the steady-state Kalman gain `L_i`; `C`, `D` shared).
+Each step:
+
+    s   = y[k][by] if finite, else the last s;   clamped to T_0 … T_K−1
+    j   = the last i ≤ K − 2 with T_i ≤ s;   w = (s − T_j) / (T_j+1 − T_j)
+    M   = M_j + w (M_j+1 − M_j)          elementwise, for Phi, B0, B1, L
+    x⁻  = Phi x + B0 u[k−1] + B1 u[k]    (not at the first step: x⁻ = x0)
+    x   = x⁻ + L (y − C x⁻ − D u[k])
+
+Every sum in index order, every product as written (a Python float is a C double;
+`-ffp-contract=off`). A non-finite reading contributes no correction (its residual is
+taken as 0); otherwise every sensor is used at every step: the channel supervision of the
+fixed-gain observer (docs/observer.md §5) is not part of the scheduled one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ScheduledDesign:
+    """`points (K,)` °C, `Phi (K, n, n)`, `B0`, `B1 (K, n, m)`, `L (K, n, p)`, `C (p, n)`,
+    `D (p, m)`, `by` (the index of the scheduling sensor among the outputs)."""
+
+    points: np.ndarray
+    Phi: np.ndarray
+    B0: np.ndarray
+    B1: np.ndarray
+    L: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+    by: int
+
+    def __post_init__(self):
+        K = len(self.points)
+        if K < 2 or np.any(np.diff(self.points) <= 0):
+            raise ValueError(f"`ScheduledDesign`: need two or more increasing points, got "
+                             f"{list(self.points)}.")
+        for name in ("Phi", "B0", "B1", "L"):
+            if getattr(self, name).shape[0] != K:
+                raise ValueError(f"`ScheduledDesign`: {name} has "
+                                 f"{getattr(self, name).shape[0]} points, not {K}.")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ScheduledRun:
+    """`states (T, n)` °C after each correction and the scheduling value `s (T,)` used."""
+
+    states: np.ndarray
+    s: np.ndarray
+
+
+class ScheduledObserver:
+    """The scheduled observer in plain float64 Python (see the module)."""
+
+    def __init__(self, design: ScheduledDesign):
+        d = design
+        self.d = d
+        self.points = [float(v) for v in d.points]
+        self.tables = {k: np.asarray(getattr(d, k), float).tolist()
+                       for k in ("Phi", "B0", "B1", "L")}
+        self.C, self.D = np.asarray(d.C, float).tolist(), np.asarray(d.D, float).tolist()
+
+    def _interpolated(self, s):
+        pts = self.points
+        K = len(pts)
+        s = pts[0] if s < pts[0] else pts[K - 1] if s > pts[K - 1] else s
+        j = 0
+        while j < K - 2 and pts[j + 1] <= s:
+            j += 1
+        w = (s - pts[j]) / (pts[j + 1] - pts[j])
+        out = {}
+        for k, tab in self.tables.items():
+            a, b = tab[j], tab[j + 1]
+            out[k] = [[a[r][c] + w * (b[r][c] - a[r][c]) for c in range(len(a[r]))]
+                      for r in range(len(a))]
+        return out, s
+
+    def run(self, x0, u, y) -> ScheduledRun:
+        """Play back `u (T, m)`, `y (T, p)` from `x0 (n,)`."""
+        u, y = np.asarray(u, float).tolist(), np.asarray(y, float).tolist()
+        n, p = len(self.C[0]), len(self.C)
+        x = [float(v) for v in x0]
+        s_last = self.points[0]
+        states, used = np.empty((len(u), n)), np.empty(len(u))
+        for k in range(len(u)):
+            s = y[k][self.d.by]
+            s = s if math.isfinite(s) else s_last
+            M, s = self._interpolated(s)
+            s_last = s
+            if k > 0:
+                xm = []
+                for r in range(n):
+                    acc = 0.0
+                    for c in range(n):
+                        acc = acc + M["Phi"][r][c] * x[c]
+                    for c in range(len(u[k])):
+                        acc = acc + M["B0"][r][c] * u[k - 1][c]
+                    for c in range(len(u[k])):
+                        acc = acc + M["B1"][r][c] * u[k][c]
+                    xm.append(acc)
+            else:
+                xm = list(x)
+            e = []
+            for i in range(p):
+                acc = 0.0
+                for c in range(n):
+                    acc = acc + self.C[i][c] * xm[c]
+                for c in range(len(u[k])):
+                    acc = acc + self.D[i][c] * u[k][c]
+                e.append(y[k][i] - acc if math.isfinite(y[k][i]) else 0.0)
+            x = []
+            for r in range(n):
+                acc = 0.0
+                for i in range(p):
+                    acc = acc + M["L"][r][i] * e[i]
+                x.append(xm[r] + acc)
+            states[k], used[k] = x, s
+        return ScheduledRun(states, used)
