@@ -42,6 +42,7 @@ import ten_year_ageing as study  # noqa: E402  (its profile and SciPy truth)
 import thermojax.reference as ref  # noqa: E402
 from thermojax.io import load_model  # noqa: E402
 from thermojax.observer import adaptive_design, track_conductances  # noqa: E402
+from thermojax.observer._adaptive import conductance_names  # noqa: E402
 
 DRIFT, CEILING, EXCITATION = 5e-5, 0.5, 3.0
 
@@ -50,8 +51,7 @@ def scipy_ekf(spec, tracked, u, y, dt, x0):
     """The peer: the study version's filter in NumPy/SciPy (log conductances)."""
     C, links, bnd, heat, sensors, _ = study.network(spec)
     n, m, p = C.size, u.shape[1], len(sensors)
-    names = ([f"links.{k.key}.conductance" for k in spec.links]
-             + [f"boundaries.{b.key}.conductance" for b in spec.boundaries])
+    names = conductance_names(spec)
     conds = [(a, b, g) for a, b, g in links] + [(a, -1 - c, g) for a, c, g in bnd]
     idx = [names.index(t) for t in tracked]
     k = len(idx)

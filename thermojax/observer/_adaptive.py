@@ -68,11 +68,12 @@ class AdaptiveRun:
     names: tuple[str, ...]
 
 
-def conductance_names(network: ThermalNetwork, spec) -> list[str]:
-    """Report names of every conductance of `network`, links first then boundaries, in
-    the order of `concatenate([log_conductance, log_boundary_conductance])`."""
-    return ([f"links.{k.key}.conductance" for k in spec.links]
-            + [f"boundaries.{b.key}.conductance" for b in spec.boundaries])
+def conductance_names(spec) -> list[str]:
+    """Report names of every conductance of `spec`, links first then boundaries: the
+    order of `concatenate([log_conductance, log_boundary_conductance])`."""
+    from ..model._parameters_by_name import spec_parameters
+
+    return [k for k in spec_parameters(spec) if k.startswith(("links.", "boundaries."))]
 
 
 def _with_log_conductances(network, tracked, values):
@@ -264,7 +265,7 @@ def _settings(spec, tracked, dt, drift, ceiling, process_noise, sensor_noise, wi
         raise InputError("the adaptive filter takes a linear network: this model has "
                          "effects; track conductances of the network without them.")
     network = model.network
-    names = conductance_names(network, spec)
+    names = conductance_names(spec)
     unknown = [t for t in tracked if t not in names]
     if unknown or not tracked:
         raise InputError(f"no conductance {unknown or '(none given)'} to track; the model's "
