@@ -95,6 +95,32 @@ class AdaptiveReferenceRun:
     flags: np.ndarray
 
 
+def _product(A, B):
+    """`A @ B` of square lists, each sum from 0.0 in index order (the C's loops)."""
+    n = len(A)
+    out = [[0.0] * n for _ in range(n)]
+    for r in range(n):
+        for c in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc = acc + A[r][j] * B[j][c]
+            out[r][c] = acc
+    return out
+
+
+def _product_t(A, B):
+    """`A @ Bᵀ` of square lists, in the same order."""
+    n = len(A)
+    out = [[0.0] * n for _ in range(n)]
+    for r in range(n):
+        for c in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc = acc + A[r][j] * B[c][j]
+            out[r][c] = acc
+    return out
+
+
 def _lu(A):
     """In place LU without pivoting (Doolittle), the C's order."""
     n = len(A)
@@ -278,23 +304,14 @@ class AdaptiveReference:
         for r in range(nk):
             for i in range(p):
                 A[r][sen[i]] = A[r][sen[i]] - Kt[r][i]
-        AP = [[0.0] * nk for _ in range(nk)]
-        for r in range(nk):
-            for c in range(nk):
-                acc = 0.0
-                for j in range(nk):
-                    acc = acc + A[r][j] * P[j][c]
-                AP[r][c] = acc
+        APA = _product_t(_product(A, P), A)
         Pn = [[0.0] * nk for _ in range(nk)]
         for r in range(nk):
             for c in range(nk):
-                acc = 0.0
-                for j in range(nk):
-                    acc = acc + AP[r][j] * A[c][j]
                 kr = 0.0
                 for i in range(p):
                     kr = kr + Kt[r][i] * (d.sensor_noise[i] * d.sensor_noise[i]) * Kt[c][i]
-                Pn[r][c] = acc + kr
+                Pn[r][c] = APA[r][c] + kr
         for r in range(nk):
             for c in range(r + 1, nk):
                 s = 0.5 * (Pn[r][c] + Pn[c][r])
@@ -324,20 +341,7 @@ class AdaptiveReference:
         else:
             x, F = self._predict(u)
             z = x + self.g
-            FP = [[0.0] * nk for _ in range(nk)]
-            for r in range(nk):
-                for c in range(nk):
-                    acc = 0.0
-                    for j in range(nk):
-                        acc = acc + F[r][j] * self.P[j][c]
-                    FP[r][c] = acc
-            P = [[0.0] * nk for _ in range(nk)]
-            for r in range(nk):
-                for c in range(nk):
-                    acc = 0.0
-                    for j in range(nk):
-                        acc = acc + FP[r][j] * F[c][j]
-                    P[r][c] = acc
+            P = _product_t(_product(F, self.P), F)
             for i in range(n):
                 P[i][i] = P[i][i] + (d.process_noise[i] * d.process_noise[i]) * d.dt
             for jj in range(k):

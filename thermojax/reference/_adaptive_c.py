@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._adaptive import AdaptiveDesign, AdaptiveReferenceRun
-from ._c_source import CSource
+from ._c_source import CSource, pack_log
 
 
 def _d(v: float) -> str:
@@ -379,11 +379,9 @@ int main(int argc, char **argv) {{
 
 
 def pack_adaptive(x0, u, y) -> bytes:
-    """The harness's input: `x0 (n,)`, then per sample `u (m,)` and `y (p,)` (doubles)."""
-    u, y = np.asarray(u, np.float64), np.asarray(y, np.float64)
-    rows = np.concatenate([u, y], axis=1)
-    return np.int32(u.shape[0]).tobytes() + np.asarray(x0, np.float64).tobytes() + \
-        rows.tobytes()
+    """The adaptive filter's harness input: `x0 (n,)`, then per sample
+    `u (m,)` and `y (p,)`."""
+    return pack_log(x0, u, y)
 
 
 def unpack_adaptive(data: bytes, n: int, k: int) -> AdaptiveReferenceRun:

@@ -980,3 +980,11 @@ def _lane_supervision_c(prefix, word, p, lanes, rv, lim, rails, thr, fc) -> tupl
                [f"        /* ({prefix}_wire_break stays 0: no residual threshold) */"]),
              "    }"]
     return tables, state, reset, step
+
+
+def pack_log(x0, u, y) -> bytes:
+    """The input of a harness that reads `int32 T`, `double x0[n]`, then per sample
+    `double u[m]` and `double y[p]` (the adaptive and the scheduled observers')."""
+    rows = np.concatenate([np.asarray(u, np.float64), np.asarray(y, np.float64)], axis=1)
+    return np.int32(rows.shape[0]).tobytes() + np.asarray(x0, np.float64).tobytes() + \
+        rows.tobytes()

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._c_source import CSource
+from ._c_source import CSource, pack_log
 from ._scheduled import ScheduledDesign, ScheduledRun
 
 
@@ -150,10 +150,9 @@ int main(int argc, char **argv) {{
 
 
 def pack_scheduled(x0, u, y) -> bytes:
-    """The harness's input: `x0 (n,)`, then per sample `u (m,)` and `y (p,)` (doubles)."""
-    rows = np.concatenate([np.asarray(u, np.float64), np.asarray(y, np.float64)], axis=1)
-    return np.int32(rows.shape[0]).tobytes() + np.asarray(x0, np.float64).tobytes() + \
-        rows.tobytes()
+    """The scheduled observer's harness input: `x0 (n,)`, then per sample
+    `u (m,)` and `y (p,)`."""
+    return pack_log(x0, u, y)
 
 
 def unpack_scheduled(data: bytes, n: int) -> ScheduledRun:
