@@ -133,8 +133,11 @@ def _filter(network, tracked, dt, q, drift, R, ceiling, threshold, reacquire, ex
     def step(carry, inputs):
         z, P, buf, i = carry
         u_prev, uk, yk = inputs
-        z_pred = _predict(network, tracked, dt, z, u_prev, uk)
-        F = jax.jacfwd(_predict, argnums=3)(network, tracked, dt, z, u_prev, uk)
+        def predicted(z):  # the prediction and its Jacobian from one forward pass
+            out = _predict(network, tracked, dt, z, u_prev, uk)
+            return out, out
+
+        F, z_pred = jax.jacfwd(predicted, has_aux=True)(z)
         A = _with_log_conductances(network, tracked, z[n:]).linear_system().A
         _, Qx = discretize_process_noise(A, jnp.diag(q ** 2), dt)
         Q = jax.scipy.linalg.block_diag(Qx, jnp.diag(drift ** 2 * dt))
