@@ -28,6 +28,7 @@ from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
+from scipy import stats
 
 import dataclasses
 
@@ -651,7 +652,7 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     # The best learned law significant by its score is refitted too, beside the kinds
     # (never instead of them: a law may mimic a kind, and the kind is the simpler form).
     best_law = [c for c in cands if c.learned is not None and c.p_value < fdr][:1]
-    if refits and best_law:
+    if refits and best_law and not _law_adds_nothing(best_law[0], cands, fdr):
         refit_best(best_law, 1, wave)
         # the kind the law reduces to (a column's heat_source), refitted too if it was
         # not: the law must beat the simpler form it nests (`prefer_vocabulary`)
@@ -662,6 +663,27 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     judge(cands, fdr, separation_advice)
     prefer_vocabulary(cands)
     return cands
+
+
+def _law_adds_nothing(law: Candidate, cands: list[Candidate], fdr: float) -> bool:
+    """Whether the learned `law`'s best score direction gains less over the kind of the
+    vocabulary it nests than the χ²(1) critical value at `fdr` (the shape chosen from
+    its grid is the one extra degree of freedom): its shape is then the nested kind's,
+    and its refit, a nonlinear model (the costliest of a step), could only tie with the
+    kind, which `prefer_vocabulary` keeps. Notes the reason on `law`."""
+    nested = law.learned.nested_kind(law.where)
+    kind = next((c for c in cands if c.learned is None and c.key == nested), None)
+    if kind is None or kind.score_test is None:
+        return False
+    gain = law.score_test - kind.score_test
+    critical = float(stats.chi2.isf(fdr, 1))
+    if gain >= critical:
+        return False
+    law.note = "; ".join(filter(None, (law.note, (
+        f"not refitted: its score exceeds that of {kind.kind} {list(kind.where)}, the kind "
+        f"it nests, by {gain:.3g} (under {critical:.3g}, the χ²(1) critical value at "
+        f"{fdr:g}): its best shape is the kind's, which explains as much"))))
+    return True
 
 
 def _learned_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str]) -> list:
