@@ -652,7 +652,8 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     # The best learned law significant by its score is refitted too, beside the kinds
     # (never instead of them: a law may mimic a kind, and the kind is the simpler form).
     best_law = [c for c in cands if c.learned is not None and c.p_value < fdr][:1]
-    if refits and best_law and not _law_adds_nothing(best_law[0], cands, fdr):
+    if refits and best_law and not _law_outranked(best_law[0], cands) and \
+            not _law_adds_nothing(best_law[0], cands, fdr):
         refit_best(best_law, 1, wave)
         # the kind the law reduces to (a column's heat_source), refitted too if it was
         # not: the law must beat the simpler form it nests (`prefer_vocabulary`)
@@ -663,6 +664,22 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     judge(cands, fdr, separation_advice)
     prefer_vocabulary(cands)
     return cands
+
+
+def _law_outranked(law: Candidate, cands: list[Candidate]) -> bool:
+    """Whether a kind of the vocabulary has a larger score-test statistic than the learned
+    `law`: a named kind then explains more at first order, and the law's refit (a
+    nonlinear model: under the Kalman likelihood the costliest fit of an investigation)
+    is skipped. Notes the reason on `law`."""
+    kinds = [c for c in cands if c.learned is None and c.score_test is not None
+             and np.isfinite(c.score_test)]
+    best = max(kinds, key=lambda c: c.score_test, default=None)
+    if best is None or best.score_test <= law.score_test:
+        return False
+    law.note = "; ".join(filter(None, (law.note, (
+        f"not refitted: its score, {law.score_test:.4g}, is below that of {best.kind} "
+        f"{list(best.where)} ({best.score_test:.4g}): a named kind explains more"))))
+    return True
 
 
 def _law_adds_nothing(law: Candidate, cands: list[Candidate], fdr: float) -> bool:
