@@ -257,3 +257,35 @@ def test_a_learned_law_must_beat_every_supported_kind_after_deflation():
     k.supported = False
     prefer_vocabulary([c, k])
     assert c.supported
+
+
+def test_a_learned_law_is_refitted_only_where_its_score_could_win():
+    """The best law's nonlinear refit is skipped when a kind has the larger score test
+    (`_law_outranked`), or when its best shape gains under χ²(1)'s 5 % critical value,
+    3.841 (1.95996², the normal quantile squared), over the kind it nests
+    (`_law_adds_nothing`); each skip is noted on the law. Otherwise it is refitted."""
+    from thermojax.discovery import LIBRARY, LearnedLaw
+    from thermojax.investigation._candidates import Candidate
+    from thermojax.investigation._investigate import _law_adds_nothing, _law_outranked
+
+    law_of_power = LearnedLaw(LIBRARY[1], "P_aux")  # nests heat_source [P_aux, pcb]
+
+    def cands(law_score, nested_score, other_score):
+        law = Candidate("expression", ("pcb",), law_score, 0.0, learned=law_of_power)
+        nested = Candidate("heat_source", ("P_aux", "pcb"), nested_score, 0.0)
+        other = Candidate("sensor_lag", ("T_die",), other_score, 0.0)
+        return law, [law, nested, other]
+
+    critical = 1.959963984540054 ** 2
+    # a kind elsewhere scores higher: outranked, noted with that kind
+    law, all_ = cands(96.8, 50.0, 438.7)
+    assert _law_outranked(law, all_) and "sensor_lag" in law.note
+    # the law leads; its gain over the nested kind just under / over the critical value
+    for gain, skipped in ((critical - 0.01, True), (critical + 0.01, False), (0.0, True)):
+        law, all_ = cands(1000.0 + gain, 1000.0, 10.0)
+        assert not _law_outranked(law, all_)
+        assert _law_adds_nothing(law, all_, 0.05) == skipped
+        assert ("not refitted" in law.note) == skipped
+    # a law that nests no kind of the list is always a refit candidate
+    law = Candidate("expression", ("pcb",), 30.0, 0.0, learned=LearnedLaw(LIBRARY[0], None))
+    assert not _law_adds_nothing(law, [law], 0.05) and not _law_outranked(law, [law])
