@@ -3,7 +3,19 @@
 import os
 import tempfile
 
-import jax
+# The suite compiles thousands of programs and runs most of them for milliseconds: with
+# XLA's cheapest backend optimization they compile about 40 % faster (a Kalman fit's
+# first evaluation 50 -> 30 s; four test files 242 -> 204 s on 2 cores). No fast-math
+# is involved and every check keeps its tolerance. Set before JAX starts its backend;
+# the commands and notebook kernels the tests start inherit it.
+# `THERMOJAX_TEST_XLA_FLAGS=""` tests under XLA's default compilation instead.
+_FAST_COMPILE = os.environ.get(
+    "THERMOJAX_TEST_XLA_FLAGS",
+    "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true")
+if _FAST_COMPILE not in os.environ.get("XLA_FLAGS", ""):  # once, also in xdist workers
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_FAST_COMPILE}".strip()
+
+import jax  # noqa: E402
 import pytest
 
 # Commands run in-process enable the persistent compilation cache: keep the suite's
