@@ -280,6 +280,10 @@ def test_a_learned_law_is_refitted_only_where_its_score_could_win():
     # a kind elsewhere scores higher: outranked, noted with that kind
     law, all_ = cands(96.8, 50.0, 438.7)
     assert _law_outranked(law, all_) and "sensor_lag" in law.note
+    # a bias channel's viscoelastic term is no thermal rival
+    law, all_ = cands(96.8, 50.0, 10.0)
+    all_.append(Candidate("viscoelastic", ("pcb", "accel_x_ug"), 900.0, 0.0))
+    assert not _law_outranked(law, all_)
     # the law leads; its gain over the nested kind just under / over the critical value
     for gain, skipped in ((critical - 0.01, True), (critical + 0.01, False), (0.0, True)):
         law, all_ = cands(1000.0 + gain, 1000.0, 10.0)

@@ -650,7 +650,8 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
 
     refit_best([c for c in cands if c.learned is None], refits, wave)
     # The best learned law significant by its score is refitted too, beside the kinds
-    # (never instead of them: a law may mimic a kind, and the kind is the simpler form).
+    # (never instead of them: a law may mimic a kind, and the kind is the simpler form),
+    # unless a kind has the larger score or the law's shape is its nested kind's.
     best_law = [c for c in cands if c.learned is not None and c.p_value < fdr][:1]
     if refits and best_law and not _law_outranked(best_law[0], cands) and \
             not _law_adds_nothing(best_law[0], cands, fdr):
@@ -671,8 +672,8 @@ def _law_outranked(law: Candidate, cands: list[Candidate]) -> bool:
     `law`: a named kind then explains more at first order, and the law's refit (a
     nonlinear model: under the Kalman likelihood the costliest fit of an investigation)
     is skipped. Notes the reason on `law`."""
-    kinds = [c for c in cands if c.learned is None and c.score_test is not None
-             and np.isfinite(c.score_test)]
+    kinds = [c for c in cands if c.learned is None and c.kind != "viscoelastic"
+             and c.score_test is not None and np.isfinite(c.score_test)]
     best = max(kinds, key=lambda c: c.score_test, default=None)
     if best is None or best.score_test <= law.score_test:
         return False
