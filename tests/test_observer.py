@@ -122,10 +122,13 @@ def test_gradient_through_discretization_and_gain_vs_finite_differences():
         fd = (loss(log_c + e, gain) - loss(log_c - e, gain)) / (2 * h)
         np.testing.assert_allclose(float(g_c[i]), float(fd), rtol=2e-6, atol=1e-9)
     for i, j in [(0, 0), (5, 2), (3, 1)]:
-        # the loss is a high-degree polynomial in L (no exponential): a small step
-        hL = 1e-7
+        # the loss is a high-degree polynomial in L (no exponential): a fourth-order
+        # central difference at 1e-5, whose roundoff (~1e-11 relative) and truncation are
+        # far below the tolerance (two points at 1e-7 carried ~1e-6 of roundoff)
+        hL = 1e-5
         E = jnp.zeros((6, 3)).at[i, j].set(hL)
-        fd = (loss(log_c, gain + E) - loss(log_c, gain - E)) / (2 * hL)
+        fd = (8 * (loss(log_c, gain + E) - loss(log_c, gain - E))
+              - (loss(log_c, gain + 2 * E) - loss(log_c, gain - 2 * E))) / (12 * hL)
         np.testing.assert_allclose(float(g_L[i, j]), float(fd), rtol=1e-6, atol=1e-9)
 
 
