@@ -73,6 +73,11 @@ class Candidate:
         if self.score_test is None and self.method == "score":
             self.score_test = self.score
 
+    def add_note(self, text: str, *, first: bool = False) -> None:
+        """Join `text` to the note (after it, or before it with `first`), "; "-separated."""
+        parts = (text, self.note) if first else (self.note, text)
+        self.note = "; ".join(filter(None, parts))
+
     @property
     def likelihood_ratio(self) -> float | None:
         """2 (−log L before − −log L after): the refitted candidate's statistic."""

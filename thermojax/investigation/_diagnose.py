@@ -40,9 +40,8 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
             try:
                 check_holdout(c, step, runs, likelihood, say, fits)
             except Exception as err:  # the check could not run: say so, keep the verdict
-                c.note = "; ".join(filter(None, (
-                    f"held-out check could not run: {type(err).__name__}: {err}"[:200],
-                    c.note)))
+                c.add_note(f"held-out check could not run: {type(err).__name__}: {err}"[:200],
+                           first=True)
     if not any(c.supported for c in cands):
         record_unexplained(step, missing, say)
     columns = list(spec.sensor_columns) + [b.column for b in spec.biases]

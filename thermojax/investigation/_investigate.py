@@ -422,9 +422,8 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
     if len(by_hold) == 2:
         other = next(h for h in by_hold if h != c.hold)
         lr_other = 2 * (by_hold[other][1].record["nll"] - ext.record["nll"])
-        c.note = "; ".join(filter(None, (c.note, (
-            f"{', '.join(brings)} held as {c.hold!r}: its likelihood ratio over "
-            f"{other!r} is {lr_other:.1f}"))))
+        c.add_note(f"{', '.join(brings)} held as {c.hold!r}: its likelihood ratio over "
+                   f"{other!r} is {lr_other:.1f}")
         say(c.note)
     lr = 2 * (step.record["nll"] - ext.record["nll"])
     c.result = ext
@@ -440,10 +439,10 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
         # the null, which a log parameter reaches only in the limit): the effect is absent.
         lr = 0.0
     if lr < 0:
-        c.note = "; ".join(filter(None, (c.note, (
+        c.add_note(
             f"every refit ended below the nested model (−log L {-lr / 2:.3g} higher): the "
             "extended model's optimum was not found, and it is at least the nested one's "
-            "(the effect at zero), so the likelihood ratio is reported as 0"))))
+            "(the effect at zero), so the likelihood ratio is reported as 0")
         lr = 0.0
     n_new = ext.record["n_params"] - step.record["n_params"]
     c.score, c.method = float(lr), "refit"
@@ -454,10 +453,9 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
     c.absorbed_by = absorbing_nodes(step, ext)
     if c.absorbed_by:
         moved = "; ".join(f"{n} ({', '.join(ps)})" for n, ps in c.absorbed_by.items())
-        c.note = "; ".join(filter(None, (c.note, (
-            f"near-tie with the unmeasured node {moved}: its parameters moved to mimic "
-            f"the effect when it was absent; a sensor on "
-            f"{' or '.join(c.absorbed_by)} would separate them"))))
+        c.add_note(f"near-tie with the unmeasured node {moved}: its parameters moved to "
+                   f"mimic the effect when it was absent; a sensor on "
+                   f"{' or '.join(c.absorbed_by)} would separate them")
     return True
 
 
@@ -677,9 +675,9 @@ def _law_outranked(law: Candidate, cands: list[Candidate]) -> bool:
     best = max(kinds, key=lambda c: c.score_test, default=None)
     if best is None or best.score_test <= law.score_test:
         return False
-    law.note = "; ".join(filter(None, (law.note, (
-        f"not refitted: its score, {law.score_test:.4g}, is below that of {best.kind} "
-        f"{list(best.where)} ({best.score_test:.4g}): a named kind explains more"))))
+    law.add_note(f"not refitted: its score, {law.score_test:.4g}, is below that of "
+                 f"{best.kind} {list(best.where)} ({best.score_test:.4g}): a named kind "
+                 "explains more")
     return True
 
 
@@ -697,10 +695,10 @@ def _law_adds_nothing(law: Candidate, cands: list[Candidate], fdr: float) -> boo
     critical = float(stats.chi2.isf(fdr, 1))
     if gain >= critical:
         return False
-    law.note = "; ".join(filter(None, (law.note, (
-        f"not refitted: its score exceeds that of {kind.kind} {list(kind.where)}, the kind "
-        f"it nests, by {gain:.3g} (under {critical:.3g}, the χ²(1) critical value at "
-        f"{fdr:g}): its best shape is the kind's, which explains as much"))))
+    law.add_note(f"not refitted: its score exceeds that of {kind.kind} {list(kind.where)}, "
+                 f"the kind it nests, by {gain:.3g} (under {critical:.3g}, the χ²(1) "
+                 f"critical value at {fdr:g}): its best shape is the kind's, which explains "
+                 "as much")
     return True
 
 
@@ -927,10 +925,9 @@ def check_holdout(c: Candidate, current: Step, runs, likelihood, say,
     scheme = "leave one run out" if folds[0][1] is None else f"{len(folds)} contiguous blocks"
     if ok is False:
         c.supported = False
-        c.note = "; ".join(filter(None, (f"held-out check against it ({scheme}): {why}",
-                                         c.note)))
+        c.add_note(f"held-out check against it ({scheme}): {why}", first=True)
     else:
-        c.note = "; ".join(filter(None, (f"{why} ({scheme})", c.note)))
+        c.add_note(f"{why} ({scheme})", first=True)
 
 
 def _choose(cands: list[Candidate], current: Step, runs, likelihood, holdout_check: bool,

@@ -76,7 +76,7 @@ def judge(cands: list[Candidate], fdr: float, separation_advice) -> None:
         c.supported = bool(passed and c.method == "refit" and dbic <= -MIN_BIC_DROP
                            and not c.duplicate)
         if c.duplicate:
-            c.note = "; ".join(filter(None, (c.duplicate, c.note)))
+            c.add_note(c.duplicate, first=True)
         elif passed and c.method == "refit" and not c.supported:
             c.note = c.note or (f"Δ BIC {dbic:.1f} (deflated by {c.lr_deflation:.2f} for "
                                 f"autocorrelated residuals) is not a drop of {MIN_BIC_DROP:g}")
@@ -91,7 +91,7 @@ def judge(cands: list[Candidate], fdr: float, separation_advice) -> None:
                    "χ²₁) of " + ", ".join(f"{k} {list(w)}" for k, w in c.tied_with) +
                    ", so the data cannot tell them apart; " +
                    separation_advice({c.kind, *(k for k, _ in c.tied_with)}))
-            c.note = "; ".join(filter(None, (tie, c.note)))
+            c.add_note(tie, first=True)
 
 
 def prefer_vocabulary(cands: list[Candidate]) -> None:
@@ -112,10 +112,9 @@ def prefer_vocabulary(cands: list[Candidate]) -> None:
             d = max(c.lr_deflation, k.lr_deflation, 1.0)
             if dbic(c, d) > dbic(k, d) - MIN_BIC_DROP:
                 c.supported = False
-                c.note = "; ".join(filter(None, (
-                    f"{k.kind} {list(k.where)} explains as much (deflated Δ BIC "
-                    f"{dbic(k, d):.1f} against {dbic(c, d):.1f}, deflation {d:.2f}): the "
-                    "named kind is kept", c.note)))
+                c.add_note(f"{k.kind} {list(k.where)} explains as much (deflated Δ BIC "
+                           f"{dbic(k, d):.1f} against {dbic(c, d):.1f}, deflation {d:.2f}): "
+                           "the named kind is kept", first=True)
                 break
 
 
