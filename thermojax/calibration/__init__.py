@@ -1,5 +1,6 @@
 """Calibration: data conditioning, static polynomial from dwell plateaus, Allan deviation,
-and the calibration pipeline's named stages (`run_pipeline`, `thermojax calibrate`).
+the calibration pipeline's named stages (`run_pipeline`, `thermojax calibrate`), and a
+unit's end-of-line trim (`estimate_trim`, `thermojax trim`).
 
 The building blocks are NumPy/SciPy only (no JAX); the pipeline's `thermal_fit`,
 `coupling` and `verify` stages use `thermojax.fit` and the observer export.
@@ -16,9 +17,10 @@ from ._config import STAGES, CalibrationConfig, RunFiles, load_config
 from ._pipeline import (CalibrationResults, ChannelAllan, ChannelCheck, ChannelPolynomial,
                         ConditionedRun, Coupling, condition, coupling, run_pipeline,
                         static_polynomial, thermal_fit, verification_allan, verify)
-from ._plots import plot_allan
+from ._plots import plot_allan, plot_trim
 from ._report import write_results
 from ._synthetic import synthetic_imu_logs
+from ._trim import TrimEstimate, estimate_trim, trim_outputs
 
 __all__ = [
     "AllanDeviation", "Estimate", "NoiseParameters", "ORIENTATIONS", "OrientationSeparation",
@@ -30,5 +32,6 @@ __all__ = [
     "ChannelCheck", "ChannelPolynomial", "ConditionedRun", "Coupling", "condition",
     "coupling", "run_pipeline", "static_polynomial", "thermal_fit", "verify",
     "ChannelAllan", "verification_allan",
-    "write_results", "synthetic_imu_logs",
+    "write_results", "synthetic_imu_logs", "plot_trim", "TrimEstimate", "estimate_trim",
+    "trim_outputs",
 ]

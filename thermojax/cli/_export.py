@@ -66,6 +66,7 @@ def cmd_export(args) -> int:
                                      inertial_rate_hz=args.inertial_rate,
                                      adaptive=adaptive_config(args),
                                      schedule=schedule_config(args),
+                                     trim=trim_config(args),
                                      operating_point=args.operating_point,
                                      c_float=args.c_float, c_layout=args.c_layout)
             load_observer(tmp)  # what was written reads back
@@ -98,6 +99,15 @@ def cmd_export(args) -> int:
         sc = m["schedule"]
         print(f"gain schedule: {len(sc['points_C'])} points from {sc['points_C'][0]:g} to "
               f"{sc['points_C'][-1]:g} °C, by {sc['by']} ({sc['prefix']}.c)")
+    if m["trim"] is not None:
+        tr = m["trim"]
+        print(f"end-of-line trim: {', '.join(f['name'] for f in tr['factors'])} on a grid of "
+              f"{'×'.join(str(len(f['grid'])) for f in tr['factors'])} designs "
+              f"({tr['prefix']}.c)" + (
+                  "; this unit's factors " + ", ".join(f"{v:.6g}" for v in tr["unit"]["factors"])
+                  + f" in {tr['unit']['file']} (interpolation error in Phi "
+                  f"{tr['unit']['interpolation_error']['Phi']:.2g}, in L "
+                  f"{tr['unit']['interpolation_error']['L']:.2g})" if tr["unit"] else ""))
     if m["adaptive"] is not None:
         ad = m["adaptive"]
         print(f"adaptive filter: tracks {', '.join(ad['tracked'])} "
@@ -105,6 +115,40 @@ def cmd_export(args) -> int:
     for name, size in result.files.items():
         print(f"  {out / name}  ({size} bytes)")
     return 0
+
+
+def trim_config(args) -> dict | None:
+    """The `trim` argument of `export_observer` from `--trim` and `--trim-factors` (the
+    factors read from a `thermojax trim` result, matched to the trim file by name)."""
+    import json
+
+    if args.trim is None:
+        if args.trim_factors is not None:
+            raise InputError("--trim-factors without --trim TRIM.toml.", field="--trim-factors")
+        return None
+    if args.trim_factors is None:
+        return {"file": args.trim, "factors": None}
+    path = Path(args.trim_factors)
+    try:
+        record = json.loads(path.read_text())
+        found = {f["name"]: float(f["value"]) for f in record["factors"]}
+    except FileNotFoundError:
+        raise InputError("no such file.", file=str(path), field="--trim-factors") from None
+    except (ValueError, KeyError, TypeError) as err:
+        raise InputError(f"not a trim result (thermojax trim's trim.json): {err}.",
+                         file=str(path), field="--trim-factors") from None
+    import tomllib
+
+    try:
+        names = [f.get("name") for f in tomllib.loads(Path(args.trim).read_text())["factors"]]
+    except (OSError, tomllib.TOMLDecodeError, KeyError, TypeError, AttributeError):
+        return {"file": args.trim, "factors": None}   # export_observer names the trim file's fault
+    missing = [n for n in names if n not in found]
+    if missing:
+        raise InputError(f"has no factor {missing} of the trim file {args.trim} (it has "
+                         f"{sorted(found)}): estimate them with this trim file.", file=str(path),
+                         field="--trim-factors")
+    return {"file": args.trim, "factors": [found[n] for n in names], "factors_file": str(path)}
 
 
 def schedule_config(args) -> dict | None:
@@ -241,6 +285,14 @@ def add_export(sub):
     sg.add_argument("--schedule-by", metavar="COLUMN", default=None,
                     help="the sensor column whose reading schedules (required with "
                     "--schedule)")
+    tg = p.add_argument_group("end-of-line trim (docs/observer.md §13): the observer over a "
+                              "grid of per-unit scale factors, interpolated once at start-up")
+    tg.add_argument("--trim", metavar="TRIM.toml", default=None,
+                    help="also write tj_trimmed.c, designed at every point of the trim file's "
+                    "factor grid")
+    tg.add_argument("--trim-factors", metavar="TRIM.json", default=None,
+                    help="a unit's factors (thermojax trim's trim.json): also write its factor "
+                    "table tj_trimmed_unit.c and the interpolation's error at it")
     a = p.add_argument_group("adaptive filter (docs/observer.md §11): drifting conductances "
                              "tracked online, tj_adaptive.c bit-exact with the NumPy reference")
     a.add_argument("--adaptive", action="append", metavar="CONDUCTANCE",

@@ -23,6 +23,7 @@ from ._export import add_export
 from ._playback import add_playback
 from ._rate import add_rate
 from ._calibrate import add_calibrate
+from ._trim import add_trim
 from ._montecarlo import add_montecarlo
 from ._outputs import (check_output_file, check_output_folder, mark_own, output_session,
                        staged_file, staged_folder)
@@ -569,6 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_playback(sub)
     add_rate(sub)
     add_calibrate(sub)
+    add_trim(sub)
     add_montecarlo(sub)
     return parser
 

@@ -40,7 +40,7 @@ from .._errors import InputError
 
 Real: TypeAlias = float | int
 
-PHASE_KINDS = ("dwell", "heating_ramp", "cooling_ramp", "step", "power_step")
+PHASE_KINDS = ("dwell", "heating_ramp", "cooling_ramp", "step", "power_step", "power_sweep")
 
 # Chamber envelope of the seed's calibration rig, °C.
 CHAMBER_MIN_C = -55.0
@@ -58,7 +58,7 @@ class Phase:
 
     - `start_s`, `end_s`: the exact phase boundaries, s (`end_s >= start_s`).
     - `kind`: one of `"dwell"`, `"heating_ramp"`, `"cooling_ramp"`, `"step"`,
-      `"power_step"`.
+      `"power_step"`, `"power_sweep"`.
     """
 
     start_s: float
@@ -225,8 +225,8 @@ class _Builder:
         return t
 
     def _phase(self, t_end: float, kind: str):
-        if self.phases and self.phases[-1].kind == kind == "dwell":
-            # merge consecutive dwells into one plateau
+        if self.phases and self.phases[-1].kind == kind and kind in ("dwell", "power_sweep"):
+            # merge consecutive dwells into one plateau, a sweep's samples into one phase
             self.phases[-1] = Phase(self.phases[-1].start_s, t_end, kind)
         else:
             self.phases.append(Phase(self.t, t_end, kind))
@@ -436,6 +436,45 @@ def power_step(level_w: Real, before_s: Real, on_s: Real, after_s: Real, *,
     return b.build()
 
 
+def power_sweep(level_w: Real, periods_s=(300.0, 30.0), cycles=(2, 10), *,
+                temperature_c: Real = 25.0, dt: Real = 1.0) -> Profile:
+    """A heater power swept at a few frequencies in turn, at constant chamber temperature:
+    the second seed's two-point frequency end-of-line test.
+
+    For each period `P` (s) in turn, `cycles` whole cycles of
+    `level_w (1 − cos(2π t / P)) / 2` (0 at each start and end, `level_w` at the peak),
+    held over each sample (use a zero-order hold). One "power_sweep" phase.
+
+    **Arguments:**
+
+    - `level_w`: peak power, W.
+    - `periods_s`: the periods, s (each at least `4 dt`).
+    - `cycles`: whole cycles per period (each ≥ 1).
+    - `temperature_c`: chamber temperature, °C.
+    - `dt`: sample period, s.
+    """
+    call = "power_sweep"
+    dt = _dt(call, dt)
+    level = _finite(call, "level_w", level_w)
+    periods = [_positive(call, "periods_s", v) for v in periods_s]
+    if len(periods) != len(cycles) or not periods:
+        raise InputError(f"`power_sweep` needs one cycle count per period, got "
+                         f"{len(periods)} periods and {len(cycles)} counts.", field="cycles")
+    b = _Builder(call, _finite(call, "temperature_c", temperature_c), dt)
+    for P, n in zip(periods, cycles):
+        if P < 4 * dt:
+            raise InputError(f"`power_sweep`: a period of {P:g} s is under four samples of "
+                             f"{dt:g} s.", field="periods_s")
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise InputError(f"`power_sweep`: cycles must be whole numbers ≥ 1, got {n!r}.",
+                             field="cycles")
+        for k in range(int(round(n * P / dt))):
+            b.power(level * 0.5 * (1.0 - math.cos(2.0 * math.pi * k * dt / P)))
+            b.hold(dt, kind="power_sweep")
+    b.power(0.0)
+    return b.build()
+
+
 # Maximal-length Fibonacci LFSR taps (primitive trinomials/pentanomials), register
 # length m -> tap positions (1-based). Each gives the period 2**m - 1.
 _LFSR_TAPS = {
@@ -642,6 +681,9 @@ BUILTIN_PROFILES: dict[str, Callable[..., Profile]] = {
     "power_step": lambda dt=1.0: power_step(1.0, before_s=600.0, on_s=1800.0, after_s=1800.0,
                                             dt=dt),
     "prbs": lambda dt=1.0: prbs_power(1.0, bit_s=60.0, n_bits=127, seed=0, dt=dt),
+    "eol_step": lambda dt=1.0: power_step(1.0, before_s=60.0, on_s=600.0, after_s=300.0,
+                                          dt=dt),
+    "eol_sweep": lambda dt=1.0: power_sweep(1.0, (300.0, 30.0), (2, 10), dt=dt),
 }
 """Named profiles, each `f(dt=1.0) -> Profile`.
 
@@ -652,6 +694,10 @@ BUILTIN_PROFILES: dict[str, Callable[..., Profile]] = {
 - `"viscoelastic_dwell"`: `viscoelastic_dwell()` (10 min at 25 °C, step to 85 °C, 3 h).
 - `"power_step"`: 1 W for 30 min after 10 min off, then 30 min off, at 25 °C.
 - `"prbs"`: 127 bits of 60 s, 0 or 1 W, at 25 °C.
+- `"eol_step"`: the end-of-line single-point dynamic test: 1 W for 10 min after 1 min off,
+  then 5 min off, at 25 °C (16 min).
+- `"eol_sweep"`: the end-of-line two-point frequency test: `power_sweep` of 1 W peak,
+  2 cycles of 300 s then 10 of 30 s, at 25 °C (15 min).
 """
 
 

@@ -15,6 +15,7 @@ from ._placement import SensorSet, sensor_placement
 from ._pole_placement import ObserverPoles, observer_poles, place_observer_gain
 from ._response import estimate_noise_std, rise_time
 from ._schedule import scheduled_design
+from ._trim import TrimFactor, TrimPlan, load_trim_plan, parse_trim_plan, trim_design
 
 __all__ = [
     "AdaptiveRun", "ExportResult", "adaptive_design", "KalmanGain", "Observability", "Observer", "ObserverPoles", "ObserverRun",
@@ -22,5 +23,6 @@ __all__ = [
     "estimate_noise_std", "export_observer", "observability", "observability_gramian",
     "observability_matrix", "observability_rank", "observer_poles", "place_observer_gain",
     "reconstruction_observer", "rise_time", "run_observer", "sensor_placement",
-    "scheduled_design", "steady_state_kalman", "track_conductances",
+    "scheduled_design", "steady_state_kalman", "track_conductances", "TrimFactor", "TrimPlan",
+    "load_trim_plan", "parse_trim_plan", "trim_design",
 ]

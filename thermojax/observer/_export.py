@@ -121,7 +121,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
                     input_noise: float | None = None,
                     inertial_rate_hz: float | None = None,
                     adaptive: dict | None = None,
-                    schedule: dict | None = None) -> ExportResult:
+                    schedule: dict | None = None,
+                    trim: dict | None = None) -> ExportResult:
     """Write the reference-observer artifact of a model (see the module docstring).
 
     The full sensor set must observe every state (else `InputError` naming the lost
@@ -163,6 +164,10 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     - `schedule`: `{"points": [°C, ...], "by": sensor column}`: also write the
       gain-scheduled observer of a nonlinear model (`tj_scheduled.c`/`.h`, docs/observer.md
       §12), its matrices in `observer.npz` (`schedule_*`), `observer.json` `"schedule"`.
+    - `trim`: `{"file": trim file path, "factors": a unit's factors or None}`: also write
+      the end-of-line trimmed observer (`tj_trimmed.c`/`.h`, docs/observer.md §13) over the
+      trim file's grid, its matrices in `observer.npz` (`trim_*`), `observer.json`
+      `"trim"`; with `factors`, the unit's factor table `tj_trimmed_unit.c`.
 
     **Returns:** an `ExportResult`. Warnings (a nonlinear effect linearized, a coefficient
     that rounds to zero in the fixed format) are issued with `warnings.warn` and listed.
@@ -442,6 +447,9 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     meta["schedule"] = None
     if schedule is not None:
         sources.append(_scheduled_source(spec, rate_hz, schedule, where, meta, arrays))
+    meta["trim"] = None
+    if trim is not None:
+        sources.append(_trimmed_source(spec, rate_hz, trim, where, meta, arrays))
     meta["adaptive"] = None
     if adaptive is not None:
         sources.append(_adaptive_source(spec, model, adaptive, dt, where, meta))
@@ -494,6 +502,7 @@ def _augment(system, names, inputs, power_inputs, q, column, input_noise, method
 MULTIRATE_PREFIX = "tj_multirate"
 ADAPTIVE_PREFIX = "tj_adaptive"
 SCHEDULED_PREFIX = "tj_scheduled"
+TRIMMED_PREFIX = "tj_trimmed"
 
 
 def _scheduled_source(spec, rate_hz, schedule: dict, where, meta, arrays):
@@ -516,6 +525,57 @@ def _scheduled_source(spec, rate_hz, schedule: dict, where, meta, arrays):
                f"interpolated linearly at the reading of {schedule['by']} (clamped to the "
                "points, held while it is not finite)"}
     return ref.generate_scheduled_c(design, SCHEDULED_PREFIX)
+
+
+def _trimmed_source(spec, rate_hz, trim: dict, where, meta, arrays):
+    """The end-of-line trimmed observer's C (and the unit's factor table when `trim`
+    has factors); its matrices into `arrays`, its facts into `meta["trim"]`."""
+    from .. import reference as ref
+    from ._trim import load_trim_plan, trim_design, unit_design
+
+    if spec is None:
+        raise InputError("the trim is designed from a model file; export a model file, not a "
+                         "ThermalModel.", file=where, field="--trim")
+    plan = load_trim_plan(trim["file"], spec)
+    design = trim_design(spec, rate_hz, plan, where)
+    arrays["trim_grid"] = np.concatenate([np.asarray(g, float) for g in design.grids])
+    arrays["trim_sizes"] = np.array([len(g) for g in design.grids], dtype=np.int64)
+    for name in ("Phi", "B0", "B1", "L", "C", "D"):
+        arrays[f"trim_{name}"] = np.asarray(getattr(design, name), float)
+    unit = None
+    src = ref.generate_trimmed_c(design, TRIMMED_PREFIX)
+    if trim.get("factors") is not None:
+        values = np.asarray(trim["factors"], float)
+        if values.shape != (len(plan.factors),) or not np.all(np.isfinite(values)):
+            raise InputError(f"{values.size} trim factors for the trim file's "
+                             f"{len(plan.factors)} ({', '.join(plan.names)}), or one not "
+                             "finite.", file=str(trim.get("factors_file", where)),
+                             field="--trim-factors")
+        # the interpolation's error at this unit: against its exact design
+        exact = unit_design(spec, rate_hz, plan, values)
+        got = ref.trim_matrices(design, values)
+        worst = {k: float(np.max(np.abs(np.asarray(got.matrices[k]) - exact[k])))
+                 for k in ("Phi", "B0", "B1", "L")}
+        outside = [n for n, v, g in zip(plan.names, values, design.grids)
+                   if not g[0] <= v <= g[-1]]
+        if outside:
+            warnings.warn(f"the unit's factors {outside} lie outside the trim grid: the "
+                          "firmware clamps them to its edge; widen the trim file's range.")
+        unit = {"factors": values.tolist(), "file": f"{TRIMMED_PREFIX}_unit.c",
+                "interpolation_error": worst}
+    meta["trim"] = {
+        "prefix": TRIMMED_PREFIX, "trim_file": str(trim["file"]),
+        "factors": [{"name": f.name, "parameters": list(f.parameters), "grid": list(f.grid)}
+                    for f in plan.factors],
+        "inputs": list(spec.input_columns), "sensors": list(spec.sensor_columns),
+        "unit": unit,
+        "use": f"at start-up: {TRIMMED_PREFIX}_init({TRIMMED_PREFIX}_unit_factors) (the "
+               "unit's table in flash; a factor that is not finite counts as 1), then "
+               f"{TRIMMED_PREFIX}_reset(x0); every step: {TRIMMED_PREFIX}_step(u, y)"}
+    if unit is not None:
+        src = dataclasses.replace(src, unit=ref.unit_factor_table(
+            design, unit["factors"], TRIMMED_PREFIX, note=f"From {trim.get('factors_file')}."))
+    return src
 
 
 def _adaptive_source(spec, model, adaptive: dict, dt: float, where, meta):

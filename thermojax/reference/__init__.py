@@ -6,7 +6,7 @@ bias channels evaluated from the estimate (polynomial,
 gradients, exact rates, viscoelastic strain states), the firmware's channel supervision (plausibility, open circuit, ADC rails, wire break,
 reduced-order fallback gains; untrusted inputs held at their last good value, state
 health and fixed-point saturation counts), multi-rate bias interpolation through a double buffer, an adaptive filter tracking drifting
-conductances, a gain-scheduled observer,
+conductances, a gain-scheduled observer, an observer trimmed per unit at initialisation,
 the derived fixed-point error bound, and a C99 generator that repeats all of it.
 """
 
@@ -27,6 +27,8 @@ from ._run import ObserverRun
 from ._scheduled import ScheduledDesign, ScheduledObserver, ScheduledRun
 from ._scheduled_c import generate_scheduled_c, pack_scheduled, unpack_scheduled
 from ._system import ObserverSystem
+from ._trimmed import Trim, TrimDesign, TrimmedObserver, trim_matrices
+from ._trimmed_c import generate_trimmed_c, pack_trimmed, unit_factor_table, unpack_trimmed
 
 __all__ = [
     "AdaptiveDesign", "AdaptiveReference", "AdaptiveReferenceRun", "generate_adaptive_c",
@@ -36,5 +38,7 @@ __all__ = [
     "Q15", "Q16_16", "Q31", "Q8_24", "decode", "encode", "error_series", "fixed_format",
     "bias_channels_from_metadata", "default_input_limits", "generate_c", "generate_multirate_c", "pack_multirate", "load_observer", "quantization_error_bound", "round_shift",
     "run_multirate", "saturate", "ScheduledDesign", "ScheduledObserver", "ScheduledRun",
-    "generate_scheduled_c", "pack_scheduled", "unpack_scheduled",
+    "generate_scheduled_c", "pack_scheduled", "unpack_scheduled", "Trim", "TrimDesign",
+    "TrimmedObserver", "trim_matrices", "generate_trimmed_c", "pack_trimmed",
+    "unit_factor_table", "unpack_trimmed",
 ]

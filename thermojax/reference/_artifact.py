@@ -118,6 +118,37 @@ class ObserverArtifact:
                                 file=str(self.folder / META), field="schedule") from None
         return ScheduledObserver(design)
 
+    def trimmed_observer(self, factors=None):
+        """The artifact's end-of-line trimmed observer (exported with `--trim`) as a
+        `TrimmedObserver` at `factors` (default: the unit's, exported with
+        `--trim-factors`), from the `trim_*` arrays."""
+        from ._trimmed import TrimDesign, TrimmedObserver
+
+        tr = self.metadata.get("trim")
+        if tr is None:
+            raise ArtifactError("the artifact has no trim (exported without --trim).",
+                                file=str(self.folder / META), field="trim")
+        names = ("grid", "sizes", "Phi", "B0", "B1", "L", "C", "D")
+        missing = [f"trim_{k}" for k in names if f"trim_{k}" not in self.arrays]
+        if missing:
+            raise ArtifactError(f"the arrays {missing} are missing.",
+                                file=str(self.folder / ARRAYS), field=missing[0])
+        if factors is None:
+            if tr.get("unit") is None:
+                raise ArtifactError("no unit's factors in the artifact (exported without "
+                                    "--trim-factors): pass them.", file=str(self.folder / META),
+                                    field="trim.unit")
+            factors = tr["unit"]["factors"]
+        a = {k: self.arrays[f"trim_{k}"] for k in names}
+        try:
+            grids = tuple(np.split(a["grid"], np.cumsum(a["sizes"])[:-1]))
+            design = TrimDesign(tuple(f["name"] for f in tr["factors"]), grids, a["Phi"],
+                                a["B0"], a["B1"], a["L"], a["C"], a["D"])
+        except (ValueError, KeyError) as err:
+            raise ArtifactError(f"the trim cannot be read ({err}).",
+                                file=str(self.folder / META), field="trim") from None
+        return TrimmedObserver(design, factors)
+
     def adaptive_reference(self):
         """The artifact's firmware adaptive filter (exported with `--adaptive`) as an
         `AdaptiveReference`, from the design in `observer.json`."""

@@ -62,6 +62,7 @@ class CSource:
     p: int
     q: int = 0
     bias_word: str = "double"
+    unit: str | None = None   # a per-unit table (`<prefix>_unit.c`), where the build has one
 
     @property
     def dtype(self) -> np.dtype:
@@ -106,13 +107,16 @@ class CSource:
                            bias, rec["i"].copy(), rec["f"][:, 3].copy(), rec["s"].copy())
 
     def write(self, folder) -> dict:
-        """Write `<prefix>.h`, `<prefix>.c` and `<prefix>_main.c` into `folder`."""
+        """Write `<prefix>.h`, `<prefix>.c`, `<prefix>_main.c` (and `<prefix>_unit.c` where
+        the build has a unit table) into `folder`."""
         import pathlib
 
         folder = pathlib.Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         paths = {"header": folder / f"{self.prefix}.h", "source": folder / f"{self.prefix}.c",
                  "harness": folder / f"{self.prefix}_main.c"}
+        if self.unit is not None:
+            paths["unit"] = folder / f"{self.prefix}_unit.c"
         for key, path in paths.items():
             path.write_text(getattr(self, key))
         return paths

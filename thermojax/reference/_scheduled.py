@@ -27,6 +27,8 @@ import math
 
 import numpy as np
 
+from ._filter_form import filter_step
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class ScheduledDesign:
@@ -90,41 +92,14 @@ class ScheduledObserver:
     def run(self, x0, u, y) -> ScheduledRun:
         """Play back `u (T, m)`, `y (T, p)` from `x0 (n,)`."""
         u, y = np.asarray(u, float).tolist(), np.asarray(y, float).tolist()
-        n, p = len(self.C[0]), len(self.C)
         x = [float(v) for v in x0]
         s_last = self.points[0]
-        states, used = np.empty((len(u), n)), np.empty(len(u))
+        states, used = np.empty((len(u), len(x))), np.empty(len(u))
         for k in range(len(u)):
             s = y[k][self.d.by]
             s = s if math.isfinite(s) else s_last
             M, s = self._interpolated(s)
             s_last = s
-            if k > 0:
-                xm = []
-                for r in range(n):
-                    acc = 0.0
-                    for c in range(n):
-                        acc = acc + M["Phi"][r][c] * x[c]
-                    for c in range(len(u[k])):
-                        acc = acc + M["B0"][r][c] * u[k - 1][c]
-                    for c in range(len(u[k])):
-                        acc = acc + M["B1"][r][c] * u[k][c]
-                    xm.append(acc)
-            else:
-                xm = list(x)
-            e = []
-            for i in range(p):
-                acc = 0.0
-                for c in range(n):
-                    acc = acc + self.C[i][c] * xm[c]
-                for c in range(len(u[k])):
-                    acc = acc + self.D[i][c] * u[k][c]
-                e.append(y[k][i] - acc if math.isfinite(y[k][i]) else 0.0)
-            x = []
-            for r in range(n):
-                acc = 0.0
-                for i in range(p):
-                    acc = acc + M["L"][r][i] * e[i]
-                x.append(xm[r] + acc)
+            x = filter_step(M, self.C, self.D, x, u[k - 1] if k > 0 else None, u[k], y[k])
             states[k], used[k] = x, s
         return ScheduledRun(states, used)

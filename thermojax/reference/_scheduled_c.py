@@ -19,19 +19,8 @@ from __future__ import annotations
 import numpy as np
 
 from ._c_source import CSource, pack_log
+from ._filter_form import c_array as _array, filter_step_c
 from ._scheduled import ScheduledDesign, ScheduledRun
-
-
-def _array(name, a) -> str:
-    a = np.asarray(a, float)
-    dims = "".join(f"[{d}]" for d in a.shape)
-
-    def body(x):
-        if x.ndim == 1:
-            return "{" + ", ".join(repr(float(v)) for v in x) + "}"
-        return "{" + ", ".join(body(r) for r in x) + "}"
-
-    return f"static const double {name}{dims} = {body(a)};"
 
 
 def generate_scheduled_c(design: ScheduledDesign, prefix: str = "tj_scheduled") -> CSource:
@@ -78,8 +67,8 @@ void {prefix}_reset(const double x0[{P}_N]) {{
 
 void {prefix}_step(const double u[{P}_M], const double y[{P}_P]) {{
     static double Phi[{P}_N][{P}_N], B0[{P}_N][{P}_M], B1[{P}_N][{P}_M], L[{P}_N][{P}_P];
-    double xm[{P}_N], e[{P}_P], s, w;
-    int r, c, i, j;
+    double s, w;
+    int r, c, j;
     s = isfinite(y[BY]) ? y[BY] : {prefix}_s;
     s = (s < POINTS[0]) ? POINTS[0] : (s > POINTS[{P}_K - 1]) ? POINTS[{P}_K - 1] : s;
     j = 0;
@@ -95,31 +84,7 @@ void {prefix}_step(const double u[{P}_M], const double y[{P}_P]) {{
         for (c = 0; c < {P}_P; c++) L[r][c] = LT[j][r][c] + w * (LT[j + 1][r][c] - LT[j][r][c]);
     }}
     {prefix}_s = s;
-    if (started) {{
-        for (r = 0; r < {P}_N; r++) {{
-            double acc = 0.0;
-            for (c = 0; c < {P}_N; c++) acc = acc + Phi[r][c] * {prefix}_x[c];
-            for (c = 0; c < {P}_M; c++) acc = acc + B0[r][c] * u_prev[c];
-            for (c = 0; c < {P}_M; c++) acc = acc + B1[r][c] * u[c];
-            xm[r] = acc;
-        }}
-    }} else {{
-        for (r = 0; r < {P}_N; r++) xm[r] = {prefix}_x[r];
-    }}
-    for (i = 0; i < {P}_P; i++) {{
-        double acc = 0.0;
-        for (c = 0; c < {P}_N; c++) acc = acc + CM[i][c] * xm[c];
-        for (c = 0; c < {P}_M; c++) acc = acc + DM[i][c] * u[c];
-        e[i] = isfinite(y[i]) ? y[i] - acc : 0.0;
-    }}
-    for (r = 0; r < {P}_N; r++) {{
-        double acc = 0.0;
-        for (i = 0; i < {P}_P; i++) acc = acc + L[r][i] * e[i];
-        {prefix}_x[r] = xm[r] + acc;
-    }}
-    for (c = 0; c < {P}_M; c++) u_prev[c] = u[c];
-    started = 1;
-}}
+{filter_step_c(prefix)}}}
 """
     harness = f"""/* Playback harness for {prefix}: int32 T, double x0[N], then per sample
    double u[M], double y[P]; writes per sample double x[N], double s. */

@@ -1,0 +1,100 @@
+"""One step of the filter-form observer with matrices chosen at run time, in plain
+float64 Python and as the C99 that repeats it operation for operation (the scheduled and
+the trimmed observers share it; `-ffp-contract=off`).
+
+    x⁻ = Phi x + B0 u[k−1] + B1 u[k]     (not at the first step: x⁻ = x)
+    x  = x⁻ + L (y − C x⁻ − D u[k])       a non-finite reading's residual taken as 0
+
+Every sum in index order from 0.0, every product as written.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def filter_step(M: dict, C: list, D: list, x: list, u_prev: list | None, u: list,
+                y: list) -> list:
+    """The next estimate from `x (n,)`: `M` holds `Phi`, `B0`, `B1`, `L` as nested lists;
+    `u_prev` is `None` at the first step (no prediction)."""
+    n, p = len(C[0]), len(C)
+    if u_prev is not None:
+        xm = []
+        for r in range(n):
+            acc = 0.0
+            for c in range(n):
+                acc = acc + M["Phi"][r][c] * x[c]
+            for c in range(len(u)):
+                acc = acc + M["B0"][r][c] * u_prev[c]
+            for c in range(len(u)):
+                acc = acc + M["B1"][r][c] * u[c]
+            xm.append(acc)
+    else:
+        xm = list(x)
+    e = []
+    for i in range(p):
+        acc = 0.0
+        for c in range(n):
+            acc = acc + C[i][c] * xm[c]
+        for c in range(len(u)):
+            acc = acc + D[i][c] * u[c]
+        e.append(y[i] - acc if math.isfinite(y[i]) else 0.0)
+    out = []
+    for r in range(n):
+        acc = 0.0
+        for i in range(p):
+            acc = acc + M["L"][r][i] * e[i]
+        out.append(xm[r] + acc)
+    return out
+
+
+def filter_step_c(prefix: str) -> str:
+    """The C body of `filter_step`, updating `{prefix}_x` from `u`, `y`, `u_prev` and
+    `started`, with the matrices in `Phi`, `B0`, `B1`, `L`, `CM`, `DM` and the sizes in
+    `{PREFIX}_N`, `_M`, `_P` (declares its own locals `xm`, `e`, `r`, `c`, `i`)."""
+    P = prefix.upper()
+    return f"""    {{
+    double xm[{P}_N], e[{P}_P];
+    int r, c, i;
+    if (started) {{
+        for (r = 0; r < {P}_N; r++) {{
+            double acc = 0.0;
+            for (c = 0; c < {P}_N; c++) acc = acc + Phi[r][c] * {prefix}_x[c];
+            for (c = 0; c < {P}_M; c++) acc = acc + B0[r][c] * u_prev[c];
+            for (c = 0; c < {P}_M; c++) acc = acc + B1[r][c] * u[c];
+            xm[r] = acc;
+        }}
+    }} else {{
+        for (r = 0; r < {P}_N; r++) xm[r] = {prefix}_x[r];
+    }}
+    for (i = 0; i < {P}_P; i++) {{
+        double acc = 0.0;
+        for (c = 0; c < {P}_N; c++) acc = acc + CM[i][c] * xm[c];
+        for (c = 0; c < {P}_M; c++) acc = acc + DM[i][c] * u[c];
+        e[i] = isfinite(y[i]) ? y[i] - acc : 0.0;
+    }}
+    for (r = 0; r < {P}_N; r++) {{
+        double acc = 0.0;
+        for (i = 0; i < {P}_P; i++) acc = acc + L[r][i] * e[i];
+        {prefix}_x[r] = xm[r] + acc;
+    }}
+    for (c = 0; c < {P}_M; c++) u_prev[c] = u[c];
+    started = 1;
+    }}
+"""
+
+
+def c_array(name, a, const: bool = True) -> str:
+    """A C definition `static const double name[d0][d1]... = {...};` of `a` (17
+    significant digits, exact)."""
+    a = np.asarray(a, float)
+    dims = "".join(f"[{d}]" for d in a.shape)
+
+    def body(x):
+        if x.ndim == 1:
+            return "{" + ", ".join(repr(float(v)) for v in x) + "}"
+        return "{" + ", ".join(body(r) for r in x) + "}"
+
+    return f"static {'const ' if const else ''}double {name}{dims} = {body(a)};"
