@@ -394,7 +394,20 @@ def test_calibration_schedule_accepts_chamber_limits():
 
 def test_builtin_names():
     assert set(BUILTIN_PROFILES) == {"calibration", "ramp1", "ramp5", "ramp10", "shock",
-                                     "viscoelastic_dwell", "power_step", "prbs"}
+                                     "viscoelastic_dwell", "power_step", "prbs", "eol_step",
+                                     "eol_sweep"}
+
+
+def test_the_end_of_line_sweep_is_two_tones_of_whole_cycles():
+    p = BUILTIN_PROFILES["eol_sweep"]()
+    k = np.arange(600)
+    assert np.allclose(p.power[:600], 0.5 * (1 - np.cos(2 * np.pi * k / 300)), atol=1e-15)
+    k = np.arange(300)
+    assert np.allclose(p.power[600:900], 0.5 * (1 - np.cos(2 * np.pi * k / 30)), atol=1e-15)
+    assert p.power[900] == 0 and p.ts[-1] == 900 and np.all(p.temperature == 25.0)
+    assert [ph.kind for ph in p.phases] == ["power_sweep"]
+    step = BUILTIN_PROFILES["eol_step"]()
+    assert step.ts[-1] == 960 and np.all(step.power[60:660] == 1) and step.power[660] == 0
 
 
 @pytest.mark.parametrize("name", sorted(BUILTIN_PROFILES))
