@@ -54,14 +54,24 @@ def _markdown(r: dict) -> str:
              "**fitted** = each unit identified from its own calibration run (MAP "
              "output-error fit, the population as prior) and compensated with its fitted "
              "model; **own** = the unit's own true model (the ideal per-unit calibration "
-             "bound).", "",
+             "bound)" + ("; **trim_step**, **trim_sweep** = the nominal model with one factor "
+                         "on every capacitance and one on every conductance, fitted to the "
+                         "unit's end-of-line power step or two-tone sweep"
+                         if "trim_step" in r["methods"] else "") + ".", "",
+             "Secondary-state offset: the estimated bias-node temperature's mean error over "
+             "the test run's last tenth (its final dwell); step overshoot: its largest excess "
+             "over the true trajectory after a 20 K chamber step, % of the step.", "",
              f"| method | within ±{r['bias_limit']:g} {u} (peak) | bias peak p50 / p95 / p99 / "
-             f"max ({u}) | temperature peak p50 / p95 / max (K) |", "|---|---:|---:|---:|"]
+             f"max ({u}) | temperature peak p50 / p95 / max (K) | offset p50 / p95 (mK) | "
+             "step overshoot p50 / p95 (%) |", "|---|---:|---:|---:|---:|---:|"]
     for m in r["methods"]:
         b, t = r["percentiles"][m]["bias_peak"], r["percentiles"][m]["temp_peak"]
+        o, s_ = r["percentiles"][m]["temp_offset"], r["percentiles"][m]["step_overshoot"]
         lines.append(f"| {m} | {100 * r['fraction_within_bias_spec'][m]:.1f} % | "
                      f"{b['p50']:.3g} / {b['p95']:.3g} / {b['p99']:.3g} / {b['max']:.3g} | "
-                     f"{t['p50']:.3g} / {t['p95']:.3g} / {t['max']:.3g} |")
+                     f"{t['p50']:.3g} / {t['p95']:.3g} / {t['max']:.3g} | "
+                     f"{1e3 * o['p50']:.3g} / {1e3 * o['p95']:.3g} | "
+                     f"{s_['p50']:.3g} / {s_['p95']:.3g} |")
     lines += ["", "## Which spread matters most (nominal method, peak bias error)", "",
               "Least-squares coefficients of the peak bias error on the standardized "
               "log-deviations (change per standard deviation of the parameter), and each "

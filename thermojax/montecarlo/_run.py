@@ -20,13 +20,15 @@ _PAUSE = os.environ.get("THERMOJAX_MONTECARLO_PAUSE")
 
 #: `[fit]` keys and defaults: the cap on each unit's trust-region Gauss-Newton steps
 #: (`iterations` + 3; a unit stops earlier when it converges), fit the measured bias
-#: column too, units in the batch model's pooled fit (0: no batch method).
-FIT_KEYS = {"iterations": 50, "bias_column": True, "batch_units": 0}
+#: column too, units in the batch model's pooled fit (0: no batch method), add the
+#: end-of-line trim methods (`trim_step`, `trim_sweep`).
+FIT_KEYS = {"iterations": 50, "bias_column": True, "batch_units": 0, "trim": False}
 
 #: The per-unit fit's method, hashed into the manifest so that a folder of chunks from
 #: another method is never resumed into: 1 = 20 Levenberg-Marquardt + 3 Gauss-Newton
-#: steps vmapped over a chunk; 2 = trust-region Gauss-Newton to convergence per unit.
-STUDY_VERSION = 2
+#: steps vmapped over a chunk; 2 = trust-region Gauss-Newton to convergence per unit;
+#: 3 = 2 with the secondary-state offset and step-overshoot metrics (and the trim methods).
+STUDY_VERSION = 3
 
 PROFILE_KEYS = {"lo": None, "hi": None, "rate": None, "dwell": None, "dt": None,
                 "power": 0.0, "start": 25.0}
@@ -127,10 +129,12 @@ def load_config(path) -> MonteCarloConfig:
     fit = {"iterations": _whole(fit_table, "iterations", FIT_KEYS["iterations"], 1, file,
                                 "fit.iterations"),
            "bias_column": fit_table.get("bias_column", True),
-           "batch_units": _whole(fit_table, "batch_units", 0, 0, file, "fit.batch_units")}
-    if not isinstance(fit["bias_column"], bool):
-        raise InputError(f"expected true or false, got {fit['bias_column']!r}.", file=file,
-                         field="fit.bias_column")
+           "batch_units": _whole(fit_table, "batch_units", 0, 0, file, "fit.batch_units"),
+           "trim": fit_table.get("trim", False)}
+    for key in ("bias_column", "trim"):
+        if not isinstance(fit[key], bool):
+            raise InputError(f"expected true or false, got {fit[key]!r}.", file=file,
+                             field=f"fit.{key}")
     sp = table.get("spec", {})
     if not isinstance(sp, dict) or set(sp) - {"bias", "bias_limit", "sensor_noise"}:
         raise InputError("expected a table with keys bias, bias_limit, sensor_noise.",
@@ -225,7 +229,8 @@ def study_of(config: MonteCarloConfig):
     return Study(config.spec, varied_names(config.population), config.profile,
                  bias=config.bias, sensor_noise=config.sensor_noise, file=str(config.path),
                  prior=log_prior(config.population), calibration=config.calibration,
-                 iterations=fit["iterations"], fit_bias=fit["bias_column"])
+                 iterations=fit["iterations"], fit_bias=fit["bias_column"],
+                 trim=fit.get("trim", False))
 
 
 def set_batch_model(study, config: MonteCarloConfig):

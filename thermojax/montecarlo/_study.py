@@ -58,9 +58,15 @@ from .._errors import InputError
 T_REF = 25.0  # °C: centre of the bias polynomials (docs/formats.md §4)
 METHODS = {"nominal": "nominal model (batch-level default observer)",
            "batch": "batch model fitted to a sample of units (batch-level calibration)",
+           "trim_step": "end-of-line trim from a single-point power step (eol_step: one "
+                        "capacitance and one conductance factor)",
+           "trim_sweep": "end-of-line trim from a two-tone power sweep (eol_sweep: the same "
+                         "two factors)",
            "fitted": "unit's own identified model (per-unit calibration)",
            "own": "unit's own true model (ideal per-unit calibration bound)"}
-METRICS = ("temp_rms", "temp_peak", "bias_rms", "bias_peak")
+METRICS = ("temp_rms", "temp_peak", "bias_rms", "bias_peak", "temp_offset", "step_overshoot")
+TRIM_STEPS = 12  # Levenberg–Marquardt steps of a unit's end-of-line trim (two factors)
+STEP_K = 20.0  # K: the chamber step of the `step_overshoot` metric
 POLISH_STEPS = 3  # steps of a fit allowed beyond `iterations`
 INITIAL_RADIUS = 0.2  # the fit's first trust region, in log-deviation (20 %)
 RADIUS_GROWTH = 2.0  # the trust region's growth after a good step that reached it
@@ -121,12 +127,14 @@ class Study:
     - `iterations`: each fit takes at most `iterations + POLISH_STEPS` steps (it stops
       earlier on convergence, `fit`).
     - `fit_bias`: fit the measured bias column too (known coefficients).
+    - `trim`: add the end-of-line trim methods (`trim_step`, `trim_sweep`; the model needs a
+      heat input).
     """
 
     def __init__(self, spec, names, profile: dict, bias: str | None = None,
                  sensor_noise: bool = True, file: str | None = None, prior=None,
                  calibration: dict | None = None, iterations: int = 50,
-                 fit_bias: bool = True):
+                 fit_bias: bool = True, trim: bool = False):
         import jax.numpy as jnp
 
         from ..model import ThermalNetwork, spec_parameters
@@ -199,12 +207,87 @@ class Study:
             # whitening: r_prior = W (d - mean), W = chol(cov)^-1
             self.prior = (mean, np.linalg.inv(np.linalg.cholesky(cov)))
         self.batch_logdev = None  # set by `set_batch_model`
+        self.trim = None
+        if trim:
+            self.trim = self._trim_setup(topo, file)
+        # the chamber step of `step_overshoot`: 25 -> 45 °C after 60 s, at the test period
+        n_step = int(round(1800.0 / self.dt)) + 1
+        t_step = np.arange(n_step) * self.dt
+        heat = {topo.input_names[i] for i in topo.heat_inputs}
+        chamber = np.where(t_step >= 60.0, T_REF + STEP_K, T_REF)
+        self.inputs_step = jnp.asarray(np.column_stack(
+            [np.full(n_step, profile.get("power", 0.0)) if c in heat else chamber
+             for c in topo.input_names]))
+
+    def _trim_setup(self, topo, file):
+        """The end-of-line trim's inputs per method (`eol_step`, `eol_sweep` at 1 s, the
+        chamber at 25 °C, the power into every heat input) and its factor map `(k, 2)`:
+        every varied capacitance by the first factor, every varied conductance by the
+        second (docs/observer.md §13)."""
+        import jax.numpy as jnp
+
+        from ..measurements._profiles import builtin_profile
+
+        if not topo.heat_inputs:
+            raise InputError("the end-of-line trim drives the unit's heater: the model has "
+                             "no heat input.", file=file, field="fit.trim")
+        heat = {topo.input_names[i] for i in topo.heat_inputs}
+        inputs = {}
+        for method, name in (("trim_step", "eol_step"), ("trim_sweep", "eol_sweep")):
+            p = builtin_profile(name, dt=1.0)
+            inputs[method] = jnp.asarray(np.column_stack(
+                [p.power if c in heat else p.temperature for c in topo.input_names]))
+        M = np.zeros((len(self.names), 2))
+        for j, name in enumerate(self.names):
+            if name.startswith("nodes."):
+                M[j, 0] = 1.0
+            elif name.startswith(("links.", "boundaries.")):
+                M[j, 1] = 1.0
+        M = M[:, M.any(axis=0)]
+        return {"inputs": inputs, "map": jnp.asarray(M)}
+
+    def trim_factors(self, logdev, unit, seed, method: str):
+        """One unit's end-of-line trim (traceable): its test (`method`'s inputs, 1 s
+        samples) simulated with sensor noise, and the log-factors `θ` (2,) fitted by
+        `TRIM_STEPS` Levenberg–Marquardt steps from 0 (the rest nominal). The unit's
+        trimmed log-deviations are `map @ θ`."""
+        import jax
+        import jax.numpy as jnp
+
+        from ..dynamics._discretize import discretize
+
+        u = self.trim["inputs"][method]
+        M = self.trim["map"]
+        key = jax.random.fold_in(self._keys(unit, seed)[0], 3 if method == "trim_step" else 4)
+
+        def outputs(d):
+            system = self.unit_network(d).linear_system()
+            disc = discretize(system, 1.0)
+            return self._simulate(system, disc, u) @ disc.C.T + u @ disc.D.T
+
+        y = outputs(logdev)
+        y = y + jax.random.normal(key, y.shape, y.dtype) * jnp.asarray(self.noise)[None, :]
+        std = jnp.asarray(self.sensor_std)[None, :]
+
+        def residuals(theta):
+            return ((y - outputs(M @ theta)) / std).ravel()
+
+        def step(_, theta):
+            r = residuals(theta)
+            J = jax.jacfwd(residuals)(theta)
+            H = J.T @ J
+            H = H + 1e-6 * jnp.diag(jnp.diag(H))
+            delta = -jnp.linalg.solve(H, J.T @ r)
+            return theta + jnp.clip(delta, -0.5, 0.5)
+
+        return jax.lax.fori_loop(0, TRIM_STEPS, step, jnp.zeros(M.shape[1], M.dtype))
 
     @property
     def methods(self) -> dict[str, str]:
         """The methods this study computes (keys of `METHODS`, in its order)."""
         on = {"nominal": True, "own": True, "fitted": self.prior is not None,
-              "batch": self.batch_logdev is not None}
+              "batch": self.batch_logdev is not None, "trim_step": self.trim is not None,
+              "trim_sweep": self.trim is not None}
         return {m: label for m, label in METHODS.items() if on[m]}
 
     # -- per unit ---------------------------------------------------------------------
@@ -511,10 +594,17 @@ class Study:
         noise = jax.random.normal(key, (x.shape[0], disc.C.shape[0]), x.dtype)
         y = x @ disc.C.T + u @ disc.D.T + noise * jnp.asarray(self.noise)[None, :]
         true_bias = self._bias(system, x, u)
+        x_step = self._simulate(system, disc, self.inputs_step)
         models = [("nominal", nominal), ("own", (system, disc, gain))]
         out = {}
         if batch is not None:
             models.append(("batch", batch))
+        if self.trim is not None:
+            for method in ("trim_step", "trim_sweep"):
+                theta = self.trim_factors(logdev, unit, seed, method)
+                models.append((method, self.observer_of(self.unit_network(
+                    self.trim["map"] @ theta))))
+                out[f"{method}_log_factors"] = theta
         if self.prior is not None:
             if fitted is None:
                 fitted = self.fit(*self.calibration_data(logdev, unit, seed), steps=True)
@@ -533,6 +623,15 @@ class Study:
             out[f"{label}_temp_peak"] = jnp.max(jnp.abs(dT))
             out[f"{label}_bias_rms"] = jnp.sqrt(jnp.mean(db ** 2))
             out[f"{label}_bias_peak"] = jnp.max(jnp.abs(db))
+            # the secondary state's offset: its mean error over the last tenth (a dwell)
+            out[f"{label}_temp_offset"] = jnp.abs(jnp.mean(dT[-max(1, dT.shape[0] // 10):]))
+            # its overshoot over the true trajectory after a STEP_K chamber step (noise
+            # free), % of the step
+            est_s = run_observer(Observer(disc_o, gain_o), self.inputs_step,
+                                 x_step @ disc.C.T + self.inputs_step @ disc.D.T,
+                                 sys_o.steady_state(self.inputs_step[0])).states
+            over = est_s[:, self.bias.temperature] - x_step[:, self.bias.temperature]
+            out[f"{label}_step_overshoot"] = 100.0 * jnp.maximum(jnp.max(over), 0.0) / STEP_K
         out["true_bias_span"] = jnp.max(true_bias) - jnp.min(true_bias)
         return out
 
