@@ -163,6 +163,7 @@ def test_unit_variance_procurement_study(tmp_path):
         # the unit's own observer on noise-free readings from the true steady state tracks
         # the true trajectory exactly: its step overshoot is roundoff
         assert r["step_overshoot"]["own"]["max"] < 1e-9, p
+        assert r["phase_loss"]["own"]["max"] < 1e-9, p   # X̂ = X in the frequency domain
     # the secondary state's offset under the nominal observer grows with the spread
     offset = [res[p]["temp_offset"]["nominal"]["p50"] for p in res]
     assert offset == sorted(offset)

@@ -60,18 +60,21 @@ def _markdown(r: dict) -> str:
                          if "trim_step" in r["methods"] else "") + ".", "",
              "Secondary-state offset: the estimated bias-node temperature's mean error over "
              "the test run's last tenth (its final dwell); step overshoot: its largest excess "
-             "over the true trajectory after a 20 K chamber step, % of the step.", "",
+             "over the true trajectory after a 20 K chamber step, % of the step; phase loss: "
+             "its phase against the truth for a 300 s chamber sinusoid (degrees).", "",
              f"| method | within ±{r['bias_limit']:g} {u} (peak) | bias peak p50 / p95 / p99 / "
              f"max ({u}) | temperature peak p50 / p95 / max (K) | offset p50 / p95 (mK) | "
-             "step overshoot p50 / p95 (%) |", "|---|---:|---:|---:|---:|---:|"]
+             "step overshoot p50 / p95 (%) | phase loss p50 / p95 (°) |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
     for m in r["methods"]:
         b, t = r["percentiles"][m]["bias_peak"], r["percentiles"][m]["temp_peak"]
         o, s_ = r["percentiles"][m]["temp_offset"], r["percentiles"][m]["step_overshoot"]
+        ph = r["percentiles"][m]["phase_loss"]
         lines.append(f"| {m} | {100 * r['fraction_within_bias_spec'][m]:.1f} % | "
                      f"{b['p50']:.3g} / {b['p95']:.3g} / {b['p99']:.3g} / {b['max']:.3g} | "
                      f"{t['p50']:.3g} / {t['p95']:.3g} / {t['max']:.3g} | "
                      f"{1e3 * o['p50']:.3g} / {1e3 * o['p95']:.3g} | "
-                     f"{s_['p50']:.3g} / {s_['p95']:.3g} |")
+                     f"{s_['p50']:.3g} / {s_['p95']:.3g} | {ph['p50']:.3g} / {ph['p95']:.3g} |")
     lines += ["", "## Which spread matters most (nominal method, peak bias error)", "",
               "Least-squares coefficients of the peak bias error on the standardized "
               "log-deviations (change per standard deviation of the parameter), and each "

@@ -64,7 +64,9 @@ METHODS = {"nominal": "nominal model (batch-level default observer)",
                          "two factors)",
            "fitted": "unit's own identified model (per-unit calibration)",
            "own": "unit's own true model (ideal per-unit calibration bound)"}
-METRICS = ("temp_rms", "temp_peak", "bias_rms", "bias_peak", "temp_offset", "step_overshoot")
+METRICS = ("temp_rms", "temp_peak", "bias_rms", "bias_peak", "temp_offset", "step_overshoot",
+           "phase_loss")
+PHASE_PERIOD_S = 300.0  # s: the chamber period of the `phase_loss` metric (imu6's housing τ)
 TRIM_STEPS = 12  # Levenberg–Marquardt steps of a unit's end-of-line trim (two factors)
 STEP_K = 20.0  # K: the chamber step of the `step_overshoot` metric
 POLISH_STEPS = 3  # steps of a fit allowed beyond `iterations`
@@ -632,8 +634,33 @@ class Study:
                                  sys_o.steady_state(self.inputs_step[0])).states
             over = est_s[:, self.bias.temperature] - x_step[:, self.bias.temperature]
             out[f"{label}_step_overshoot"] = 100.0 * jnp.maximum(jnp.max(over), 0.0) / STEP_K
+            out[f"{label}_phase_loss"] = self._phase_loss(disc, disc_o, gain_o)
         out["true_bias_span"] = jnp.max(true_bias) - jnp.min(true_bias)
         return out
+
+    def _phase_loss(self, disc, disc_o, gain_o):
+        """|phase| (degrees) of the estimated bias-node temperature against the unit's true
+        one, for a chamber sinusoid of period `PHASE_PERIOD_S` in steady state: the
+        unit's response `X = (z I − Φ)⁻¹ (B0 + z B1) e`, the observer's `X̂` from
+        `(I − K Φₘ/z) X̂ = K (B0ₘ/z + B1ₘ) e + L (C X + D e − Dₘ e)`, `K = I − L Cₘ`,
+        `z = exp(iω dt)` (traceable). The phase margin a loop closed on the estimate loses
+        at that frequency."""
+        import jax.numpy as jnp
+
+        topo = self.network.topology
+        j = topo.boundary_inputs[0]
+        m = disc.B0.shape[1]
+        e = jnp.zeros(m).at[j].set(1.0).astype(jnp.complex128)
+        z = jnp.exp(1j * 2.0 * jnp.pi * self.dt / PHASE_PERIOD_S)
+        n = disc.Phi.shape[0]
+        eye = jnp.eye(n, dtype=jnp.complex128)
+        X = jnp.linalg.solve(z * eye - disc.Phi, (disc.B0 + z * disc.B1) @ e)
+        Y = disc.C @ X + disc.D @ e
+        K = eye - gain_o @ disc_o.C
+        Xh = jnp.linalg.solve(eye - K @ disc_o.Phi / z,
+                              K @ ((disc_o.B0 / z + disc_o.B1) @ e) + gain_o @ (Y - disc_o.D @ e))
+        b = self.bias.temperature
+        return jnp.abs(jnp.angle(Xh[b] / X[b])) * 180.0 / jnp.pi
 
     def set_batch_model(self, logdev: np.ndarray, units: np.ndarray, seed: int):
         """Fit the batch model: one parameter set, the MAP fit pooled over the calibration
