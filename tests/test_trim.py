@@ -269,3 +269,27 @@ def test_trim_and_export_from_the_command_line(spec, tmp_path, capsys):
         assert main(["export", "--model", str(model), "--rate", "1", "--out",
                      str(tmp_path / "bad"), *args, "--quiet"]) == 2, args
         assert needle in capsys.readouterr().err, args
+
+
+def test_a_factor_the_log_cannot_determine_is_said_and_exits_1(tmp_path, capsys):
+    """Every capacitance and conductance scaled together leaves a chamber step's response
+    unchanged (the same A and B for a boundary input): a chamber-only log cannot determine
+    that factor. `trim` says so, exits 1, and writes valid JSON (no NaN)."""
+    from thermojax.cli import main
+
+    model = tmp_path / "module3.toml"
+    model.write_text(spec_text())
+    trim_file = tmp_path / "trim.toml"
+    trim_file.write_text('[[factors]]\nname = "all"\nparameters = ["nodes.*.capacitance", '
+                         '"links.*.conductance", "boundaries.*.conductance"]\n'
+                         'range = [0.5, 2.0]\n')
+    log = tmp_path / "shock.csv"
+    assert main(["simulate", "--model", str(model), "--profile", "shock", "--noise",
+                 "--out", str(log), "--quiet"]) == 0
+    assert main(["trim", "--model", str(model), "--factors", str(trim_file), "--data", str(log),
+                 "--out", str(tmp_path / "t"), "--quiet"]) == 1
+    assert "do not use these factors" in capsys.readouterr().out
+    record = json.loads((tmp_path / "t" / "trim.json").read_text())
+    assert record["converged"] is False
+    std = record["factors"][0]["std"]
+    assert std is None or std > 1.0

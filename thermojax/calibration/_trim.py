@@ -15,17 +15,18 @@ import numpy as np
 
 from .._errors import InputError
 
-_FIELDS = {"nodes": ("log_capacitance", "capacitance"),
-           "links": ("log_conductance", "conductance"),
-           "boundaries": ("log_boundary_conductance", "conductance"),
-           "heat_inputs": ("log_heat_gain", "gain")}
+#: A factor whose log-std is not below this (a factor of e) is undetermined by the log.
+UNDETERMINED_LOG_STD = 1.0
+_FIELDS = {"nodes": "log_capacitance", "links": "log_conductance",
+           "boundaries": "log_boundary_conductance", "heat_inputs": "log_heat_gain"}
 
 
 @dataclasses.dataclass(frozen=True)
 class TrimEstimate:
     """A unit's factors `values (D,)` with their std `std (D,)` and `correlation (D, D)`
     (the Gauss–Newton covariance scaled by the residual variance), the RMSE per sensor
-    (°C) of the nominal and the trimmed model, the samples used, and `converged`."""
+    (°C) of the nominal and the trimmed model, the samples used, and `converged` (the
+    solve converged and every factor's log-std is below `UNDETERMINED_LOG_STD`)."""
 
     names: tuple[str, ...]
     values: np.ndarray
@@ -38,13 +39,16 @@ class TrimEstimate:
     converged: bool
 
     def as_dict(self) -> dict:
-        """The JSON form (`trim.json`, docs/observer.md §13)."""
-        return {"factors": [{"name": n, "value": float(v), "std": float(s)}
+        """The JSON form (`trim.json`, docs/observer.md §13; an undetermined std or
+        correlation is null, JSON never holds NaN)."""
+        from .._json import json_safe
+
+        return json_safe({"factors": [{"name": n, "value": float(v), "std": float(s)}
                             for n, v, s in zip(self.names, self.values, self.std)],
                 "correlation": np.asarray(self.correlation, float).tolist(),
                 "rmse_nominal_C": dict(zip(self.sensors, map(float, self.rmse_nominal))),
                 "rmse_trimmed_C": dict(zip(self.sensors, map(float, self.rmse_trimmed))),
-                "samples": int(self.n_samples), "converged": bool(self.converged)}
+                "samples": int(self.n_samples), "converged": bool(self.converged)})
 
 
 def _masks(spec, plan):
@@ -59,7 +63,7 @@ def _masks(spec, plan):
         for d, f in enumerate(plan.factors):
             for i, name in enumerate(names):
                 M[i, d] = float(name in f.parameters)
-        out[_FIELDS[group][0]] = M
+        out[_FIELDS[group]] = M
     return out
 
 
@@ -137,11 +141,12 @@ def estimate_trim(spec, experiments, plan, max_steps: int = 200) -> TrimEstimate
             start += y.size
         err = np.concatenate(blocks) * np.asarray(sigma)
         ok = np.concatenate([np.asarray(f) for f in finite])
-        return np.array([np.sqrt(np.mean(err[ok[:, j], j] ** 2)) for j in range(err.shape[1])])
+        return np.array([np.sqrt(np.mean(err[ok[:, j], j] ** 2)) if ok[:, j].any() else np.nan
+                         for j in range(err.shape[1])])
 
     return TrimEstimate(plan.names, values, values * std_log, corr,
                         rmse(jnp.zeros(D)), rmse(theta), tuple(spec.sensor_columns), n,
-                        converged and bool(np.all(np.isfinite(std_log))))
+                        converged and bool(np.all(std_log < UNDETERMINED_LOG_STD)))
 
 
 def trim_outputs(spec, experiment, plan, values) -> np.ndarray:

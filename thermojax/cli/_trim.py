@@ -29,7 +29,7 @@ def cmd_trim(args) -> int:
               "parameters": {f.name: list(f.parameters) for f in plan.factors},
               "dropped_cells": dropped}
     with staged_folder(out) as tmp:
-        (tmp / "trim.json").write_text(json.dumps(record, indent=2) + "\n")
+        (tmp / "trim.json").write_text(json.dumps(record, indent=2, allow_nan=False) + "\n")
         for i, e in enumerate(experiments):
             plot_trim(tmp / f"trim_run{i}.png", e.ts, e.outputs,
                       trim_outputs(spec, e, plan, [1.0] * len(plan.factors)),
@@ -37,12 +37,12 @@ def cmd_trim(args) -> int:
                       f"{Path(e.name).name}: nominal against trimmed")
     for name, v, s in zip(est.names, est.values, est.std):
         print(f"{name}: {v:.6g} ± {s:.2g}")
-    for col in est.sensors:
-        print(f"{col}: RMSE {record['rmse_nominal_C'][col]:.4g} °C nominal, "
-              f"{record['rmse_trimmed_C'][col]:.4g} °C trimmed")
+    for col, a, b in zip(est.sensors, est.rmse_nominal, est.rmse_trimmed):
+        print(f"{col}: RMSE {a:.4g} °C nominal, {b:.4g} °C trimmed")
     if not est.converged:
-        print("warning: the least-squares solve did not converge, or a factor's std is not "
-              "finite (the log does not determine it): do not use these factors.")
+        print("warning: the least-squares solve did not converge, or the log does not "
+              "determine a factor (its std is null or above a factor of e): do not use these "
+              "factors; test with a profile that excites what each factor scales.")
     print(f"results in {out} (next: thermojax export ... --trim {args.factors} "
           f"--trim-factors {out / 'trim.json'})")
     return 0 if est.converged else 1
