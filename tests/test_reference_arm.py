@@ -191,3 +191,28 @@ def test_scheduled_observer_under_qemu_is_bit_exact(tmp_path):
     got = ref.unpack_scheduled(_run_armhf(src, tmp_path, ref.pack_scheduled(x0, u, y),
                                           "sched_arm"), 3)
     assert np.array_equal(got.states, want.states) and np.array_equal(got.s, want.s)
+
+
+def test_trimmed_observer_under_qemu_is_bit_exact(tmp_path):
+    """The end-of-line trimmed observer's C (tables interpolated once at init, double) on
+    armhf under qemu, bit for bit against `TrimmedObserver`, at a unit's factors between
+    grid points and with an erased (NaN) factor."""
+    _need(LINUX_CC, QEMU)
+    from test_trim import TRIM, TRUTH, spec_text, unit_states
+
+    from thermojax.io import parse_model
+    from thermojax.measurements import builtin_profile
+    from thermojax.observer import parse_trim_plan, trim_design
+
+    spec = parse_model(spec_text())
+    design = trim_design(spec, 1.0, parse_trim_plan(TRIM, spec))
+    p = builtin_profile("eol_sweep")
+    u = np.stack([p.temperature, p.power], axis=1)
+    x = unit_states(*TRUTH, u, 1.0)
+    y = x[:, 1:] + 0.01 * np.random.default_rng(9).standard_normal((len(u), 2))
+    src = ref.generate_trimmed_c(design, "tj_trimmed")
+    for k, f in enumerate((TRUTH, (np.nan, 0.9))):
+        want = ref.TrimmedObserver(design, f).run(x[0], u, y)
+        got = ref.unpack_trimmed(_run_armhf(src, tmp_path, ref.pack_trimmed(f, x[0], u, y),
+                                            f"trim_arm{k}"), 3)
+        assert np.array_equal(got, want), f
