@@ -263,7 +263,11 @@ def test_trim_and_export_from_the_command_line(spec, tmp_path, capsys):
     assert np.array_equal(ref.unpack_trimmed((tmp_path / "out.bin").read_bytes(), 3), want)
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"factors": [{"name": "capacitance", "value": 1.0}]}))
+    unconverged = tmp_path / "unconverged.json"
+    unconverged.write_text(json.dumps({**record, "converged": False}))
     for args, needle in ((["--trim-factors", str(bad)], "--trim TRIM.toml"),
+                         (["--trim", str(trim_file), "--trim-factors", str(unconverged)],
+                          "test the unit again"),
                          (["--trim", str(trim_file), "--trim-factors", str(bad)], "attach"),
                          (["--trim", str(tmp_path / "none.toml")], "no such trim file")):
         assert main(["export", "--model", str(model), "--rate", "1", "--out",

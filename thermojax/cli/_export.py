@@ -137,18 +137,11 @@ def trim_config(args) -> dict | None:
     except (ValueError, KeyError, TypeError) as err:
         raise InputError(f"not a trim result (thermojax trim's trim.json): {err}.",
                          file=str(path), field="--trim-factors") from None
-    import tomllib
-
-    try:
-        names = [f.get("name") for f in tomllib.loads(Path(args.trim).read_text())["factors"]]
-    except (OSError, tomllib.TOMLDecodeError, KeyError, TypeError, AttributeError):
-        return {"file": args.trim, "factors": None}   # export_observer names the trim file's fault
-    missing = [n for n in names if n not in found]
-    if missing:
-        raise InputError(f"has no factor {missing} of the trim file {args.trim} (it has "
-                         f"{sorted(found)}): estimate them with this trim file.", file=str(path),
-                         field="--trim-factors")
-    return {"file": args.trim, "factors": [found[n] for n in names], "factors_file": str(path)}
+    if record.get("converged") is False:
+        raise InputError("these factors did not converge or are undetermined by the unit's "
+                         "log (thermojax trim said not to use them): test the unit again.",
+                         file=str(path), field="--trim-factors")
+    return {"file": args.trim, "factors": found, "factors_file": str(path)}
 
 
 def schedule_config(args) -> dict | None:

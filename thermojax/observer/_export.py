@@ -164,7 +164,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     - `schedule`: `{"points": [°C, ...], "by": sensor column}`: also write the
       gain-scheduled observer of a nonlinear model (`tj_scheduled.c`/`.h`, docs/observer.md
       §12), its matrices in `observer.npz` (`schedule_*`), `observer.json` `"schedule"`.
-    - `trim`: `{"file": trim file path, "factors": a unit's factors or None}`: also write
+    - `trim`: `{"file": trim file path, "factors": a unit's factors (in the file's order,
+      or by name) or None}`: also write
       the end-of-line trimmed observer (`tj_trimmed.c`/`.h`, docs/observer.md §13) over the
       trim file's grid, its matrices in `observer.npz` (`trim_*`), `observer.json`
       `"trim"`; with `factors`, the unit's factor table `tj_trimmed_unit.c`.
@@ -545,7 +546,16 @@ def _trimmed_source(spec, rate_hz, trim: dict, where, meta, arrays):
     unit = None
     src = ref.generate_trimmed_c(design, TRIMMED_PREFIX)
     if trim.get("factors") is not None:
-        values = np.asarray(trim["factors"], float)
+        values = trim["factors"]
+        if isinstance(values, dict):   # by name, as `thermojax trim` writes them
+            missing = [n for n in plan.names if n not in values]
+            if missing:
+                raise InputError(f"has no factor {missing} of the trim file {trim['file']} "
+                                 f"(it has {sorted(values)}): estimate them with this trim "
+                                 "file.", file=str(trim.get("factors_file", where)),
+                                 field="--trim-factors")
+            values = [values[n] for n in plan.names]
+        values = np.asarray(values, float)
         if values.shape != (len(plan.factors),) or not np.all(np.isfinite(values)):
             raise InputError(f"{values.size} trim factors for the trim file's "
                              f"{len(plan.factors)} ({', '.join(plan.names)}), or one not "
