@@ -8,6 +8,15 @@ import numpy as np
 from .._errors import InputError
 
 
+def refuse_sensor_offsets(model, observer: str, where: str, field: str) -> None:
+    """`InputError` when `model`'s sensors have offsets, which the `observer` ("scheduled",
+    "trimmed") reads without."""
+    if np.any(np.asarray(model.output_offset(), float) != 0):
+        raise InputError(f"the model's sensors have offsets (sensor_offset effects); the "
+                         f"{observer} observer reads them without: fold the offsets into the "
+                         "readings first.", file=where, field=field)
+
+
 def scheduled_design(spec, rate_hz: float, points, by: str, where: str = "model"):
     """The `thermojax.reference.ScheduledDesign` of `spec` (a `ModelSpec` with nonlinear
     effects) at `rate_hz`: at each temperature of `points` (°C, increasing, two or more)
@@ -27,10 +36,7 @@ def scheduled_design(spec, rate_hz: float, points, by: str, where: str = "model"
         raise InputError("the model is linear: its observer is the same at every "
                          "temperature, there is nothing to schedule (drop --schedule).",
                          file=where, field="--schedule")
-    if np.any(np.asarray(model.output_offset(), float) != 0):
-        raise InputError("the model's sensors have offsets (sensor_offset effects); the "
-                         "scheduled observer reads them without: fold the offsets into the "
-                         "readings first.", file=where, field="--schedule")
+    refuse_sensor_offsets(model, "scheduled", where, "--schedule")
     sensors = list(spec.sensor_columns)
     if by not in sensors:
         raise InputError(f"the scheduling variable '{by}' is not a sensor of the model; its "

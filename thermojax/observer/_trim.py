@@ -142,16 +142,14 @@ def parse_trim_plan(doc: dict, spec, where: str = "<trim>") -> TrimPlan:
 
 def _checked_linear(spec, where):
     from ..model._model import ThermalModel
+    from ._schedule import refuse_sensor_offsets
 
     model = ThermalModel.from_spec(spec)
     if model.is_nonlinear:
         raise InputError("the model is nonlinear: the trim scales a linear network's matrices; "
                          "for a linearization that moves with temperature use --schedule.",
                          file=where, field="--trim")
-    if np.any(np.asarray(model.output_offset(), float) != 0):
-        raise InputError("the model's sensors have offsets (sensor_offset effects); the "
-                         "trimmed observer reads them without: fold the offsets into the "
-                         "readings first.", file=where, field="--trim")
+    refuse_sensor_offsets(model, "trimmed", where, "--trim")
     return model
 
 
@@ -159,12 +157,15 @@ def unit_design(spec, rate_hz: float, plan: TrimPlan, values, where: str = "mode
     """The exact observer of one unit, `spec` scaled by `values (D,)`: `Phi (n, n)`,
     `B0`, `B1 (n, m)` discretized exactly at `rate_hz`, the steady-state Kalman gain
     `L (n, p)` of the (unscaled) process and sensor noise, `C (p, n)`, `D (p, m)`."""
+    return _design_at(_checked_linear(spec, where), spec, 1.0 / float(rate_hz), plan, values)
+
+
+def _design_at(model, spec, dt: float, plan: TrimPlan, values) -> dict:
+    """`unit_design` with the nominal `model` already built and checked."""
     from ..dynamics._discretize import discretize
     from ..model._model import ThermalModel
     from ._kalman import discrete_process_covariance, steady_state_kalman
 
-    model = _checked_linear(spec, where)
-    dt = 1.0 / float(rate_hz)
     system = ThermalModel.from_spec(plan.scaled(spec, values)).linear_system()
     d = discretize(system, dt)
     Qd = discrete_process_covariance(np.asarray(system.A), np.asarray(model.process_noise), dt)
@@ -179,8 +180,8 @@ def trim_design(spec, rate_hz: float, plan: TrimPlan, where: str = "model"):
     fastest)."""
     from ..reference._trimmed import TrimDesign
 
-    _checked_linear(spec, where)
-    points = [unit_design(spec, rate_hz, plan, values, where)
+    model, dt = _checked_linear(spec, where), 1.0 / float(rate_hz)
+    points = [_design_at(model, spec, dt, plan, values)
               for values in itertools.product(*(f.grid for f in plan.factors))]
     return TrimDesign(plan.names, tuple(np.asarray(f.grid) for f in plan.factors),
                       *(np.stack([pt[k] for pt in points]) for k in ("Phi", "B0", "B1", "L")),

@@ -1,6 +1,6 @@
 """One step of the filter-form observer with matrices chosen at run time, in plain
 float64 Python and as the C99 that repeats it operation for operation (the scheduled and
-the trimmed observers share it; `-ffp-contract=off`).
+the trimmed observers share it, and its playback harness; `-ffp-contract=off`).
 
     x⁻ = Phi x + B0 u[k−1] + B1 u[k]     (not at the first step: x⁻ = x)
     x  = x⁻ + L (y − C x⁻ − D u[k])       a non-finite reading's residual taken as 0
@@ -98,3 +98,35 @@ def c_array(name, a, const: bool = True) -> str:
         return "{" + ", ".join(body(r) for r in x) + "}"
 
     return f"static {'const ' if const else ''}double {name}{dims} = {body(a)};"
+
+
+def playback_harness_c(prefix: str, comment: str, declare: str = "", before: str = "",
+                       after_step: str = "") -> str:
+    """A `main` that plays back `int32 T`, `double x0[N]`, then per sample `double u[M]`,
+    `double y[P]` through `prefix_reset` and `prefix_step`, writing `double x[N]` per
+    sample: `declare` (variables), `before` (C run after opening the files, e.g. reading
+    and applying a header) and `after_step` (C writing more per sample) extend it."""
+    P = prefix.upper()
+    return f"""/* Playback harness for {prefix}: {comment} */
+#include <stdio.h>
+#include <stdint.h>
+#include "{prefix}.h"
+int main(int argc, char **argv) {{
+    FILE *in, *out; int32_t T; long t;
+    double x0[{P}_N], u[{P}_M], y[{P}_P];{declare}
+    if (argc < 3) return 2;
+    in = fopen(argv[1], "rb"); if (!in) return 3;
+    out = fopen(argv[2], "wb"); if (!out) return 3;
+{before}    if (fread(&T, sizeof T, 1, in) != 1) return 4;
+    if (fread(x0, sizeof x0[0], {P}_N, in) != {P}_N) return 4;
+    {prefix}_reset(x0);
+    for (t = 0; t < T; t++) {{
+        if (fread(u, sizeof u[0], {P}_M, in) != {P}_M) return 4;
+        if (fread(y, sizeof y[0], {P}_P, in) != {P}_P) return 4;
+        {prefix}_step(u, y);
+        fwrite({prefix}_x, sizeof(double), {P}_N, out);
+{after_step}    }}
+    fclose(in); fclose(out);
+    return 0;
+}}
+"""

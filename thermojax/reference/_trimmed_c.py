@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._c_source import CSource, pack_log
-from ._filter_form import c_array, filter_step_c
+from ._filter_form import c_array, filter_step_c, playback_harness_c
 from ._trimmed import TrimDesign
 
 
@@ -121,37 +121,18 @@ void {prefix}_reset(const double x0[{P}_N]) {{
 void {prefix}_step(const double u[{P}_M], const double y[{P}_P]) {{
 {filter_step_c(prefix)}}}
 """
-    harness = f"""/* Playback harness for {prefix}: double f[F], int32 T, double x0[N], then per
-   sample double u[M], double y[P]; writes per sample double x[N]. With -DUSE_UNIT_TABLE
-   the factors come from {prefix}_unit_factors (link {prefix}_unit.c) instead of f. */
-#include <stdio.h>
-#include <stdint.h>
-#include "{prefix}.h"
-int main(int argc, char **argv) {{
-    FILE *in, *out; int32_t T; long t;
-    double f[{P}_F], x0[{P}_N], u[{P}_M], y[{P}_P];
-    if (argc < 3) return 2;
-    in = fopen(argv[1], "rb"); if (!in) return 3;
-    out = fopen(argv[2], "wb"); if (!out) return 3;
-    if (fread(f, sizeof f[0], {P}_F, in) != {P}_F) return 4;
+    harness = playback_harness_c(
+        prefix, f"double f[F], int32 T, double x0[N], then per\n   sample double u[M], double "
+        f"y[P]; writes per sample double x[N]. With -DUSE_UNIT_TABLE\n   the factors come from "
+        f"{prefix}_unit_factors (link {prefix}_unit.c) instead of f.",
+        declare=f" double f[{P}_F];",
+        before=f"""    if (fread(f, sizeof f[0], {P}_F, in) != {P}_F) return 4;
 #ifdef USE_UNIT_TABLE
     {prefix}_init({prefix}_unit_factors);
 #else
     {prefix}_init(f);
 #endif
-    if (fread(&T, sizeof T, 1, in) != 1) return 4;
-    if (fread(x0, sizeof x0[0], {P}_N, in) != {P}_N) return 4;
-    {prefix}_reset(x0);
-    for (t = 0; t < T; t++) {{
-        if (fread(u, sizeof u[0], {P}_M, in) != {P}_M) return 4;
-        if (fread(y, sizeof y[0], {P}_P, in) != {P}_P) return 4;
-        {prefix}_step(u, y);
-        fwrite({prefix}_x, sizeof(double), {P}_N, out);
-    }}
-    fclose(in); fclose(out);
-    return 0;
-}}
-"""
+""")
     return CSource(prefix, h, c, harness, "double", 8, n, m, p)
 
 
