@@ -118,6 +118,15 @@ def test_report_columns_noise_and_effect_std(tmp_path):
     assert "coefficient = 2.1e-10 ± 3e-12" in md
 
 
+def test_the_heat_networks_verdict_is_in_the_report(tmp_path):
+    report = _with_statistics(_report(1))
+    report["steps"][0]["network"] = {"node": "pcb", "verdict": "a network at pcb removes 12 %"}
+    traces = [make_runs(np.random.default_rng(7), white, n_runs=1)]
+    md = write_investigation_report(tmp_path, report, traces, COLUMNS, INPUTS,
+                                    BOUNDARY).read_text(encoding="utf-8")
+    assert "Step 0 asked a heat network: a network at pcb removes 12 %." in md
+
+
 def test_diagnosis_report_titled_and_each_plot_once(tmp_path):
     report = _report(1)
     report["stopped_because"] = "diagnosis only"

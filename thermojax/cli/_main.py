@@ -388,7 +388,7 @@ def cmd_investigate(args) -> int:
     mark_own(out)  # finished steps are kept here; a rerun resumes from them
     report = investigate(spec, runs, likelihood=args.likelihood, out=out,
                          max_steps=args.max_steps, resume=not args.restart,
-                         progress=args.progress)
+                         progress=args.progress, network=not args.no_network)
     _print_story(report)
     print(f"wrote {out / 'report.json'}, {out / 'model_final.toml'} and {out / 'report.md'}")
     return 0
@@ -447,6 +447,9 @@ def _add_investigate(sub):
                    help="most effects to add (default 4)")
     p.add_argument("--restart", action="store_true",
                    help="ignore a checkpoint in DIR and start from the given model")
+    p.add_argument("--no-network", action="store_true",
+                   help="stop where nothing is supported, without first training a heat "
+                   "network at the node missing most heat (about a minute per such step)")
     p.set_defaults(func=cmd_investigate)
 
 

@@ -121,8 +121,8 @@ def _simulate(model, system, runs, run_initial):
 
 def learn_network_heat(result, runs: list[tuple[np.ndarray, dict[str, np.ndarray]]],
                        node: str, *, width: int = 8, depth: int = 2,
-                       max_steps: int = 100, trajectory_steps: int = 50, seed: int = 0
-                       ) -> NetworkLaw:
+                       max_steps: int = 100, trajectory_steps: int = 50, seed: int = 0,
+                       missing=None) -> NetworkLaw:
     """Train a heat network at `node` of a fitted model and distil it.
 
     **Arguments:**
@@ -136,6 +136,8 @@ def learn_network_heat(result, runs: list[tuple[np.ndarray, dict[str, np.ndarray
     - `max_steps`: Levenberg–Marquardt iterations of the regression on the missing heat;
       `trajectory_steps` those of the training through the dynamics that follows (0:
       none, the regression alone).
+    - `missing`: the fitted model's `MissingHeat` when already at hand over every node
+      (the loop's); else reconstructed here.
 
     **Returns:** a `NetworkLaw`.
     """
@@ -175,7 +177,8 @@ def learn_network_heat(result, runs: list[tuple[np.ndarray, dict[str, np.ndarray
     before = _simulate(base, system, data, run_initial)
     # a start: the network regressed on the missing heat at the node (Kalman-smoothed,
     # `missing_heat`), over the smoothed temperatures; the trajectory fit refines it
-    mh = missing_heat(result, nodes=tuple(nodes))
+    mh = missing if missing is not None and missing.nodes == tuple(nodes) else \
+        missing_heat(result, nodes=tuple(nodes))
     at = nodes.index(node)
     target = np.concatenate([h[:, at] for h in mh.heat])
     if not np.any(target):

@@ -1028,6 +1028,39 @@ def record_missing_heat(step: Step, out: Path | None, i: int, white_p: float, sa
         return None
 
 
+def _network_step(current: Step, runs, mh, cands: list[Candidate], likelihood, fdr,
+                  white_p, initial, holdout_check, say, held_out) -> Candidate | None:
+    """When no candidate was supported: the heat network's proposal
+    (`_network_candidate`), refitted and judged beside the step's candidates (the
+    family of Benjamini-Hochberg holds them all; their own verdicts stand) and, if
+    supported, held-out checked like any other. Its account goes into the step's
+    record (`network`); a network that cannot run is a note, not the end of the loop.
+
+    **Returns:** the chosen candidate, or None."""
+    from ._network_candidate import network_candidate
+
+    try:
+        cand, current.record["network"] = network_candidate(current, runs, mh, say)
+    except Exception as err:
+        current.record["network"] = {
+            "verdict": f"the heat network could not run: {type(err).__name__}: {err}"[:300]}
+        say(current.record["network"]["verdict"])
+        return None
+    if cand is None:
+        return None
+    _refit_side_by_side([cand], current, runs, likelihood,
+                        set(unused_columns(current.spec, runs)), initial, say, white_p)
+    cand.add_note(f"proposed by the heat network at {current.record['network']['node']}",
+                  first=True)  # after the refit, which writes its own note
+    kept = [(c.supported, c.note, c.tied_with) for c in cands]
+    judge(cands + [cand], fdr, separation_advice)
+    prefer_vocabulary(cands + [cand])
+    for c, (supported, note, tied) in zip(cands, kept):
+        c.supported, c.note, c.tied_with = supported, note, tied
+    cands.append(cand)
+    return _choose([cand], current, runs, likelihood, holdout_check, say, held_out)
+
+
 def record_unexplained(step: Step, mh, say) -> None:
     """The step's `unexplained` list (spec §3a) when no candidate, of the vocabulary or
     the library, explained its non-white residuals: the missing heat described."""
@@ -1036,7 +1069,10 @@ def record_unexplained(step: Step, mh, say) -> None:
     if mh is None:
         return
     step.record["unexplained"] = unexplained(mh, step.record["missing_heat"]["file"])
+    net = step.record.get("network") or {}
     for u in step.record["unexplained"]:
+        if u["where"] == [net.get("node")] and "verdict" in net:
+            u["network"] = net["verdict"]  # what the heat network made of it
         say(f"unexplained at {u['where'][0]}: {u['what']}")
 
 
@@ -1052,10 +1088,13 @@ def _unexplained(record: dict, white_p: float) -> str:
 def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "output_error",
                 max_steps: int = 4, refits: int = 3, fdr: float = 0.05,
                 white_p: float = 0.01, out: Path | None = None, progress=None,
-                resume: bool = True, holdout_check: bool = True) -> dict:
+                resume: bool = True, holdout_check: bool = True, network: bool = True
+                ) -> dict:
     """Run the loop; returns the `report.json` dict (docs/formats.md §5). With `out`, writes the
     report, every step's model, `model_final.toml`, the Markdown report and its plots,
-    and a checkpoint after each finished step, from which a rerun resumes."""
+    and a checkpoint after each finished step, from which a rerun resumes. With
+    `network`, a step that finds nothing supported while heat is missing asks a heat
+    network before it stops (`_network_step`)."""
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
     out = Path(out) if out is not None else None
@@ -1103,6 +1142,9 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
                                   white_p=white_p, initial=spec)
             chosen = _choose(cands, current, runs, likelihood, holdout_check, say, held_out,
                              lambda c, i=i: _plot_ahead(plots, out, i + 1, c.result, _added(c)))
+            if chosen is None and network and missing is not None and missing.carriers:
+                chosen = _network_step(current, runs, missing, cands, likelihood, fdr,
+                                       white_p, spec, holdout_check, say, held_out)
             rec["candidates"] = [c.as_json() for c in cands]
             rec["wall_time_s"] = time.perf_counter() - t_step
             if chosen is not None and chosen.tied_with:

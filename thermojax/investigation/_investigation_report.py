@@ -276,6 +276,9 @@ def _summary(report: dict, steps: list[dict], columns, noise: dict, units: dict,
                and isinstance((last.get("rmse") or {}).get(c), (int, float))]
         if far:
             md.append("Still above the noise: " + ", ".join(far) + ".")
+    for i, s in enumerate(report.get("steps") or []):
+        if (s.get("network") or {}).get("verdict"):  # nothing supported; heat missing
+            md.append(f"Step {i} asked a heat network: {s['network']['verdict']}.")
     if "unexplained" in report:
         u = report.get("unexplained")
         md.append(f"Left unexplained: {u}" if u else "Nothing is flagged as left unexplained.")
