@@ -14,11 +14,10 @@ import dataclasses
 import numpy as np
 
 from .._errors import InputError
+from ..model._network import SCALABLE_LEAVES
 
 #: A factor whose log-std is not below this (a factor of e) is undetermined by the log.
 UNDETERMINED_LOG_STD = 1.0
-_FIELDS = {"nodes": "log_capacitance", "links": "log_conductance",
-           "boundaries": "log_boundary_conductance", "heat_inputs": "log_heat_gain"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,7 +62,7 @@ def _masks(spec, plan):
         for d, f in enumerate(plan.factors):
             for i, name in enumerate(names):
                 M[i, d] = float(name in f.parameters)
-        out[_FIELDS[group]] = M
+        out[SCALABLE_LEAVES[group][0]] = M
     return out
 
 

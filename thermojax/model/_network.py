@@ -90,6 +90,14 @@ class Topology:
         )
 
 
+#: Each parameter group a unit may scale (dotted name `group.key.name`, docs/formats.md
+#: §5): the `ThermalNetwork` leaf holding its logs, and the parameter's `name`.
+SCALABLE_LEAVES = {"nodes": ("log_capacitance", "capacitance"),
+                   "links": ("log_conductance", "conductance"),
+                   "boundaries": ("log_boundary_conductance", "conductance"),
+                   "heat_inputs": ("log_heat_gain", "gain")}
+
+
 class ThermalNetwork(eqx.Module):
     """Lumped RC network `C dT/dt = -(L + diag(g_b)) T + G_b u_T + B_q q`, `y = T[sensors]`.
 

@@ -54,6 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._errors import InputError
+from ..model._network import SCALABLE_LEAVES
 
 T_REF = 25.0  # °C: centre of the bias polynomials (docs/formats.md §4)
 METHODS = {"nominal": "nominal model (batch-level default observer)",
@@ -76,9 +77,6 @@ STEP_TOLERANCE = 1e-4  # posterior stds: a fit stops where its next step is shor
 ROUNDOFF_STEP = 1e-3  # posterior stds: shorter steps are taken without a cost test
 _PROGRAMS: dict = {}  # compiled programs, shared by the studies of one structure (`_shared`)
 _MAX_PROGRAMS = 8
-_LEAVES = {"nodes": ("log_capacitance", "capacitance"), "links": ("log_conductance", "conductance"),
-           "boundaries": ("log_boundary_conductance", "conductance"),
-           "heat_inputs": ("log_heat_gain", "gain")}
 
 
 def ramp_profile(lo: float, hi: float, rate: float, dwell: float, dt: float,
@@ -154,11 +152,12 @@ class Study:
         for name in self.names:
             group, _, rest = name.partition(".")
             key, _, what = rest.rpartition(".")
-            if group not in _LEAVES or what != _LEAVES[group][1] or key not in keys[group]:
+            if group not in SCALABLE_LEAVES or what != SCALABLE_LEAVES[group][1] \
+                    or key not in keys[group]:
                 raise InputError(f"the study can vary capacitances, conductances and heat "
                                  f"gains only, not {name!r}.", file=file,
                                  field="population.spreads")
-            self.slots.append((_LEAVES[group][0], keys[group].index(key)))
+            self.slots.append((SCALABLE_LEAVES[group][0], keys[group].index(key)))
         self.nominal_values = np.array([spec_parameters(spec)[n].value for n in self.names])
         # the bias channel
         if not spec.biases:
