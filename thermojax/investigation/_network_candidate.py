@@ -22,6 +22,9 @@ from ._candidates import Candidate
 EXPLAINED_SHARE = 0.5
 # A library term must match the network's heat with at least this R² to be proposed.
 MIN_R2 = 0.5
+# The network is trained only where the RMS missing heat at the node is at least this
+# many of its median stds (below, the reconstruction is zero within its uncertainty).
+MIN_HEAT_STDS = 2.0
 # Levenberg–Marquardt steps through the dynamics (each is a forward-mode Jacobian of
 # every run's simulation: the cost of the whole network step).
 TRAJECTORY_STEPS = 20
@@ -36,10 +39,16 @@ def network_candidate(step, runs, mh, say) -> tuple[Candidate | None, dict]:
     the best-matching library term and its R², and in words what followed."""
     from ..discovery import learn_network_heat
 
-    heat = {n: float(np.sqrt(np.mean(np.concatenate([h[:, mh.nodes.index(n)]
-                                                     for h in mh.heat]) ** 2)))
-            for n in mh.carriers}
-    node = max(heat, key=heat.get)
+    per_node = mh.summary()["per_node"]
+    node = max(per_node, key=lambda n: per_node[n]["rms_W"])
+    rms, std = per_node[node]["rms_W"], per_node[node]["median_std_W"]
+    if rms < MIN_HEAT_STDS * std:
+        entry = {"node": node, "proposed": False,
+                 "verdict": (f"the missing heat at {node} (RMS {rms:.3g} W) is below "
+                             f"{MIN_HEAT_STDS:g} times its median std ({std:.3g} W): zero "
+                             "within its uncertainty, nothing for a network to learn")}
+        say(entry["verdict"])
+        return None, entry
     say(f"training a heat network at {node}, where most heat is missing")
     law = learn_network_heat(step.result, [(t.ts, t.channels) for t in runs], node,
                              trajectory_steps=TRAJECTORY_STEPS, missing=mh)
