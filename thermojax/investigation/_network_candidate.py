@@ -54,9 +54,9 @@ def network_candidate(step, runs, mh, say) -> tuple[Candidate | None, dict]:
                              trajectory_steps=TRAJECTORY_STEPS, missing=mh)
     entry = account(node, law)
     say(entry["verdict"])
-    best = law.distilled[0] if law.distilled else None
     if not entry["proposed"]:
         return None, entry
+    best = law.distilled[0]  # proposed: there is one, and it matched
     return Candidate(best.law.kind, tuple(best.where), 0.0, 1.0, method="network",
                      estimate=best.c, learned=best.law, shape=best.shape), entry
 
