@@ -21,6 +21,7 @@ the compilation.
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 
@@ -29,7 +30,7 @@ from ..model._spec import ModelSpec
 from .._errors import InputError
 from ._kalman_fit import fit_kalman, standardized_innovations
 from ._output_error import fit_output_error, output_error_at
-from ._problem import LIKELIHOODS, Solution, prepare
+from ._problem import LIKELIHOODS, SHORT_RUN, Solution, prepare
 from ._size import check_fit_size
 from ._plateau import GAIN, invisible_nodes, plateau_note, visible_start
 from ._profile import profile_interval
@@ -112,8 +113,10 @@ def _off_plateau(result: FitResult, experiments, say, **options) -> FitResult:
         return result
     say(f"{invisible[0].describe()}: the data cannot move its parameters there; refitting "
         "from a time constant they can see")
-    again = fit(visible_start(result.spec, invisible), experiments, progress=say,
-                restart_plateaus=False, **options)
+    with warnings.catch_warnings():  # its start is ours, not the user's: not warned about
+        warnings.filterwarnings("ignore", message=f".*{SHORT_RUN}")
+        again = fit(visible_start(result.spec, invisible), experiments, progress=say,
+                    restart_plateaus=False, **options)
     gain = result.nll - again.nll
     if np.isfinite(gain) and gain > GAIN:
         again.message += plateau_note(invisible, gain)

@@ -313,6 +313,11 @@ def _check_shapes(original: ModelSpec, lowered: ModelSpec,
                                  file=e.name, field=f"{what}s")
 
 
+# What a run shorter than the starting model's slowest time constant is warned of (a
+# refit from a start thermojax chose itself filters it out: the user's start is checked).
+SHORT_RUN = "shorter than the slowest time constant of the starting model"
+
+
 def _check_runs(spec: ModelSpec, experiments: list[Experiment]) -> None:
     if not experiments:
         raise InputError("no runs given; pass at least one --data file.", field="--data")
@@ -328,9 +333,9 @@ def _check_runs(spec: ModelSpec, experiments: list[Experiment]) -> None:
                              "empty or nan); drop it from the model or use a run that measured "
                              "it.", file=e.name, field=col)
         if e.ts[-1] - e.ts[0] < slowest:
-            warnings.warn(f"{e.name}: the run lasts {e.ts[-1] - e.ts[0]:.0f} s, shorter than the "
-                          f"slowest time constant of the starting model ({slowest:.0f} s); the "
-                          "slow parameters will be poorly determined.", stacklevel=4)
+            warnings.warn(f"{e.name}: the run lasts {e.ts[-1] - e.ts[0]:.0f} s, {SHORT_RUN} "
+                          f"({slowest:.0f} s); the slow parameters will be poorly determined.",
+                          stacklevel=4)
 
 
 # ---------------------------------------------------------------------------
