@@ -136,6 +136,15 @@ class Network:
         v[self.free] = np.where(lg, np.exp(np.where(lg, x, 0.0)), x)
         return v
 
+    def fitted(self, toml: dict, report: dict) -> np.ndarray:
+        """Physical values of thermojax's fit of one run: its `model.toml` (read as
+        `toml`) with the run's estimated initial temperatures from its `report.json`
+        (the TOML keeps the file's)."""
+        v = Network(toml).values
+        v[self.parts["x0"]] = [report["parameters"][f"runs.0.nodes.{self.nodes[i]}.initial"]
+                               ["value"] for i in self.initial]
+        return v
+
     def matrices(self, v):
         """`A` (n, n) 1/s and `B` (n, inputs) at physical values `v`."""
         p = self.parts

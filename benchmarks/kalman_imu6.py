@@ -86,7 +86,8 @@ def thermojax_fit(csv: Path, folder: Path) -> dict:
     with open(out / "model.toml", "rb") as f:
         fitted = tomllib.load(f)
     return dict(wall=wall, nll=report["nll"], converged=report["converged"],
-                message=report["message"], n_steps=report["n_steps"], toml=fitted)
+                message=report["message"], n_steps=report["n_steps"], toml=fitted,
+                report=report)
 
 
 def main():
@@ -119,7 +120,7 @@ def main():
         else:
             tj = thermojax_fit(csv, folder)
             t = time.perf_counter()
-            tj_numpy = net.nll(net.x(numpy_kalman.Network(tj.pop("toml")).values), U, Y, DT)
+            tj_numpy = net.nll(net.x(net.fitted(tj.pop("toml"), tj.pop("report"))), U, Y, DT)
             one_eval = time.perf_counter() - t
         print(f"thermojax: {tj['wall']:.1f} s cold (process wall, import and compilation "
               f"included), -log L {tj['nll']:.4f} (NumPy filter at its optimum "

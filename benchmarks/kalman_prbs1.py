@@ -93,13 +93,14 @@ def main():
         wall = timed(["fit", "--likelihood", "kalman", "--model",
                       str(DATA / "titethtsae.toml"), "--data", str(csv), "--out",
                       str(folder / "fit")])
-        nll = json.loads((folder / "fit" / "report.json").read_text())["nll"]
+        report = json.loads((folder / "fit" / "report.json").read_text())
+        nll = report["nll"]
         with open(DATA / "titethtsae.toml", "rb") as f:
             net = numpy_kalman.Network(tomllib.load(f))
         with open(folder / "fit" / "model.toml", "rb") as f:
-            fitted = numpy_kalman.Network(tomllib.load(f))
+            fitted = net.fitted(tomllib.load(f), report)
         U, Y = numpy_kalman.read_log(csv, net.inputs, net.columns)
-        at_tj = net.nll(net.x(fitted.values), U, Y, DT)
+        at_tj = net.nll(net.x(fitted), U, Y, DT)
         out["thermojax_fit"] = dict(wall=wall, nll=nll, numpy_nll=at_tj)
         print(f"thermojax fit of TiTeThTsAe: {wall:.1f} s cold, log L {-nll:.2f} (NumPy "
               f"filter at its optimum {-at_tj:.2f}); {net.x().size} parameters", flush=True)
