@@ -29,14 +29,9 @@ from __future__ import annotations
 import os
 import sys
 
-_ENV_DROP = ("THERMOJAX_CACHE_DIR", "JAX_COMPILATION_CACHE_DIR")
-if ("--default-blas-threads" not in sys.argv
-        and os.environ.get("OPENBLAS_NUM_THREADS") != "1") or any(k in os.environ
-                                                                 for k in _ENV_DROP):
-    env = {k: v for k, v in os.environ.items() if k not in _ENV_DROP}
-    if "--default-blas-threads" not in sys.argv:
-        env["OPENBLAS_NUM_THREADS"] = "1"
-    os.execve(sys.executable, [sys.executable, *sys.argv], env)
+import _cold_process  # beside this script
+
+_cold_process.reexec()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
