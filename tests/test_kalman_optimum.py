@@ -75,7 +75,8 @@ def numpy_nll(params, U, Y):
     """−log L at `params` (J/K, W/K, sensor std °C, three process-noise stds °C/√s) of the
     filter of `helpers.np_kalman` (P0 = I °C², mean from the steady state of the first
     input, block-exponential Van Loan) written out for this one-sensor model: the SciPy
-    reference calls it thousands of times, at a third of the general filter's cost.
+    reference calls it thousands of times, at a third of the general filter's cost. A
+    NaN in `Y` is a masked sample: no update, no term.
     `reference_nll` is the general filter; the test checks that the two agree."""
     *phys, noise, q0, q1, q2 = params
     A, B = matrices(*phys)
@@ -85,6 +86,9 @@ def numpy_nll(params, U, Y):
     drive = U @ B0.T + np.concatenate([U[1:], U[-1:]]) @ B1.T
     nll = 0.0
     for k in range(len(Y)):
+        if np.isnan(Y[k]):  # a masked sample (a held-out fold): predict only
+            m, P = Phi @ m + drive[k], Phi @ P @ Phi.T + Qd
+            continue
         S = P[1, 1] + noise ** 2
         e = Y[k] - m[1]
         nll += 0.5 * (np.log(2 * np.pi * S) + e * e / S)
@@ -124,6 +128,12 @@ def make_data(seed=0):
     return t, U, Y
 
 
+# the fit's parameters in `numpy_nll`'s order
+FIT_PARAMETERS = ("nodes.wall.capacitance", "nodes.air.capacitance", "nodes.floor.capacitance",
+                  "links.wall-air.conductance", "links.air-floor.conductance",
+                  "boundaries.wall-T_out.conductance", "sensors.T_air.noise",
+                  "nodes.wall.process_noise", "nodes.air.process_noise",
+                  "nodes.floor.process_noise")
 START = dict(c_wall=1.5e6, c_air=6e5, c_floor=3e6, g_wa=120.0, g_af=60.0, g_out=40.0,
              noise=0.1, q0=0.002, q1=0.005, q2=0.002)
 
@@ -165,12 +175,7 @@ def test_kalman_fit_reaches_the_optimum_with_zero_process_noise(reference):
                                                                      for m in said)
     # the same likelihood: the fit's optimum evaluated by the NumPy filter
     p = result.parameters
-    mine = [p[k]["value"] for k in ("nodes.wall.capacitance", "nodes.air.capacitance",
-                                     "nodes.floor.capacitance", "links.wall-air.conductance",
-                                     "links.air-floor.conductance",
-                                     "boundaries.wall-T_out.conductance",
-                                     "sensors.T_air.noise", "nodes.wall.process_noise",
-                                     "nodes.air.process_noise", "nodes.floor.process_noise")]
+    mine = [p[k]["value"] for k in FIT_PARAMETERS]
     assert numpy_nll(mine, U, Y) == pytest.approx(result.nll, abs=1e-3)
     # the one-sensor recursion is the general reference filter
     ref_params = [*np.exp(ref.x[:7]), *ref.x[7:]]
@@ -223,3 +228,43 @@ def test_kalman_fit_falls_back_to_the_output_error_start(reference, monkeypatch,
     assert any("started from the output-error fit" in m for m in said)
     assert result.converged and result.nll <= reference.fun + 0.05, (result.nll,
                                                                       reference.fun)
+
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore:.*shorter than the slowest time constant")
+def test_a_held_out_fold_fit_reaches_the_folds_optimum_without_the_polish(reference,
+                                                                            monkeypatch):
+    """A Kalman held-out fit (`_fit_without`: one of four contiguous blocks masked, started
+    at the fit to all the data) ends after its scoring steps and the boundary check, with
+    no polish; it must still reach the masked likelihood's optimum found by SciPy on the
+    NumPy filter (those samples predicted, not updated), warm-started at SciPy's optimum
+    of all the data."""
+    from thermojax.fitting import _kalman_fit
+    from thermojax.investigation._investigate import _fit_without
+
+    t, U, Y = make_data()
+    full = fit_start()
+    fold = (0, (N // 4, N // 2))
+    Ym = Y.copy()
+    Ym[slice(*fold[1])] = np.nan
+
+    def no_polish(*args, **kwargs):
+        raise AssertionError("a held-out fit polished")
+
+    monkeypatch.setattr(_kalman_fit, "_polish", no_polish)
+    held = _fit_without(full.spec, [Experiment(t, U, Y[:, None], "building")], fold,
+                        "kalman")
+
+    def f(x):
+        return numpy_nll([*np.exp(x[:7]), *x[7:]], U, Ym)
+
+    bounds = [(None, None)] * 7 + [(0.0, None)] * 3
+    warm = scipy.optimize.minimize(f, reference.x, method="L-BFGS-B", bounds=bounds,
+                                   options=dict(maxiter=500))
+    ref = scipy.optimize.minimize(f, warm.x, method="Nelder-Mead", bounds=bounds,
+                                  options=dict(maxiter=4000, xatol=1e-8, fatol=1e-9))
+    mine = [held.parameters[k]["value"] for k in FIT_PARAMETERS]
+    assert numpy_nll(mine, U, Ym) == pytest.approx(held.nll, abs=1e-3)  # the same likelihood
+    assert held.converged
+    assert held.nll <= ref.fun + 0.05, (held.nll, ref.fun)

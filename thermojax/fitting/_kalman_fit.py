@@ -93,9 +93,10 @@ _simulate_jit = eqx.filter_jit(simulate_dataset)
 
 
 def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
-               prior_log_std: float, say) -> Solution:
+               prior_log_std: float, say, polish: bool = True) -> Solution:
     """The Kalman stage, started from the output-error `start` or, with `start` None,
-    from the file's values."""
+    from the file's values; `polish` False ends it after the scoring steps and the boundary
+    check (`fit`'s `polish`)."""
     index, names = prep.free("kalman")
     template = prep.template if start is None else start.state
     theta0 = free_parameters(template, index)
@@ -113,7 +114,9 @@ def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
     if isinstance(solver, TruncatedNewton) and converged:  # max_steps hit: stop there
         plain = make_problem(template, index, prep.data, sigma, prior_mean)
         theta, at_zero, steps = _zero_variances(theta, plain, names, solver, max_steps, say)
-        theta, gain, polished = _polish(theta, plain, names, at_zero, say)
+        gain, polished = 0.0, True
+        if polish:
+            theta, gain, polished = _polish(theta, plain, names, at_zero, say)
         for _ in range(_RESCORE_ROUNDS):  # far from where scoring stopped: scoring again
             if gain <= _RESCORE:
                 break
