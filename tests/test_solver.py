@@ -65,12 +65,16 @@ def _scipy_reference(data):
 def test_pytree_residuals_match_scipy_least_squares():
     data = _data()
     theta0 = jnp.array([0.0, 0.0, 0.0])
+    # ½χ² is about 26 here, its rounding 6e-15: a last step that would lower it by 1e-17
+    # is taken or not by the XLA build (jaxlib 0.10.2 under the suite's XLA flags: not),
+    # so tol 1e-20 failed by rounding, and the point agrees with SciPy to 1.4e-10 (taken:
+    # 7e-12). tol 1e-14 and rtol 1e-9 (√eps over the curvature's scale) hold for both.
     sol = jax.jit(lambda t0, d: gauss_newton(_residuals, t0, d, TruncatedGaussNewton(
-        min_singular_value=1e-6, tol=1e-20)))(theta0, data)
+        min_singular_value=1e-6, tol=1e-14)))(theta0, data)
     assert bool(sol.converged) and int(sol.num_truncated) == 0
 
     ref = _scipy_reference(data)
-    np.testing.assert_allclose(sol.value, ref.x, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(sol.value, ref.x, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(float(sol.cost), 0.5 * np.sum(ref.fun ** 2), rtol=1e-12)
     # One Gram matrix per residual leaf, at the solution.
     J1, J2 = _numpy_jacobian(np.asarray(sol.value))
@@ -158,12 +162,12 @@ def test_hinted_jacobian_gets_the_hint_of_its_own_point():
         return r, J, None
 
     sol = jax.jit(lambda t0, d: gauss_newton(fn, t0, d, TruncatedGaussNewton(
-        min_singular_value=1e-6, tol=1e-20), jac=jac, hinted=True))(jnp.zeros(3), data)
+        min_singular_value=1e-6, tol=1e-14), jac=jac, hinted=True))(jnp.zeros(3), data)
     plain = jax.jit(lambda t0, d: gauss_newton(_residuals, t0, d, TruncatedGaussNewton(
-        min_singular_value=1e-6, tol=1e-20)))(jnp.zeros(3), data)
+        min_singular_value=1e-6, tol=1e-14)))(jnp.zeros(3), data)
     assert bool(sol.converged)
     np.testing.assert_array_equal(np.asarray(sol.value), np.asarray(plain.value))
     assert int(sol.num_steps) == int(plain.num_steps)
 
     ref = _scipy_reference(data)
-    np.testing.assert_allclose(sol.value, ref.x, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(sol.value, ref.x, rtol=1e-9, atol=1e-12)
