@@ -13,6 +13,7 @@ Dropped samples (NaN in the CSV, `mask` False) contribute nothing.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -72,60 +73,135 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanO
 
     Process noise `Qc = diag(q²)` is discretized by Van Loan; inputs are held
     as their `hold` says; the initial mean is the model's initial state, the
-    initial covariance `diag(initial_std²)`.
+    initial covariance `diag(initial_std²)`. A linear model's covariances do not depend
+    on the data: once they settle (`_settled`) they are reused until a sample is missing
+    (`_settling_covariances`).
     """
     system = model.linear_system()
     dt = sample_period(ts)  # the median step (docs/formats.md §1 allows jitter)
-    transition = _transition(model, system, dt)
     _, Qd = discretize_process_noise(system.A, jnp.diag(model.process_noise ** 2), dt)
     R = jnp.diag(model.noise ** 2)
     C = system.C
-    n, p = system.n_states, C.shape[0]
     m0 = (initial_state_nonlinear(model, system, u[0], run_initial) if model.is_nonlinear
           else model.initial_state(system, u[0], run_initial))
     offset = model.output_offset()
     P0 = jnp.diag(model.initial_std ** 2)
     u_next = jnp.concatenate([u[1:], u[-1:]], axis=0)
-    eye_n, eye_p = jnp.eye(n), jnp.eye(p)
 
-    def step(carry, inp):
-        m, P = carry
+    def mean_step(m, g: _Covariances, inp):
         u_k, u_k1, y_k, mask_k = inp
-        Cm = C * mask_k[:, None]
-        both = mask_k[:, None] & mask_k[None, :]
-        S = jnp.where(both, Cm @ P @ Cm.T + R, eye_p)
         e = jnp.where(mask_k, y_k - C @ m - offset, 0.0)
-        L = jnp.linalg.cholesky(S)
-        w = jax.scipy.linalg.solve_triangular(L, e, lower=True)
-        logdet = 2 * jnp.sum(jnp.log(jnp.diag(L)))
-        n_obs = mask_k.sum()
-        nll = 0.5 * (logdet + w @ w + n_obs * LOG_2PI)  # unmeasured rows have S = 1: log 1 = 0
-        K = jax.scipy.linalg.cho_solve((L, True), Cm @ P).T  # P Cmᵀ S⁻¹
-        m_f = m + K @ e
-        IKC = eye_n - K @ Cm
-        P_f = IKC @ P @ IKC.T + K @ jnp.where(both, R, 0.0) @ K.T
-        P_f = 0.5 * (P_f + P_f.T)
+        w = jax.scipy.linalg.solve_triangular(g.L, e, lower=True)
+        logdet = 2 * jnp.sum(jnp.log(jnp.diag(g.L)))
+        nll = 0.5 * (logdet + w @ w + mask_k.sum() * LOG_2PI)  # unmeasured rows: S = 1
+        m_f = m + g.K @ e
         m_next, F = transition(m_f, u_k, u_k1)
-        P_next = F @ P_f @ F.T + Qd
-        out = (nll, e, jnp.sqrt(jnp.diag(S)) * mask_k, m_f, P_f, m, P, S)
-        return (m_next, 0.5 * (P_next + P_next.T)), out
+        out = (nll, e, jnp.sqrt(jnp.diag(g.S)) * mask_k, m_f, g.P_f, m, g.P, g.S)
+        return m_next, F, out
 
-    _, (nll, e, s, m_f, P_f, m_p, P_p, S) = jax.lax.scan(step, (m0, P0), (u, u_next, y, mask))
+    inputs = (u, u_next, y, mask)
+    if model.is_nonlinear:  # the extended filter: Φ depends on the mean, nothing settles
+        transition = _extended_transition(model, system, dt)
+
+        def step(carry, inp):
+            m, P = carry
+            g = _update(P, inp[3], C, R)
+            m_next, F, out = mean_step(m, g, inp)
+            P_next = F @ g.P_f @ F.T + Qd
+            return (m_next, 0.5 * (P_next + P_next.T)), out
+
+        _, outs = jax.lax.scan(step, (m0, P0), inputs)
+    else:
+        disc = discretize(system, dt)
+
+        def transition(m_f, u_k, u_k1):
+            return disc.Phi @ m_f + disc.B0 @ u_k + disc.B1 @ u_k1, disc.Phi
+
+        def linear_step(m, g, inp):
+            m_next, _, out = mean_step(m, g, inp)
+            return m_next, out
+
+        outs = _settling_covariances(
+            lambda P, mask_k: _predict(_update(P, mask_k, C, R), disc.Phi, Qd), linear_step,
+            m0, P0, inputs, mask)
+    nll, e, s, m_f, P_f, m_p, P_p, S = outs
     return KalmanOutput(jnp.sum(nll), e, s, m_f, P_f, m_p, P_p, nll, S)
 
 
-def _transition(model, system, dt):
-    """`f(m, u_k, u_k1) -> (mean at the next sample, its Jacobian in m)`: exact for a
-    linear model; ETD2 (`_nonlinear`) and its Jacobian (an extended Kalman filter) for
-    a model with nonlinear effects."""
-    if model.is_nonlinear:
-        step = etd2_step(model, system, dt)
+class _Covariances(NamedTuple):
+    """One sample's covariances: prior `P`, innovation `S` = L Lᵀ, gain `K`, posterior
+    `P_f` (the sensors `mask` measured) and the next prior `P_next` (the measurement
+    update's `_update` leaves it None; `_predict` fills it)."""
 
-        def f(m, u_k, u_k1):
-            return step(m, u_k, u_k1), jax.jacfwd(step)(m, u_k, u_k1)
-        return f
-    disc = discretize(system, dt)
-    return lambda m, u_k, u_k1: (disc.Phi @ m + disc.B0 @ u_k + disc.B1 @ u_k1, disc.Phi)
+    P: jax.Array
+    S: jax.Array
+    L: jax.Array
+    K: jax.Array
+    P_f: jax.Array
+    mask: jax.Array  # (outputs,) which sensors measured
+    P_next: jax.Array | None = None
+
+
+def _update(P, mask_k, C, R) -> _Covariances:
+    """The measurement update's covariances at prior `P`, the sensors `mask_k` measured
+    (unmeasured rows of `S` are identity rows, their gain columns zero)."""
+    Cm = C * mask_k[:, None]
+    both = mask_k[:, None] & mask_k[None, :]
+    S = jnp.where(both, Cm @ P @ Cm.T + R, jnp.eye(C.shape[0]))
+    L = jnp.linalg.cholesky(S)
+    K = jax.scipy.linalg.cho_solve((L, True), Cm @ P).T  # P Cmᵀ S⁻¹
+    IKC = jnp.eye(P.shape[0]) - K @ Cm
+    P_f = IKC @ P @ IKC.T + K @ jnp.where(both, R, 0.0) @ K.T
+    return _Covariances(P, S, L, K, 0.5 * (P_f + P_f.T), mask_k)
+
+
+def _predict(g: _Covariances, Phi, Qd) -> _Covariances:
+    """`g` with the next prior `Φ P_f Φᵀ + Qd`."""
+    P_next = Phi @ g.P_f @ Phi.T + Qd
+    return g._replace(P_next=0.5 * (P_next + P_next.T))
+
+
+# Relative change (of sqrt(P_ii P_jj)) below which one Riccati step leaves the prior
+# covariance settled: its derivatives then differ from the exact filter's by ~1e-12.
+_SETTLED = 1e-14
+
+
+def _settled(P_next, P):
+    """Whether one more step moved no element of the prior covariance by more than
+    `_SETTLED` of its scale."""
+    d = jnp.sqrt(jnp.abs(jnp.diagonal(P)))
+    return jnp.all(jnp.abs(P_next - P) <= _SETTLED * jnp.outer(d, d))
+
+
+def _settling_covariances(covariances, mean_step, x0, P0, inputs, mask):
+    """`lax.scan` of a linear filter whose covariances (`covariances(P, mask_k) ->
+    _Covariances`) depend on the data only through which sensors measured: once a step
+    with every sensor measured leaves `P` settled, the next fully measured steps reuse
+    its covariances (a `lax.cond`: the Riccati recursion and its derivatives, most of a
+    filter's work, are skipped) and a missing sample starts the recursion again. A steady
+    state reached to rounding, so the likelihood is the exact filter's (to ~1e-15
+    relative). `mean_step(x, g, inp) -> (x_next, out)`; returns the stacked `out`."""
+    def step(carry, inp):
+        x, P, settled, last = carry
+        inp_k, mask_k = inp
+        full = jnp.all(mask_k)
+        g = jax.lax.cond(settled & full, lambda: last, lambda: covariances(P, mask_k))
+        x_next, out = mean_step(x, g, inp_k)
+        return (x_next, g.P_next, full & _settled(g.P_next, P), g), out
+
+    first = covariances(P0, jnp.ones(mask.shape[1], bool))
+    _, outs = jax.lax.scan(step, (x0, P0, jnp.array(False), first), (inputs, mask))
+    return outs
+
+
+def _extended_transition(model, system, dt):
+    """`f(m, u_k, u_k1) -> (mean at the next sample, its Jacobian in m)` of a model with
+    nonlinear effects: ETD2 (`_nonlinear`) and its Jacobian (an extended Kalman filter)."""
+    step = etd2_step(model, system, dt)
+
+    def f(m, u_k, u_k1):
+        return step(m, u_k, u_k1), jax.jacfwd(step)(m, u_k, u_k1)
+    return f
 
 
 def kalman_runs(model: ThermalModel, data: Dataset, run_initial, per_run):
@@ -134,9 +210,16 @@ def kalman_runs(model: ThermalModel, data: Dataset, run_initial, per_run):
         return per_run(ts, kalman_run(model, ts, u, y, mask, r0))
 
     if run_initial is None:
-        return jax.vmap(lambda ts, u, y, m: one(ts, u, y, m, None))(
-            data.ts, data.inputs, data.outputs, data.mask)
-    return jax.vmap(one)(data.ts, data.inputs, data.outputs, data.mask, run_initial)
+        return _each_run(lambda ts, u, y, m: one(ts, u, y, m, None),
+                         data.ts, data.inputs, data.outputs, data.mask)
+    return _each_run(one, data.ts, data.inputs, data.outputs, data.mask, run_initial)
+
+
+def _each_run(fn, *arrays):
+    """`fn` of every run's slices of `arrays`, stacked: a loop (`lax.map`), not `vmap`,
+    so that a run's settled covariances skip their recursion (under `vmap` a `lax.cond`
+    evaluates both branches)."""
+    return jax.lax.map(lambda a: fn(*a), arrays)
 
 
 def kalman_nll(model: ThermalModel, data: Dataset, run_initial=None) -> Float[Array, ""]:
@@ -190,31 +273,21 @@ def innovation_map(model: ThermalModel, ts, mask, P0, V):
     _, Qd = discretize_process_noise(system.A, jnp.diag(model.process_noise ** 2), dt)
     R = jnp.diag(model.noise ** 2)
     C = system.C
-    eye_p = jnp.eye(C.shape[0])
 
-    def step(carry, inp):
-        eps, P = carry
-        v, mask_k = inp
-        Cm = C * mask_k[:, None]
-        both = mask_k[:, None] & mask_k[None, :]
-        S = jnp.where(both, Cm @ P @ Cm.T + R, eye_p)
-        L = jnp.linalg.cholesky(S)
-        e = (v - C @ eps) * mask_k[:, None]
-        K = jax.scipy.linalg.cho_solve((L, True), Cm @ P).T
-        w = jax.scipy.linalg.solve_triangular(L, e, lower=True) * mask_k[:, None]
-        IKC = jnp.eye(P.shape[0]) - K @ Cm
-        P_f = IKC @ P @ IKC.T + K @ jnp.where(both, R, 0.0) @ K.T
-        P_next = Phi @ P_f @ Phi.T + Qd
-        return (Phi @ (eps + K @ e), 0.5 * (P_next + P_next.T)), w
+    def step(eps, g, v):
+        e = (v - C @ eps) * g.mask[:, None]
+        w = jax.scipy.linalg.solve_triangular(g.L, e, lower=True) * g.mask[:, None]
+        return Phi @ (eps + g.K @ e), w
 
     eps0 = jnp.zeros((Phi.shape[0], V.shape[-1]), V.dtype)
-    _, w = jax.lax.scan(step, (eps0, P0), (V, mask))
-    return w
+    return _settling_covariances(
+        lambda P, mask_k: _predict(_update(P, mask_k, C, R), Phi, Qd), step, eps0, P0, V,
+        mask)
 
 
 @stored_jit
 def dataset_innovation_map(model: ThermalModel, data: Dataset, V):
     """`innovation_map` of every run: `V` (runs, times, outputs, m) -> same shape."""
     P0 = jnp.diag(model.initial_std ** 2)
-    return jax.vmap(lambda ts, mask, v: innovation_map(model, ts, mask, P0, v))(
-        data.ts, data.mask, V)
+    return _each_run(lambda ts, mask, v: innovation_map(model, ts, mask, P0, v),
+                     data.ts, data.mask, V)
