@@ -88,16 +88,15 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanO
     P0 = jnp.diag(model.initial_std ** 2)
     u_next = jnp.concatenate([u[1:], u[-1:]], axis=0)
 
-    def mean_step(m, g: _Covariances, inp):
-        u_k, u_k1, y_k, mask_k = inp
+    def mean_update(m, g: _Covariances, inp):
+        """The filtered mean and the sample's outputs."""
+        _, _, y_k, mask_k = inp
         e = jnp.where(mask_k, y_k - C @ m - offset, 0.0)
         w = jax.scipy.linalg.solve_triangular(g.L, e, lower=True)
         logdet = 2 * jnp.sum(jnp.log(jnp.diag(g.L)))
         nll = 0.5 * (logdet + w @ w + mask_k.sum() * LOG_2PI)  # unmeasured rows: S = 1
         m_f = m + g.K @ e
-        m_next, F = transition(m_f, u_k, u_k1)
-        out = (nll, e, jnp.sqrt(jnp.diag(g.S)) * mask_k, m_f, g.P_f, m, g.P, g.S)
-        return m_next, F, out
+        return m_f, (nll, e, jnp.sqrt(jnp.diag(g.S)) * mask_k, m_f, g.P_f, m, g.P, g.S)
 
     inputs = (u, u_next, y, mask)
     if model.is_nonlinear:  # the extended filter: Φ depends on the mean, nothing settles
@@ -106,7 +105,8 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanO
         def step(carry, inp):
             m, P = carry
             g = _update(P, inp[3], C, R)
-            m_next, F, out = mean_step(m, g, inp)
+            m_f, out = mean_update(m, g, inp)
+            m_next, F = transition(m_f, inp[0], inp[1])
             P_next = F @ g.P_f @ F.T + Qd
             return (m_next, 0.5 * (P_next + P_next.T)), out
 
@@ -114,16 +114,12 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanO
     else:
         disc = discretize(system, dt)
 
-        def transition(m_f, u_k, u_k1):
-            return disc.Phi @ m_f + disc.B0 @ u_k + disc.B1 @ u_k1, disc.Phi
-
         def linear_step(m, g, inp):
-            m_next, _, out = mean_step(m, g, inp)
-            return m_next, out
+            m_f, out = mean_update(m, g, inp)
+            return disc.Phi @ m_f + disc.B0 @ inp[0] + disc.B1 @ inp[1], out
 
-        outs = _settling_covariances(
-            lambda P, mask_k: _predict(_update(P, mask_k, C, R), disc.Phi, Qd), linear_step,
-            m0, P0, inputs, mask)
+        outs = _settling_covariances(_riccati_step(C, R, disc.Phi, Qd), linear_step, m0,
+                                     P0, inputs, mask)
     nll, e, s, m_f, P_f, m_p, P_p, S = outs
     return KalmanOutput(jnp.sum(nll), e, s, m_f, P_f, m_p, P_p, nll, S)
 
@@ -131,7 +127,7 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None) -> KalmanO
 class _Covariances(NamedTuple):
     """One sample's covariances: prior `P`, innovation `S` = L Lᵀ, gain `K`, posterior
     `P_f` (the sensors `mask` measured) and the next prior `P_next` (the measurement
-    update's `_update` leaves it None; `_predict` fills it)."""
+    update's `_update` leaves it None; `_riccati_step` fills it)."""
 
     P: jax.Array
     S: jax.Array
@@ -155,10 +151,14 @@ def _update(P, mask_k, C, R) -> _Covariances:
     return _Covariances(P, S, L, K, 0.5 * (P_f + P_f.T), mask_k)
 
 
-def _predict(g: _Covariances, Phi, Qd) -> _Covariances:
-    """`g` with the next prior `Φ P_f Φᵀ + Qd`."""
-    P_next = Phi @ g.P_f @ Phi.T + Qd
-    return g._replace(P_next=0.5 * (P_next + P_next.T))
+def _riccati_step(C, R, Phi, Qd):
+    """`covariances(P, mask_k) -> _Covariances` of a linear filter: the measurement update
+    at prior `P`, then the next prior `Φ P_f Φᵀ + Qd`."""
+    def covariances(P, mask_k):
+        g = _update(P, mask_k, C, R)
+        P_next = Phi @ g.P_f @ Phi.T + Qd
+        return g._replace(P_next=0.5 * (P_next + P_next.T))
+    return covariances
 
 
 # Relative change (of sqrt(P_ii P_jj)) below which one Riccati step leaves the prior
@@ -189,8 +189,10 @@ def _settling_covariances(covariances, mean_step, x0, P0, inputs, mask):
         x_next, out = mean_step(x, g, inp_k)
         return (x_next, g.P_next, full & _settled(g.P_next, P), g), out
 
-    first = covariances(P0, jnp.ones(mask.shape[1], bool))
-    _, outs = jax.lax.scan(step, (x0, P0, jnp.array(False), first), (inputs, mask))
+    # never read (nothing has settled at the first step): zeros of the right structure
+    unused = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype),
+                          jax.eval_shape(covariances, P0, mask[0]))
+    _, outs = jax.lax.scan(step, (x0, P0, jnp.array(False), unused), (inputs, mask))
     return outs
 
 
@@ -284,9 +286,7 @@ def innovation_map(model: ThermalModel, ts, mask, P0, V):
         return Phi @ (eps + g.K @ e), w
 
     eps0 = jnp.zeros((Phi.shape[0], V.shape[-1]), V.dtype)
-    return _settling_covariances(
-        lambda P, mask_k: _predict(_update(P, mask_k, C, R), Phi, Qd), step, eps0, P0, V,
-        mask)
+    return _settling_covariances(_riccati_step(C, R, Phi, Qd), step, eps0, P0, V, mask)
 
 
 @stored_jit

@@ -763,9 +763,9 @@ def _fit_without(spec, experiments, fold, likelihood="output_error"):
     measurements masked; its predictions still cover them (the free run, or the filter,
     goes through the held-out block). A Kalman fold fit ends after its scoring steps (no
     polish: from that warm start it would walk the full fit's valleys again for a few
-    0.1 of −log L, most of a loop's time on PRBS1). A warm start that does not converge is tried once
-    more with the default solver; a fit that still does not converge is returned as it is
-    (`fold_vote` sets its fold aside)."""
+    0.1 of −log L, most of a loop's time on PRBS1). A warm start that does not converge
+    is tried once more with the default solver; a fit that still does not converge is
+    returned as it is (`fold_vote` sets its fold aside)."""
     r, span = fold
     if span is None:
         masked = experiments
