@@ -52,21 +52,35 @@ def stored_jit(fn):
     jitted = eqx.filter_jit(fn)
     name = f"{fn.__module__}.{fn.__qualname__}"
 
-    @functools.wraps(fn)
-    def call(*args):
+    def program(args):
+        """`(compiled, out_tree, dynamic leaves)` for `args`, or None when they cannot
+        be keyed (traced, or undescribable)."""
         leaves, treedef = jax.tree.flatten(args)
         if any(isinstance(x, jax.core.Tracer) for x in leaves):  # inside another trace
-            return jitted(*args)
+            return None
         dynamic = [eqx.is_array(x) for x in leaves]
         try:
             key = _key(name, treedef, leaves, dynamic)
         except _Undescribable:
-            return jitted(*args)
+            return None
         compiled, out_tree = _program(key, lambda: _compile(fn, treedef, leaves, dynamic,
                                                             key))
-        return jax.tree.unflatten(out_tree, compiled(*[x for x, d in zip(leaves, dynamic)
-                                                       if d]))
+        return compiled, out_tree, [x for x, d in zip(leaves, dynamic) if d]
 
+    @functools.wraps(fn)
+    def call(*args):
+        found = program(args)
+        if found is None:
+            return jitted(*args)
+        compiled, out_tree, arrays = found
+        return jax.tree.unflatten(out_tree, compiled(*arrays))
+
+    def ahead(*args) -> None:
+        """Compile (or load) the program for arguments shaped like `args` without running
+        it: on a background thread, while other compiled work runs."""
+        program(args)
+
+    call.ahead = ahead
     return call
 
 

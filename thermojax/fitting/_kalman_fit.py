@@ -8,7 +8,9 @@ instead (std `prior_log_std` in log units), left out of every reported likelihoo
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import threading
 from typing import TYPE_CHECKING
 
 import equinox as eqx
@@ -34,15 +36,37 @@ def _kalman_loss(theta, problem):
         _prior(theta, problem) ** 2)
 
 
-def _solve_kalman(theta0, problem, solver, max_steps: int):
+def _solve_kalman(theta0, problem, solver, max_steps: int, pins=()):
     """`(theta, steps, converged)` from `newton` or an optimistix minimiser in at most
-    `max_steps` iterations."""
+    `max_steps` iterations; `newton` leaves the parameters `pins` (held at zero by
+    `problem`'s prior rows) out of its steps."""
     if isinstance(solver, TruncatedNewton):
-        sol = newton(lambda t: _value_grad_information(jax.device_put(t), problem),
-                     lambda t: _value(jax.device_put(t), problem),
-                     theta0, solver, int(max_steps))
+        sol = _newton_except(theta0, problem, pins, solver, max_steps)
         return jax.device_put(sol.value), sol.num_steps, sol.converged
     return _minimise_jit(theta0, problem, solver, max_steps)
+
+
+def _newton_except(theta0, problem, pins, solver, max_steps: int):
+    """`newton` on the parameters of `theta0` not in `pins`, those held where they are.
+    Held ones are left out, not just pinned by their prior rows: a pin's curvature
+    (`_PIN`², 1e14) would set the eigendecomposition's rounding (1e-2) above the
+    curvature of the directions the polish must follow."""
+    theta = np.array(theta0, float)
+    free = np.setdiff1d(np.arange(theta.size), np.asarray(pins, int))
+
+    def full(z):
+        t = theta.copy()
+        t[free] = z
+        return jax.device_put(t)
+
+    def value_grad_information(z):
+        v, g, info = _value_grad_information(full(z), problem)
+        return v, np.asarray(g)[free], np.asarray(info)[np.ix_(free, free)]
+
+    sol = newton(value_grad_information, lambda z: _value(full(z), problem), theta[free],
+                 solver, int(max_steps))
+    theta[free] = sol.value
+    return dataclasses.replace(sol, value=theta)
 
 
 @eqx.filter_jit
@@ -89,7 +113,24 @@ _value = stored_jit(_kalman_loss)
 
 
 # Compiled once per structure: called eagerly, the simulator would trace anew every fit.
-_simulate_jit = eqx.filter_jit(simulate_dataset)
+_simulate_jit = stored_jit(simulate_dataset)
+
+
+def _compile_ahead(*programs) -> None:
+    """Compile `programs` (`(stored_jit function, arguments)` pairs) on a background
+    thread while the fit runs compiled code, which releases the GIL: on two cores the
+    end of a fit is then not followed by its free run's and smoother's compilation (2-3 s
+    for the six-node IMU). Not while the fit compiles: XLA's compilations compete. The
+    fit's own calls wait for these compilations instead of repeating them; a failure
+    here is left for them to report."""
+    def compile_all():
+        try:
+            for function, args in programs:
+                function.ahead(*args)
+        except Exception:  # noqa: BLE001  (the same call on the fit's thread raises it)
+            pass
+
+    threading.Thread(target=compile_all, name="thermojax-compile-ahead").start()
 
 
 def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
@@ -110,19 +151,25 @@ def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
         + ("the file's values" if start is None else "the output-error fit"))
     theta, n_steps, converged = _solve_kalman(theta0, problem, solver, max_steps)
     _check_finite(theta, theta0, names)
+    run = (template.model, prep.data, template.run_initial)  # once the steps' are compiled
+    _compile_ahead((_simulate_jit, run), (kalman_smoothed, run))
     at_zero = []
     if isinstance(solver, TruncatedNewton) and converged:  # max_steps hit: stop there
         plain = make_problem(template, index, prep.data, sigma, prior_mean)
         theta, at_zero, steps = _zero_variances(theta, plain, names, solver, max_steps, say)
         gain, polished = 0.0, True
         if polish:
-            theta, gain, polished = _polish(theta, plain, names, at_zero, say)
-        for _ in range(_RESCORE_ROUNDS):  # far from where scoring stopped: scoring again
-            if gain <= _RESCORE:
+            theta, gain, polished = _polish(theta, plain, names, at_zero, say, last=False)
+        for k in range(_RESCORE_ROUNDS):  # far from where scoring stopped: the boundary
+            if gain <= _RESCORE:  # check and scoring again (the polish walks noises down)
                 break
+            theta, at_zero, more = _zero_variances(theta, plain, names, solver, max_steps,
+                                                   say, at_zero)
+            steps += more
             theta, more, converged = _solve_kalman(theta, _pinned(plain, at_zero), solver,
-                                                   max_steps)
-            theta, gain, polished = _polish(theta, plain, names, at_zero, say)
+                                                   max_steps, at_zero)
+            theta, gain, polished = _polish(theta, plain, names, at_zero, say,
+                                            last=k + 1 == _RESCORE_ROUNDS)
             steps += more
         n_steps += steps
         converged = converged and polished
@@ -168,7 +215,7 @@ def _pinned(problem, pins: list[int]):
                         weight)
 
 
-def _zero_variances(theta, problem, names, solver, max_steps, say):
+def _zero_variances(theta, problem, names, solver, max_steps, say, pins=()):
     """The boundary check of variances whose optimum may be zero (docs/extensions.md):
     each process noise the likelihood barely determines (curvature in log q below the
     solver's `min_curvature`), smallest first, is held at zero and the rest refitted; the
@@ -177,14 +224,15 @@ def _zero_variances(theta, problem, names, solver, max_steps, say):
     **Returns:** `(theta, indices held at zero, Newton steps taken)`."""
     nll, _, hess = (np.asarray(a) for a in _value_grad_information(theta, problem))
     theta = np.array(theta)
+    pins, steps = list(pins), 0
     candidates = [i for i, n in enumerate(names) if n.endswith(".process_noise")
-                  and hess[i, i] < solver.min_curvature]
-    pins, steps = [], 0
+                  and hess[i, i] < solver.min_curvature and i not in pins]
     for i in sorted(candidates, key=lambda i: theta[i]):
         trial = theta.copy()
         trial[i] = _LOG_ZERO
         pinned = _pinned(problem, pins + [i])
-        new, n, _ = _solve_kalman(jax.device_put(trial), pinned, solver, max_steps)
+        new, n, _ = _solve_kalman(jax.device_put(trial), pinned, solver, max_steps,
+                                   pins + [i])
         steps += int(n)
         new_nll = float(_value(new, problem))
         if np.isfinite(new_nll) and new_nll <= float(nll) + _ZERO_TOL:
@@ -194,12 +242,14 @@ def _zero_variances(theta, problem, names, solver, max_steps, say):
     return jax.device_put(theta), pins, steps
 
 
-def _polish(theta, problem, names, pins, say, tol: float = 1e-3):
+def _polish(theta, problem, names, pins, say, tol: float = 1e-3, last: bool = True):
     """Confirm the optimum from the truncated solution, on the parameters not held at
     zero: Newton steps along every direction (the scoring steps' curvature, untruncated
     down to `_POLISH_CURVATURE`, damped as in `newton`), then, if they do not converge
-    in `_POLISH_STEPS`, L-BFGS-B (SciPy) from where they stopped. Taken if it lowers
-    −log L.
+    in `_POLISH_STEPS`, L-BFGS-B (SciPy) from where they stopped, unless a round of
+    boundary check and scoring follows (not `last`) and the steps gained more than
+    `_RESCORE`: that round goes on from there at a fraction of L-BFGS-B's calls. Taken
+    if it lowers −log L.
 
     **Returns:** `(theta, gain in −log L, ok)`; `ok` (the fit is then reported converged)
     when it found nothing better than `tol`, or moved and met a convergence test (the
@@ -211,11 +261,13 @@ def _polish(theta, problem, names, pins, say, tol: float = 1e-3):
     theta = np.array(theta, float)
     start = float(_value(jax.device_put(theta), pinned))
     full = TruncatedNewton(min_curvature=_POLISH_CURVATURE, tol=_POLISH_TOL)
-    sol = newton(lambda t: _value_grad_information(jax.device_put(t), pinned),
-                 lambda t: _value(jax.device_put(t), pinned), theta, full, _POLISH_STEPS)
+    sol = _newton_except(theta, pinned, pins, full, _POLISH_STEPS)
     if sol.loss < start:
         theta = np.array(sol.value, float)
     ok = sol.converged
+    if not ok and not last and start - sol.loss > _RESCORE:
+        say(f"polish (Newton, not converged): -log L lower by {start - sol.loss:.4f}")
+        return jax.device_put(theta), start - sol.loss, False
     if not ok:
         free = np.setdiff1d(np.arange(theta.size), pins)
         _, _, info = _value_grad_information(jax.device_put(theta), pinned)
