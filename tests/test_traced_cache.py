@@ -99,19 +99,22 @@ def test_stored_and_read_back_in_process_match_numpy(cache_folder):
         np.testing.assert_array_equal(loaded[k], first[k])
 
 
-def test_without_a_folder_compiled_once_and_nothing_written(tmp_path):
+@pytest.fixture
+def no_cache_folder():
     before = jax.config.jax_compilation_cache_dir
     jax.config.update("jax_compilation_cache_dir", None)
     forget_programs()
     TRACES["n"] = 0
-    try:
-        chain, x0 = _chain(), jnp.arange(5.0)
-        for steps in (2, 5):
-            _check(spectrum_and_decay(chain, x0, jnp.asarray(steps)), chain, x0, steps)
-        assert TRACES["n"] == 1
-    finally:
-        jax.config.update("jax_compilation_cache_dir", before)
-        forget_programs()
+    yield
+    jax.config.update("jax_compilation_cache_dir", before)
+    forget_programs()
+
+
+def test_without_a_folder_compiled_once_and_nothing_written(no_cache_folder):
+    chain, x0 = _chain(), jnp.arange(5.0)
+    for steps in (2, 5):
+        _check(spectrum_and_decay(chain, x0, jnp.asarray(steps)), chain, x0, steps)
+    assert TRACES["n"] == 1
 
 
 def test_any_change_the_trace_depends_on_is_a_new_entry(cache_folder, monkeypatch):
@@ -185,33 +188,26 @@ def test_threads_share_one_trace(cache_folder):
         _check(o, chain, x0, 3)
 
 
-def test_compiled_ahead_on_a_thread_the_call_neither_traces_nor_compiles_again(tmp_path):
-    before = jax.config.jax_compilation_cache_dir
-    jax.config.update("jax_compilation_cache_dir", None)
-    forget_programs()
-    TRACES["n"] = 0
+def test_compiled_ahead_on_a_thread_the_call_neither_traces_nor_compiles_again(
+        no_cache_folder):
+    chain, x0 = _chain(), jnp.arange(5.0)
+    ahead = threading.Thread(target=spectrum_and_decay.ahead,
+                             args=(chain, x0 * 0.0, jnp.asarray(0)))
+    ahead.start()
+    ahead.join()
+    assert TRACES["n"] == 1  # traced and compiled, not run: nothing to check yet
+    events = []
+
+    def listen(name, *_args, **_kwargs):
+        events.append(name)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
     try:
-        chain, x0 = _chain(), jnp.arange(5.0)
-        ahead = threading.Thread(target=spectrum_and_decay.ahead,
-                                 args=(chain, x0 * 0.0, jnp.asarray(0)))
-        ahead.start()
-        ahead.join()
-        assert TRACES["n"] == 1  # traced and compiled, not run: nothing to check yet
-        events = []
-
-        def listen(name, *_args, **_kwargs):
-            events.append(name)
-
-        jax.monitoring.register_event_duration_secs_listener(listen)
-        try:
-            _check(spectrum_and_decay(chain, x0, jnp.asarray(3)), chain, x0, 3)
-        finally:
-            jax.monitoring.unregister_event_duration_listener(listen)
-        assert TRACES["n"] == 1
-        assert not [e for e in events if "compil" in e]
+        _check(spectrum_and_decay(chain, x0, jnp.asarray(3)), chain, x0, 3)
     finally:
-        jax.config.update("jax_compilation_cache_dir", before)
-        forget_programs()
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert TRACES["n"] == 1
+    assert not [e for e in events if "compil" in e]
 
 
 MODULE = """
