@@ -14,8 +14,10 @@ import pytest
 from thermojax import Dataset, Experiment, ThermalModel, fit
 from thermojax.dynamics._nonlinear import dataset_outputs_nonlinear, etd2_error
 from thermojax.fitting._fit_report import fit_report
-from thermojax.fitting._integration import (SUBSTEP_LADDER, fewest_substeps,
+from thermojax.fitting._integration import (KALMAN_TOLERANCE, SUBSTEP_LADDER,
+                                            fewest_kalman_substeps, fewest_substeps,
                                             integration_tolerance)
+from thermojax.fitting._likelihood import kalman_nll_in_substeps
 from thermojax.fitting._problem import FitState
 from thermojax.model.effects import lower_effects
 
@@ -74,6 +76,35 @@ def test_fewest_substeps_within_tolerance_by_the_generator(name):
     assert (substeps == 1) == (name == "radiation")
 
 
+@pytest.mark.parametrize("name", ["conductance_temperature", "radiation"])
+def test_a_kalman_fit_takes_the_substeps_its_likelihood_needs(name):
+    """The Kalman rule's estimate (the difference from four times as many substeps, times
+    16/15) is −log L's error against the filter integrated in 256 substeps (whose ETD2
+    steps converge to the generator's readings, as the tests above check), and the
+    chosen count is the fewest of the ladder within `KALMAN_TOLERANCE` of it."""
+    import jax.numpy as jnp
+
+    spec, data, reference = _case(name, noise=True)
+    data = dataclasses.replace(data, outputs=jnp.asarray(reference)[None])
+    model = ThermalModel.from_spec(spec)
+    state = FitState(model, np.zeros((1, 0)), np.zeros(0))
+
+    def nll(substeps):
+        return float(kalman_nll_in_substeps(model, data, state.run_initial,
+                                            jax.device_put(np.asarray(substeps))))
+
+    fine = nll(256)
+    for substeps in (1, 4):
+        estimate = (16 / 15) * abs(nll(substeps) - nll(4 * substeps))
+        assert estimate == pytest.approx(abs(nll(substeps) - fine), rel=0.1)
+    chosen, _ = fewest_kalman_substeps(state, data)
+    assert abs(nll(chosen) - fine) <= KALMAN_TOLERANCE
+    if chosen > SUBSTEP_LADDER[0]:
+        fewer = SUBSTEP_LADDER[SUBSTEP_LADDER.index(chosen) - 1]
+        assert abs(nll(fewer) - fine) > KALMAN_TOLERANCE
+    assert (chosen == 1) == (name == "radiation")
+
+
 @pytest.mark.slow
 def test_a_fit_whose_effect_grows_integrates_more_finely():
     """Fitted from the effect's null value (α = 0, where one substep is exact), the
@@ -104,6 +135,40 @@ def test_a_fit_whose_effect_grows_integrates_more_finely():
     _, data, reference = _case(name)
     model = ThermalModel.from_spec(truth)
     assert _true_error(model, fitted, data, reference) <= integration_tolerance([0.01])
+    alpha = next(v["value"] for k, v in result.parameters.items() if k.endswith("alpha"))
+    true_alpha = next(p.value for e in truth.effects for k, p in e.parameters.items())
+    assert alpha == pytest.approx(true_alpha, rel=0.1)
+
+
+@pytest.mark.slow
+def test_a_kalman_fit_whose_effect_grows_integrates_more_finely():
+    """The same under the Kalman likelihood: from α = 0 one substep is exact, the
+    solution's α needs more by the likelihood's own rule, and the fit solves again from
+    it; the returned model's −log L is within `KALMAN_TOLERANCE` of the filter's in 256
+    substeps there, and α is recovered."""
+    import jax.numpy as jnp
+
+    from thermojax.fitting._integration import substep_memory
+
+    name = "conductance_temperature"
+    truth = _truth_spec(g.load_case(name))
+    spec = truth.replace(effects=tuple(
+        dataclasses.replace(e, parameters={k: dataclasses.replace(p, value=0.0)
+                                           for k, p in e.parameters.items()})
+        for e in truth.effects))
+    ts, cols = g.generate_case(name, seed=0, horizon_s=HORIZON_S)[0]
+    u = np.stack([cols[c] for c in lower_effects(spec).spec.input_columns], 1)
+    y = np.stack([cols[c] for c in spec.sensor_columns], 1)
+    said = []
+    with substep_memory({}):
+        result = fit(spec, [Experiment(ts, u, y)], likelihood="kalman",
+                     progress=said.append)
+    fitted = result.state.model.etd2_substeps
+    assert fitted > 1 and any("solving again" in m for m in said), said
+    data = dataclasses.replace(result.problem.data, outputs=jnp.asarray(y)[None])
+    fine = float(kalman_nll_in_substeps(result.state.model, data, result.state.run_initial,
+                                        jax.device_put(np.asarray(256))))
+    assert abs(result.nll - fine) <= KALMAN_TOLERANCE
     alpha = next(v["value"] for k, v in result.parameters.items() if k.endswith("alpha"))
     true_alpha = next(p.value for e in truth.effects for k, p in e.parameters.items())
     assert alpha == pytest.approx(true_alpha, rel=0.1)

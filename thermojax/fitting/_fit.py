@@ -30,7 +30,8 @@ from ..model._spec import ModelSpec
 from .._errors import InputError
 from ._kalman_fit import fit_kalman, standardized_innovations
 from ._output_error import fit_output_error, output_error_at
-from ._problem import LIKELIHOODS, SHORT_RUN, Solution, prepare
+from ._problem import (LIKELIHOODS, SHORT_RUN, Solution, integrated_for_output_error,
+                       prepare)
 from ._size import check_fit_size
 from ._plateau import GAIN, invisible_nodes, plateau_note, visible_start
 from ._profile import profile_interval
@@ -149,7 +150,8 @@ def _kalman_stages(prep, solver, max_steps, prior_log_std, n_starts, seed, say,
                 return direct
             why = "did not converge"
         say(f"Kalman fit from the file's values {why}; trying again from the output-error fit")
-    start = fit_output_error(prep, None, max_steps, n_starts, seed, say)
+    start = fit_output_error(integrated_for_output_error(prep), None, max_steps, n_starts,
+                             seed, say)
     try:
         sol = fit_kalman(prep, start, solver, max_steps, prior_log_std, say, polish)
     except InputError:

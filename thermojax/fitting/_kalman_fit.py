@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ._integration import fewest_kalman_substeps, shared_substeps, with_substeps
 from ._likelihood import kalman_nll, kalman_runs, rts_smoother, simulate_dataset
 from ._newton import TruncatedNewton, newton
 from ._problem import Prepared, Solution, _check_finite, _prior, _state, make_problem
@@ -137,18 +138,44 @@ def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
                prior_log_std: float, say, polish: bool = True) -> Solution:
     """The Kalman stage, started from the output-error `start` or, with `start` None,
     from the file's values; `polish` False ends it after the scoring steps and the boundary
-    check (`fit`'s `polish`)."""
-    index, names = prep.free("kalman")
+    check (`fit`'s `polish`). A nonlinear model is integrated in the fewest ETD2 substeps
+    its likelihood needs at the start (`_integration.fewest_kalman_substeps`), and solved
+    again from the solution with more as long as the solution needs more."""
     template = prep.template if start is None else start.state
+    p = len(prep.spec.sensors)  # the filter's own noise is in theta; sigma rides along
+    sigma = prep.sigma[:p] if start is None else start.problem.sigma[:p]
+    say(f"Kalman likelihood: {len(prep.free('kalman')[1])} parameters, started from "
+        + ("the file's values" if start is None else "the output-error fit"))
+    if not template.model.is_nonlinear:
+        return _fit_kalman_from(prep, template, sigma, solver, max_steps, prior_log_std, say,
+                                polish)
+    used = _kalman_substeps(template, prep.data)
+    while True:  # at most once per rung of the ladder
+        sol = _fit_kalman_from(prep, with_substeps(template, used), sigma, solver,
+                               max_steps, prior_log_std, say, polish)
+        more = _kalman_substeps(sol.state, prep.data, at_least=used)
+        if more == used:
+            return sol
+        say(f"the solution's likelihood needs {more} ETD2 substeps per sample period (its "
+            f"start's {used}); solving again from it with {more}")
+        template, used = sol.state, more
+
+
+def _kalman_substeps(state, data, at_least: int = 1) -> int:
+    """The ETD2 substeps a Kalman fit of `state`'s structure takes from here."""
+    substeps, _ = fewest_kalman_substeps(state, data, at_least=at_least)
+    return shared_substeps(state.model, substeps, kalman=True)
+
+
+def _fit_kalman_from(prep: Prepared, template, sigma, solver, max_steps: int,
+                     prior_log_std: float, say, polish: bool) -> Solution:
+    """`fit_kalman` from the values of `template` (a `FitState`), integrated as it is."""
+    index, names = prep.free("kalman")
     theta0 = free_parameters(template, index)
     prior_mean = free_parameters(prep.template, index)  # the file's values
     solver = solver or TruncatedNewton()
     weight = 0.0 if isinstance(solver, TruncatedNewton) else 1.0 / prior_log_std
-    p = len(prep.spec.sensors)  # the filter's own noise is in theta; sigma rides along
-    sigma = prep.sigma[:p] if start is None else start.problem.sigma[:p]
     problem = make_problem(template, index, prep.data, sigma, prior_mean, weight)
-    say(f"Kalman likelihood: {len(names)} parameters, started from "
-        + ("the file's values" if start is None else "the output-error fit"))
     theta, n_steps, converged = _solve_kalman(theta0, problem, solver, max_steps)
     _check_finite(theta, theta0, names)
     run = (template.model, prep.data, template.run_initial)  # once the steps' are compiled

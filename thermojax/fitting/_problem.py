@@ -179,13 +179,22 @@ def prepare(spec: ModelSpec, experiments: list[Experiment], likelihood: str,
     bias = bias_columns(spec, experiments, holdout)
     bias_sigma = np.array([_bias_sigma_start(b, j, experiments)
                            for j, b in enumerate(spec.biases)])
-    if model.is_nonlinear:  # the fewest ETD2 substeps accurate at the start values
-        substeps, _ = fewest_substeps(template, data, start_tolerance(np.exp(np.asarray(
-            model.log_noise))), read_states=bias is not None)
-        substeps = shared_substeps(model, substeps)
-        template = with_substeps(template, substeps)
-    return Prepared(lowered, experiments, data, template, index, names, fixed_sigma, bias,
+    prep = Prepared(lowered, experiments, data, template, index, names, fixed_sigma, bias,
                     bias_sigma)
+    # a Kalman fit chooses its own (`_kalman_fit`), and this only before an output-error stage
+    return integrated_for_output_error(prep) if likelihood == "output_error" else prep
+
+
+def integrated_for_output_error(prep: Prepared) -> Prepared:
+    """`prep` with a nonlinear model integrated in the fewest ETD2 substeps whose free
+    run is accurate at the start values (`_integration`), for an output-error fit."""
+    model = prep.template.model
+    if not model.is_nonlinear:
+        return prep
+    substeps, _ = fewest_substeps(prep.template, prep.data, start_tolerance(np.exp(
+        np.asarray(model.log_noise))), read_states=prep.bias is not None)
+    substeps = shared_substeps(model, substeps)
+    return dataclasses.replace(prep, template=with_substeps(prep.template, substeps))
 
 
 def _log_taus(spec: ModelSpec) -> np.ndarray:
