@@ -117,6 +117,32 @@ def test_without_a_folder_compiled_once_and_nothing_written(no_cache_folder):
     assert TRACES["n"] == 1
 
 
+spectrum_and_decay_once = stored_jit(once=True)(spectrum_and_decay.__wrapped__)
+
+
+@pytest.mark.parametrize("folder", [False, True])
+def test_a_program_run_once_is_compiled_unoptimized_with_the_same_answers(
+        folder, no_cache_folder, tmp_path, monkeypatch):
+    """`once=True` passes XLA's option without LLVM's optimizations to the compilation,
+    traced or read from the folder, and gives NumPy's answers."""
+    if folder:
+        jax.config.update("jax_compilation_cache_dir", str(tmp_path))
+    options = []
+    compile_ = jax.stages.Lowered.compile
+
+    def recorded(self, compiler_options=None, **kw):
+        options.append(compiler_options)
+        return compile_(self, compiler_options, **kw)
+
+    monkeypatch.setattr(jax.stages.Lowered, "compile", recorded)
+    chain, x0 = _chain(), jnp.arange(5.0)
+    for k in range(1 + folder):  # with a folder: stored, then read back
+        forget_programs()
+        _check(spectrum_and_decay_once(chain, x0, jnp.asarray(3)), chain, x0, 3)
+        _check(spectrum_and_decay(chain, x0, jnp.asarray(3)), chain, x0, 3)
+    assert options == [{"xla_backend_optimization_level": 0}, None] * (1 + folder)
+
+
 def test_any_change_the_trace_depends_on_is_a_new_entry(cache_folder, monkeypatch):
     x0 = jnp.arange(5.0)
     spectrum_and_decay(_chain(0.3), x0, jnp.asarray(2))

@@ -131,7 +131,7 @@ def dataset_outputs_nonlinear(model, data, run_initial=None):
     return readings(model, dataset_states_nonlinear(model, data, run_initial))
 
 
-@stored_jit
+@stored_jit(once=True)
 def etd2_error(model, data, run_initial, substeps):
     """The estimated error (°C) of the model's readings simulated in `substeps` (traced:
     one program for every number) ETD2 steps per sample period: their largest difference,

@@ -114,7 +114,7 @@ _value = stored_jit(_kalman_loss)
 
 
 # Compiled once per structure: called eagerly, the simulator would trace anew every fit.
-_simulate_jit = stored_jit(simulate_dataset)
+_simulate_jit = stored_jit(simulate_dataset, once=True)
 
 
 def _compile_ahead(*programs) -> None:
@@ -324,25 +324,23 @@ def _polish(theta, problem, names, pins, say, tol: float = 1e-3, last: bool = Tr
     return jax.device_put(theta), gain, bool(gain < tol or ok)
 
 
-@stored_jit
+@stored_jit(once=True)
 def kalman_smoothed(model, data, run_initial):
     """RTS-smoothed node temperatures of every run: mean and std, each (runs, times,
-    states) °C."""
-    return kalman_runs(model, data, run_initial, lambda ts, kf: rts_smoother(model, ts, kf))
-
-
-@stored_jit
-def _innovations(model, data, run_initial):
-    return kalman_runs(model, data, run_initial,
-                       lambda ts, kf: kf.innovations / jnp.where(
-                           kf.innovation_std > 0, kf.innovation_std, 1.0))
+    states) °C; and the innovations over their std (runs, times, outputs): one filter
+    pass and one program for a fit's summary and `standardized_innovations`."""
+    def per_run(ts, kf):
+        mean, std = rts_smoother(model, ts, kf)
+        return mean, std, kf.innovations / jnp.where(kf.innovation_std > 0,
+                                                     kf.innovation_std, 1.0)
+    return kalman_runs(model, data, run_initial, per_run)
 
 
 def standardized_innovations(result: FitResult) -> list[np.ndarray]:
     """Kalman fits: each run's one-step innovations over their std, (times, outputs), NaN
     where nothing was measured."""
     data = result.problem.data
-    e = np.asarray(_innovations(result.model, data, result.state.run_initial))
+    e = np.asarray(kalman_smoothed(result.model, data, result.state.run_initial)[2])
     mask = np.asarray(data.mask)
     return [np.where(mask[r, :len(p)], e[r, :len(p)], np.nan)
             for r, p in enumerate(result.predictions)]

@@ -248,7 +248,7 @@ def kalman_nll(model: ThermalModel, data: Dataset, run_initial=None, substeps=No
 kalman_nll_in_substeps = stored_jit(kalman_nll)
 
 
-@stored_jit
+@stored_jit(once=True)
 def kalman_sample_nll(model: ThermalModel, data: Dataset, run_initial=None
                       ) -> Float[Array, "runs times"]:
     """Each sample's `−log p(y_k | y_<k)` under the filter (0 where unmeasured): summed
@@ -304,7 +304,7 @@ def innovation_map(model: ThermalModel, ts, mask, P0, V):
     return _settling_covariances(_riccati_step(C, R, Phi, Qd), step, eps0, P0, V, mask)
 
 
-@stored_jit
+@stored_jit(once=True)
 def dataset_innovation_map(model: ThermalModel, data: Dataset, V):
     """`innovation_map` of every run: `V` (runs, times, outputs, m) -> same shape."""
     P0 = jnp.diag(model.initial_std ** 2)

@@ -100,7 +100,7 @@ def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) ->
         fitted_spec = _with_bias(fitted_spec, b)
     smoothed = []
     if likelihood == "kalman":
-        m_s, s_s = kalman_smoothed(sol.state.model, data, sol.state.run_initial)
+        m_s, s_s, _ = kalman_smoothed(sol.state.model, data, sol.state.run_initial)
         smoothed = [(np.asarray(m_s[r, :n]), np.asarray(s_s[r, :n]))
                     for r, n in enumerate(data.lengths)]
     renames = prep.lowered.renames()

@@ -267,7 +267,7 @@ class ScoreContext:
                                 else net.boundary_conductance)[i])
 
 
-@stored_jit
+@stored_jit(once=True)
 def _linear_parts(model):
     """`(A, B, C, capacitance)` of the model's linear part (one program, not one per
     operation)."""
@@ -275,7 +275,7 @@ def _linear_parts(model):
     return system.A, system.B, system.C, system.capacitance
 
 
-@stored_jit
+@stored_jit(once=True)
 def _states_jit(model, data, run_initial):
     from ..dynamics._nonlinear import dataset_states_nonlinear
 
