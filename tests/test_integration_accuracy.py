@@ -187,6 +187,11 @@ def test_fits_of_one_structure_share_the_most_substeps_any_needed():
         assert _integration.shared_substeps(other_values, 1) == 8
         assert _integration.shared_substeps(mild, 1) == 1
         assert _integration.shared_substeps(strong, 16) == 16
+        # Kalman fits keep their own memory; a start's need is used, not remembered
+        assert _integration.shared_substeps(strong, 2, kalman=True) == 2
+        assert _integration.shared_substeps(strong, 16, kalman=True, remember=False) == 16
+        assert _integration.shared_substeps(strong, 1, kalman=True) == 2
+        assert _integration.shared_substeps(strong, 1) == 16
 
 
 @pytest.mark.parametrize("cpus", [1, 4])

@@ -17,7 +17,7 @@ reaches it, and far fewer substeps do. On PRBS1's four-state model with a
 temperature-dependent conductance the free-run rule asked for 16 (its readings' error at
 1 % of a 0.003 °C noise), while 4 put −log L within 0.01 of its converged value; the
 extended filter's cost grows with the substeps. It is checked at the start values and
-again at the solution (`_kalman_fit`).
+again at the solution (`_kalman_fit`), and only the solution's need is remembered.
 Fits of one structure share the most any of them needed (`shared_substeps`), Kalman and
 output-error fits each their own.
 """
@@ -77,10 +77,10 @@ def fewest_substeps(state, data: Dataset, tolerance: float, read_states: bool = 
     return SUBSTEP_LADDER[-1], float("nan")
 
 
-def fewest_kalman_substeps(state, data: Dataset, tolerance: float = KALMAN_TOLERANCE,
-                           at_least: int = 1) -> tuple[int, float]:
-    """`(substeps, estimated error in −log L)`: the fewest of `SUBSTEP_LADDER`, and at
-    least `at_least`, whose Kalman −log L of `state` (a `FitState` with a nonlinear model)
+def fewest_kalman_substeps(state, data: Dataset, tolerance: float = KALMAN_TOLERANCE
+                           ) -> tuple[int, float]:
+    """`(substeps, estimated error in −log L)`: the fewest of `SUBSTEP_LADDER` whose
+    Kalman −log L of `state` (a `FitState` with a nonlinear model)
     differs from the same filter's in four times as many substeps by at most
     `tolerance` × 15/16 (ETD2's error falls as the square of the step); the last one
     unchecked, error NaN. A filter that fails (non-finite −log L) takes the last."""
@@ -91,7 +91,7 @@ def fewest_kalman_substeps(state, data: Dataset, tolerance: float = KALMAN_TOLER
         return float(kalman_nll_in_substeps(model, data, state.run_initial,
                                             jax.device_put(np.asarray(substeps))))
 
-    for substeps in [s for s in SUBSTEP_LADDER[:-1] if s >= at_least]:
+    for substeps in SUBSTEP_LADDER[:-1]:
         error = (16 / 15) * abs(nll(substeps) - nll(4 * substeps))
         if error <= tolerance:  # False for NaN
             return substeps, error
@@ -111,12 +111,17 @@ def _remember(needed: dict, key, substeps: int) -> int:
     return needed[key]
 
 
-def shared_substeps(model, substeps: int, kalman: bool = False) -> int:
+def shared_substeps(model, substeps: int, kalman: bool = False, remember: bool = True
+                    ) -> int:
     """`substeps` for a fit of `model`, or more if a fit of the same structure (and
     likelihood: `kalman`) needed more earlier in this process; remembered for the fits
-    after it."""
+    after it (unless not `remember`: a Kalman fit's start, which its solution checks
+    again; a start far from the data, such as the user's values, can need 16 substeps
+    where every solution needs 4)."""
     key = (kalman, jax.tree.structure(dataclasses.replace(model, etd2_substeps=0)))
-    return _remember(_NEEDED.get(), key, substeps)
+    needed = _NEEDED.get()
+    return _remember(needed, key, substeps) if remember else max(needed.get(key, 0),
+                                                                 substeps)
 
 
 def substep_snapshot() -> dict:

@@ -149,22 +149,24 @@ def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
     if not template.model.is_nonlinear:
         return _fit_kalman_from(prep, template, sigma, solver, max_steps, prior_log_std, say,
                                 polish)
-    used = _kalman_substeps(template, prep.data)
+    used = _kalman_substeps(template, prep.data, remember=False)
     while True:  # at most once per rung of the ladder
         sol = _fit_kalman_from(prep, with_substeps(template, used), sigma, solver,
                                max_steps, prior_log_std, say, polish)
-        more = _kalman_substeps(sol.state, prep.data, at_least=used)
-        if more == used:
+        more = _kalman_substeps(sol.state, prep.data)  # what the solution needs, remembered
+        if more <= used:
             return sol
         say(f"the solution's likelihood needs {more} ETD2 substeps per sample period (its "
             f"start's {used}); solving again from it with {more}")
         template, used = sol.state, more
 
 
-def _kalman_substeps(state, data, at_least: int = 1) -> int:
-    """The ETD2 substeps a Kalman fit of `state`'s structure takes from here."""
-    substeps, _ = fewest_kalman_substeps(state, data, at_least=at_least)
-    return shared_substeps(state.model, substeps, kalman=True)
+def _kalman_substeps(state, data, remember: bool = True) -> int:
+    """The ETD2 substeps a Kalman fit of `state`'s structure takes from here (remembered
+    for later fits of the structure: `remember`, at a solution; a start far from the data,
+    such as the user's values, can need 16 where its solution needs 4)."""
+    substeps, _ = fewest_kalman_substeps(state, data)
+    return shared_substeps(state.model, substeps, kalman=True, remember=remember)
 
 
 def _fit_kalman_from(prep: Prepared, template, sigma, solver, max_steps: int,
