@@ -317,18 +317,26 @@ def test_kalman_fit_nll_is_the_filter_likelihood(kalman_fit, tmp_path):
     assert result.nll == pytest.approx(total, rel=1e-9)  # roundoff; same definition
 
 
+@pytest.mark.parametrize("process_noise", ["file", "zero"])
 def test_settled_covariances_are_reused_and_the_likelihood_and_its_gradient_stay_exact(
-        tmp_path):
+        tmp_path, process_noise):
     """A linear filter's covariances settle; thermojax then reuses them (skipping the
     Riccati recursion) until a sample is missing. On a long run with a dropped sample and
     a dropped block after the settling, the filter still matches the NumPy reference, and
     the derivatives of −log L in the log noise stds (which act only through the
-    covariances) match central differences of the reference."""
+    covariances) match central differences of the reference. Without process noise the
+    covariances decay towards zero and never settle relative to themselves: they settle
+    on the sensor variance's scale."""
     import jax
 
     from thermojax.fitting import _likelihood
 
-    _, model, mm = load(tmp_path, RTD2_TEXT)
+    text = RTD2_TEXT  # a 40 s sheath without process noise: its variance decays slowly
+    if process_noise == "zero":
+        text = text.replace("process_noise = 0.003", "process_noise = 0.0").replace(
+            "process_noise = 0.001", "process_noise = 0.0").replace("capacitance = 0.8",
+                                                                    "capacitance = 8.0")
+    _, model, mm = load(tmp_path, text)
     n, dt = 1500, 1.0
     ts, U = chamber_inputs(mm, n, dt, seed=20)
     x0 = np_steady(mm["A"], mm["B"], U[0])
@@ -350,7 +358,8 @@ def test_settled_covariances_are_reused_and_the_likelihood_and_its_gradient_stay
         jax.block_until_ready(run_filter(model, ts, U, Y).nll)
     finally:
         _likelihood._update = real
-    assert 0 < len(calls) < n // 3, len(calls)
+    # (a rule relative to P alone ran the recursion at 1406 of the 1500 samples)
+    assert 0 < len(calls) < (n // 3 if process_noise == "file" else n // 2), len(calls)
 
     mask = np.isfinite(Y)
     args = (jnp.asarray(ts), jnp.asarray(U), jnp.asarray(np.where(mask, Y, 0.0)),

@@ -66,6 +66,7 @@ class KalmanOutput(eqx.Module):
     P_pred: Float[Array, "times states states"]
     sample_nll: Float[Array, " times"]  # each sample's term of `nll` (0 where unmeasured)
     innovation_cov: Float[Array, "times outputs outputs"]  # S_k (identity rows where unmeasured)
+    whitening: Float[Array, "times outputs outputs"]  # L_k⁻¹, S_k = L_k L_kᵀ
 
 
 def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None, substeps=None
@@ -94,11 +95,10 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None, substeps=N
         """The filtered mean and the sample's outputs."""
         _, _, y_k, mask_k = inp
         e = jnp.where(mask_k, y_k - C @ m - offset, 0.0)
-        w = jax.scipy.linalg.solve_triangular(g.L, e, lower=True)
-        logdet = 2 * jnp.sum(jnp.log(jnp.diag(g.L)))
-        nll = 0.5 * (logdet + w @ w + mask_k.sum() * LOG_2PI)  # unmeasured rows: S = 1
+        w = g.W @ e
+        nll = 0.5 * (g.logdet + w @ w)  # unmeasured rows: S = 1
         m_f = m + g.K @ e
-        return m_f, (nll, e, jnp.sqrt(jnp.diag(g.S)) * mask_k, m_f, g.P_f, m, g.P, g.S)
+        return m_f, (nll, e, g.std, m_f, g.P_f, m, g.P, g.S, g.W)
 
     inputs = (u, u_next, y, mask)
     if model.is_nonlinear:  # the extended filter: Φ depends on the mean, nothing settles
@@ -120,24 +120,46 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None, substeps=N
             m_f, out = mean_update(m, g, inp)
             return disc.Phi @ m_f + disc.B0 @ inp[0] + disc.B1 @ inp[1], out
 
+        def settled_chunk(m, g, chunk):
+            """`linear_step` over a fully measured chunk at the settled covariances `g`:
+            the filter is then time-invariant, `m⁺ = F m + b_k` with `F = Φ(I − KC)`, so
+            one product a sample is left in the recursion and the rest is computed for
+            the whole chunk at once."""
+            u_k, u_k1, y_k, _ = chunk
+            F = disc.Phi - disc.Phi @ g.K @ C
+            b = (y_k - offset[None]) @ (disc.Phi @ g.K).T + u_k @ disc.B0.T + u_k1 @ disc.B1.T
+            prior, m_end = _time_invariant(F, b, m)
+            e = y_k - prior @ C.T - offset[None]
+            w = e @ g.W.T
+            nll = 0.5 * (g.logdet + jnp.sum(w * w, axis=-1))
+            m_f = prior + e @ g.K.T
+            n = b.shape[0]
+            same = lambda a: jnp.broadcast_to(a, (n,) + a.shape)  # noqa: E731
+            return m_end, (nll, e, same(g.std), m_f, same(g.P_f), prior, same(g.P), same(g.S),
+                           same(g.W))
+
         outs = _settling_covariances(_riccati_step(C, R, disc.Phi, Qd), linear_step, m0,
-                                     P0, inputs, mask)
-    nll, e, s, m_f, P_f, m_p, P_p, S = outs
-    return KalmanOutput(jnp.sum(nll), e, s, m_f, P_f, m_p, P_p, nll, S)
+                                     P0, inputs, mask, settled_chunk)
+    nll, e, s, m_f, P_f, m_p, P_p, S, W = outs
+    return KalmanOutput(jnp.sum(nll), e, s, m_f, P_f, m_p, P_p, nll, S, W)
 
 
 class _Covariances(NamedTuple):
     """One sample's covariances: prior `P`, innovation `S` = L Lᵀ, gain `K`, posterior
-    `P_f` (the sensors `mask` measured) and the next prior `P_next` (the measurement
-    update's `_update` leaves it None; `_riccati_step` fills it)."""
+    `P_f` (the sensors `mask` measured), what the mean update takes from them (`W`,
+    `logdet`, `std`), and the next prior `P_next` with whether it `settles` (the
+    measurement update's `_update` leaves both None; `_riccati_step` fills them)."""
 
     P: jax.Array
     S: jax.Array
-    L: jax.Array
     K: jax.Array
     P_f: jax.Array
     mask: jax.Array  # (outputs,) which sensors measured
+    W: jax.Array  # L⁻¹: whitens the innovations
+    logdet: jax.Array  # log det(2π S), the measured rows'
+    std: jax.Array  # sqrt(diag S), 0 where unmeasured
     P_next: jax.Array | None = None
+    settles: jax.Array | None = None
 
 
 def _update(P, mask_k, C, R) -> _Covariances:
@@ -150,52 +172,95 @@ def _update(P, mask_k, C, R) -> _Covariances:
     K = jax.scipy.linalg.cho_solve((L, True), Cm @ P).T  # P Cmᵀ S⁻¹
     IKC = jnp.eye(P.shape[0]) - K @ Cm
     P_f = IKC @ P @ IKC.T + K @ jnp.where(both, R, 0.0) @ K.T
-    return _Covariances(P, S, L, K, 0.5 * (P_f + P_f.T), mask_k)
+    W = jax.scipy.linalg.solve_triangular(L, jnp.eye(C.shape[0]), lower=True)
+    logdet = 2 * jnp.sum(jnp.log(jnp.diag(L))) + mask_k.sum() * LOG_2PI
+    return _Covariances(P, S, K, 0.5 * (P_f + P_f.T), mask_k, W, logdet,
+                        jnp.sqrt(jnp.diag(S)) * mask_k)
 
 
 def _riccati_step(C, R, Phi, Qd):
     """`covariances(P, mask_k) -> _Covariances` of a linear filter: the measurement update
-    at prior `P`, then the next prior `Φ P_f Φᵀ + Qd`."""
+    at prior `P`, then the next prior `Φ P_f Φᵀ + Qd` and whether it settles (`_settled`,
+    on the scale of the smallest sensor variance)."""
+    floor = jnp.min(jnp.diag(R))
+
     def covariances(P, mask_k):
         g = _update(P, mask_k, C, R)
         P_next = Phi @ g.P_f @ Phi.T + Qd
-        return g._replace(P_next=0.5 * (P_next + P_next.T))
+        P_next = 0.5 * (P_next + P_next.T)
+        return g._replace(P_next=P_next, settles=_settled(P_next, P, floor))
     return covariances
 
 
-# Relative change (of sqrt(P_ii P_jj)) below which one Riccati step leaves the prior
-# covariance settled: its derivatives then differ from the exact filter's by ~1e-12.
+# Relative change below which one Riccati step leaves the prior covariance settled: its
+# derivatives then differ from the exact filter's by ~1e-12.
 _SETTLED = 1e-14
 
 
-def _settled(P_next, P):
+def _settled(P_next, P, floor):
     """Whether one more step moved no element of the prior covariance by more than
-    `_SETTLED` of its scale."""
+    `_SETTLED` of its scale, `sqrt(P_ii P_jj)` + `floor` (°C²): a node whose variance
+    decays towards zero (no process noise) settles once its changes are below the
+    sensors' variance `floor`, which they cannot move by more than rounding."""
     d = jnp.sqrt(jnp.abs(jnp.diagonal(P)))
-    return jnp.all(jnp.abs(P_next - P) <= _SETTLED * jnp.outer(d, d))
+    return jnp.all(jnp.abs(P_next - P) <= _SETTLED * (jnp.outer(d, d) + floor))
 
 
-def _settling_covariances(covariances, mean_step, x0, P0, inputs, mask):
+def _time_invariant(F, b, x0):
+    """`x_{j+1} = F x_j + b_j` from `x0` over `b` (L, n): `(x_0..x_{L-1}, x_L)`."""
+    def step(x, b_j):
+        return F @ x + b_j, x
+    x_end, xs = jax.lax.scan(step, x0, b)
+    return xs, x_end
+
+
+def _settling_covariances(covariances, mean_step, x0, P0, inputs, mask, settled_chunk=None):
     """`lax.scan` of a linear filter whose covariances (`covariances(P, mask_k) ->
-    _Covariances`) depend on the data only through which sensors measured: once a step
-    with every sensor measured leaves `P` settled, the next fully measured steps reuse
-    its covariances (a `lax.cond`: the Riccati recursion and its derivatives, most of a
-    filter's work, are skipped) and a missing sample starts the recursion again. A steady
-    state reached to rounding, so the likelihood is the exact filter's (to ~1e-15
-    relative). `mean_step(x, g, inp) -> (x_next, out)`; returns the stacked `out`."""
+    _Covariances`) depend on the data only through which sensors measured, in chunks of
+    `_CHUNK` samples: once a step with every sensor measured leaves `P` settled
+    (`_Covariances.settles`), the next fully measured chunks reuse its covariances (the
+    Riccati recursion and its derivatives, most of a filter's work, are skipped) and a
+    chunk with a missing sample runs the recursion again. A steady state reached to
+    rounding, so the likelihood is the exact filter's (to ~1e-15 relative).
+    `mean_step(x, g, inp) -> (x_next, out)`; returns the stacked `out`.
+    `settled_chunk(x, g, chunk inputs) -> (x after the chunk, stacked out)`: the mean steps
+    over a chunk at settled covariances `g`, by default `mean_step` by `mean_step`. One
+    `lax.cond` a chunk, not a sample: its carry's copies cost as much as a settled step."""
     def step(carry, inp):
-        x, P, settled, last = carry
+        x, P, _, _ = carry
         inp_k, mask_k = inp
-        full = jnp.all(mask_k)
-        g = jax.lax.cond(settled & full, lambda: last, lambda: covariances(P, mask_k))
+        g = covariances(P, mask_k)
         x_next, out = mean_step(x, g, inp_k)
-        return (x_next, g.P_next, full & _settled(g.P_next, P), g), out
+        return (x_next, g.P_next, jnp.all(mask_k) & g.settles, g), out
+
+    if settled_chunk is None:
+        def settled_chunk(x, g, chunk):
+            return jax.lax.scan(lambda x, inp: mean_step(x, g, inp), x, chunk)
+
+    def chunk_at_settled(carry, chunk):
+        x, P, settled, last = carry
+        x, outs = settled_chunk(x, last, chunk[0])
+        return (x, P, settled, last), outs
+
+    def one_chunk(carry, chunk):
+        skip = carry[2] & jnp.all(chunk[1])
+        return jax.lax.cond(skip, chunk_at_settled, lambda c, ch: jax.lax.scan(step, c, ch),
+                            carry, chunk)
 
     # never read (nothing has settled at the first step): zeros of the right structure
     unused = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype),
                           jax.eval_shape(covariances, P0, mask[0]))
-    _, outs = jax.lax.scan(step, (x0, P0, jnp.array(False), unused), (inputs, mask))
-    return outs
+    n = mask.shape[0]
+    pad = -n % _CHUNK  # unmeasured samples past the end: they change no output before it
+    chunks = jax.tree.map(
+        lambda a: jnp.concatenate([a, jnp.zeros((pad,) + a.shape[1:], a.dtype)]
+                                  ).reshape((-1, _CHUNK) + a.shape[1:]), (inputs, mask))
+    _, outs = jax.lax.scan(one_chunk, (x0, P0, jnp.array(False), unused), chunks)
+    return jax.tree.map(lambda a: a.reshape((-1,) + a.shape[2:])[:n], outs)
+
+
+# Samples per chunk of `_settling_covariances`.
+_CHUNK = 16
 
 
 # The most ETD2 substeps the extended filter writes out; more run as a loop. Under the
@@ -297,7 +362,7 @@ def innovation_map(model: ThermalModel, ts, mask, P0, V):
 
     def step(eps, g, v):
         e = (v - C @ eps) * g.mask[:, None]
-        w = jax.scipy.linalg.solve_triangular(g.L, e, lower=True) * g.mask[:, None]
+        w = (g.W @ e) * g.mask[:, None]
         return Phi @ (eps + g.K @ e), w
 
     eps0 = jnp.zeros((Phi.shape[0], V.shape[-1]), V.dtype)
