@@ -92,13 +92,11 @@ def _value_grad_information(theta, problem):
     def filtered(t):
         s = _state(t, problem)
         out = kalman_runs(s.model, problem.data, s.run_initial,
-                          lambda ts, kf: (kf.innovations, kf.innovation_cov, kf.nll,
-                                          kf.whitening))
-        return out[:3], out
+                          lambda ts, kf: (kf.innovations, kf.innovation_cov, kf.nll))
+        return out, out
 
-    (de, dS, _), (e, _, nll, W) = jax.jacfwd(filtered, has_aux=True)(theta)
-    # S⁻¹ = WᵀW, W = L⁻¹ (runs, times, p, p); unmeasured rows are identity rows
-    Sinv = jnp.einsum("rtki,rtkj->rtij", W, W)
+    (de, dS, _), (e, S, nll) = jax.jacfwd(filtered, has_aux=True)(theta)
+    Sinv = jnp.linalg.inv(S)  # (runs, times, p, p); unmeasured rows are identity rows
     a = jnp.einsum("rtij,rtj->rti", Sinv, e)
     Sinv_dS = jnp.einsum("rtij,rtjkq->rtikq", Sinv, dS)
     g = (jnp.einsum("rti,rtiq->q", a, de)

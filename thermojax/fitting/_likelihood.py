@@ -66,7 +66,6 @@ class KalmanOutput(eqx.Module):
     P_pred: Float[Array, "times states states"]
     sample_nll: Float[Array, " times"]  # each sample's term of `nll` (0 where unmeasured)
     innovation_cov: Float[Array, "times outputs outputs"]  # S_k (identity rows where unmeasured)
-    whitening: Float[Array, "times outputs outputs"]  # L_k⁻¹, S_k = L_k L_kᵀ
 
 
 def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None, substeps=None
@@ -95,10 +94,16 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None, substeps=N
         """The filtered mean and the sample's outputs."""
         _, _, y_k, mask_k = inp
         e = jnp.where(mask_k, y_k - C @ m - offset, 0.0)
-        w = g.W @ e
-        nll = 0.5 * (g.logdet + w @ w)  # unmeasured rows: S = 1
+        if g.W is None:  # the extended filter: covariances that change every sample
+            w = jax.scipy.linalg.solve_triangular(g.L, e, lower=True)
+            logdet = 2 * jnp.sum(jnp.log(jnp.diag(g.L)))
+            nll = 0.5 * (logdet + w @ w + mask_k.sum() * LOG_2PI)  # unmeasured rows: S = 1
+            std = jnp.sqrt(jnp.diag(g.S)) * mask_k
+        else:  # a linear filter's, computed with them (`_riccati_step`)
+            w = g.W @ e
+            nll, std = 0.5 * (g.logdet + w @ w), g.std
         m_f = m + g.K @ e
-        return m_f, (nll, e, g.std, m_f, g.P_f, m, g.P, g.S, g.W)
+        return m_f, (nll, e, std, m_f, g.P_f, m, g.P, g.S)
 
     inputs = (u, u_next, y, mask)
     if model.is_nonlinear:  # the extended filter: Φ depends on the mean, nothing settles
@@ -135,29 +140,29 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None, substeps=N
             m_f = prior + e @ g.K.T
             n = b.shape[0]
             same = lambda a: jnp.broadcast_to(a, (n,) + a.shape)  # noqa: E731
-            return m_end, (nll, e, same(g.std), m_f, same(g.P_f), prior, same(g.P), same(g.S),
-                           same(g.W))
+            return m_end, (nll, e, same(g.std), m_f, same(g.P_f), prior, same(g.P), same(g.S))
 
         outs = _settling_covariances(_riccati_step(C, R, disc.Phi, Qd), linear_step, m0,
                                      P0, inputs, mask, settled_chunk)
-    nll, e, s, m_f, P_f, m_p, P_p, S, W = outs
-    return KalmanOutput(jnp.sum(nll), e, s, m_f, P_f, m_p, P_p, nll, S, W)
+    nll, e, s, m_f, P_f, m_p, P_p, S = outs
+    return KalmanOutput(jnp.sum(nll), e, s, m_f, P_f, m_p, P_p, nll, S)
 
 
 class _Covariances(NamedTuple):
     """One sample's covariances: prior `P`, innovation `S` = L Lᵀ, gain `K`, posterior
-    `P_f` (the sensors `mask` measured), what the mean update takes from them (`W`,
-    `logdet`, `std`), and the next prior `P_next` with whether it `settles` (the
-    measurement update's `_update` leaves both None; `_riccati_step` fills them)."""
+    `P_f` (the sensors `mask` measured); a linear filter's also what its mean update takes
+    from them (`W`, `logdet`, `std`), the next prior `P_next` and whether it `settles`
+    (the measurement update's `_update` leaves them None; `_riccati_step` fills them)."""
 
     P: jax.Array
     S: jax.Array
+    L: jax.Array
     K: jax.Array
     P_f: jax.Array
     mask: jax.Array  # (outputs,) which sensors measured
-    W: jax.Array  # L⁻¹: whitens the innovations
-    logdet: jax.Array  # log det(2π S), the measured rows'
-    std: jax.Array  # sqrt(diag S), 0 where unmeasured
+    W: jax.Array | None = None  # L⁻¹: whitens the innovations
+    logdet: jax.Array | None = None  # log det(2π S), the measured rows'
+    std: jax.Array | None = None  # sqrt(diag S), 0 where unmeasured
     P_next: jax.Array | None = None
     settles: jax.Array | None = None
 
@@ -172,23 +177,25 @@ def _update(P, mask_k, C, R) -> _Covariances:
     K = jax.scipy.linalg.cho_solve((L, True), Cm @ P).T  # P Cmᵀ S⁻¹
     IKC = jnp.eye(P.shape[0]) - K @ Cm
     P_f = IKC @ P @ IKC.T + K @ jnp.where(both, R, 0.0) @ K.T
-    W = jax.scipy.linalg.solve_triangular(L, jnp.eye(C.shape[0]), lower=True)
-    logdet = 2 * jnp.sum(jnp.log(jnp.diag(L))) + mask_k.sum() * LOG_2PI
-    return _Covariances(P, S, K, 0.5 * (P_f + P_f.T), mask_k, W, logdet,
-                        jnp.sqrt(jnp.diag(S)) * mask_k)
+    return _Covariances(P, S, L, K, 0.5 * (P_f + P_f.T), mask_k)
 
 
 def _riccati_step(C, R, Phi, Qd):
     """`covariances(P, mask_k) -> _Covariances` of a linear filter: the measurement update
-    at prior `P`, then the next prior `Φ P_f Φᵀ + Qd` and whether it settles (`_settled`,
-    on the scale of the smallest sensor variance)."""
+    at prior `P`, what the mean update takes from it (reused with it once settled), then
+    the next prior `Φ P_f Φᵀ + Qd` and whether it settles (`_settled`, on the scale of the
+    smallest sensor variance too)."""
     floor = jnp.min(jnp.diag(R))
 
     def covariances(P, mask_k):
         g = _update(P, mask_k, C, R)
         P_next = Phi @ g.P_f @ Phi.T + Qd
         P_next = 0.5 * (P_next + P_next.T)
-        return g._replace(P_next=P_next, settles=_settled(P_next, P, floor))
+        return g._replace(
+            W=jax.scipy.linalg.solve_triangular(g.L, jnp.eye(C.shape[0]), lower=True),
+            logdet=2 * jnp.sum(jnp.log(jnp.diag(g.L))) + mask_k.sum() * LOG_2PI,
+            std=jnp.sqrt(jnp.diag(g.S)) * mask_k, P_next=P_next,
+            settles=_settled(P_next, P, floor))
     return covariances
 
 
