@@ -317,19 +317,23 @@ def test_kalman_fit_nll_is_the_filter_likelihood(kalman_fit, tmp_path):
     assert result.nll == pytest.approx(total, rel=1e-9)  # roundoff; same definition
 
 
+@pytest.mark.parametrize("chunked", [False, True])
 @pytest.mark.parametrize("process_noise", ["file", "zero"])
 def test_settled_covariances_are_reused_and_the_likelihood_and_its_gradient_stay_exact(
-        tmp_path, process_noise):
+        tmp_path, monkeypatch, process_noise, chunked):
     """A linear filter's covariances settle; thermojax then reuses them (skipping the
     Riccati recursion) until a sample is missing. On a long run with a dropped sample and
     a dropped block after the settling, the filter still matches the NumPy reference, and
     the derivatives of −log L in the log noise stds (which act only through the
     covariances) match central differences of the reference. Without process noise the
     covariances decay towards zero and never settle relative to themselves: they settle
-    on the sensor variance's scale."""
+    on the sensor variance's scale. Both ways of running it: sample by sample (short runs)
+    and in chunks (long runs; here the 1,500 samples, not a multiple of the chunk)."""
     import jax
 
     from thermojax.fitting import _likelihood
+
+    monkeypatch.setattr(_likelihood, "_CHUNKED_FROM", 0 if chunked else 10 ** 9)
 
     text = RTD2_TEXT  # a 40 s sheath without process noise: its variance decays slowly
     if process_noise == "zero":
