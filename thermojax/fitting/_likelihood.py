@@ -272,8 +272,8 @@ def _settling_covariances(covariances, mean_step, x0, P0, inputs, mask, settled_
 
 # Samples per chunk of `_settling_covariances`, and the run length from which it chunks:
 # chunks made the six-node IMU's scoring call (4,921 samples) a quarter faster and its
-# programs compile 0.3-0.45 s slower, which PRBS1's 1,691-sample loop (one compilation
-# per structure) did not earn back.
+# programs compile 0.3-0.45 s slower. On PRBS1's 1,691 samples the loop took as long
+# either way, and the tests' shorter runs were faster without (benchmarks/README.md).
 _CHUNK = 16
 _CHUNKED_FROM = 2000
 
