@@ -94,16 +94,9 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None, substeps=N
         """The filtered mean and the sample's outputs."""
         _, _, y_k, mask_k = inp
         e = jnp.where(mask_k, y_k - C @ m - offset, 0.0)
-        if g.W is None:  # the extended filter: covariances that change every sample
-            w = jax.scipy.linalg.solve_triangular(g.L, e, lower=True)
-            logdet = 2 * jnp.sum(jnp.log(jnp.diag(g.L)))
-            nll = 0.5 * (logdet + w @ w + mask_k.sum() * LOG_2PI)  # unmeasured rows: S = 1
-            std = jnp.sqrt(jnp.diag(g.S)) * mask_k
-        else:  # a linear filter's, computed with them (`_riccati_step`)
-            w = g.W @ e
-            nll, std = 0.5 * (g.logdet + w @ w), g.std
+        w = g.W @ e
         m_f = m + g.K @ e
-        return m_f, (nll, e, std, m_f, g.P_f, m, g.P, g.S)
+        return m_f, (0.5 * (g.logdet + w @ w), e, g.std, m_f, g.P_f, m, g.P, g.S)
 
     inputs = (u, u_next, y, mask)
     if model.is_nonlinear:  # the extended filter: Φ depends on the mean, nothing settles
@@ -145,9 +138,10 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None, substeps=N
 
 class _Covariances(NamedTuple):
     """One sample's covariances: prior `P`, innovation `S` = L Lᵀ, gain `K`, posterior
-    `P_f` (the sensors `mask` measured); a linear filter's also what its mean update takes
-    from them (`W`, `logdet`, `std`), the next prior `P_next` and whether it `settles`
-    (the measurement update's `_update` leaves them None; `_riccati_step` fills them)."""
+    `P_f` (the sensors `mask` measured) and what the mean update takes from them (`W`,
+    `logdet`, `std`); a linear filter's also the next prior `P_next` and whether it
+    `settles` (the measurement update's `_update` leaves them None; `_riccati_step` fills
+    them)."""
 
     P: jax.Array
     S: jax.Array
@@ -155,9 +149,9 @@ class _Covariances(NamedTuple):
     K: jax.Array
     P_f: jax.Array
     mask: jax.Array  # (outputs,) which sensors measured
-    W: jax.Array | None = None  # L⁻¹: whitens the innovations
-    logdet: jax.Array | None = None  # log det(2π S), the measured rows'
-    std: jax.Array | None = None  # sqrt(diag S), 0 where unmeasured
+    W: jax.Array  # L⁻¹: whitens the innovations
+    logdet: jax.Array  # log det(2π S), the measured rows' (unmeasured rows: S = 1)
+    std: jax.Array  # sqrt(diag S), 0 where unmeasured
     P_next: jax.Array | None = None
     settles: jax.Array | None = None
 
@@ -172,7 +166,11 @@ def _update(P, mask_k, C, R) -> _Covariances:
     K = jax.scipy.linalg.cho_solve((L, True), Cm @ P).T  # P Cmᵀ S⁻¹
     IKC = jnp.eye(P.shape[0]) - K @ Cm
     P_f = IKC @ P @ IKC.T + K @ jnp.where(both, R, 0.0) @ K.T
-    return _Covariances(P, S, L, K, 0.5 * (P_f + P_f.T), mask_k)
+    return _Covariances(
+        P, S, L, K, 0.5 * (P_f + P_f.T), mask_k,
+        W=jax.scipy.linalg.solve_triangular(L, jnp.eye(C.shape[0]), lower=True),
+        logdet=2 * jnp.sum(jnp.log(jnp.diag(L))) + mask_k.sum() * LOG_2PI,
+        std=jnp.sqrt(jnp.diag(S)) * mask_k)
 
 
 def _riccati_step(C, R, Phi, Qd):
@@ -186,11 +184,7 @@ def _riccati_step(C, R, Phi, Qd):
         g = _update(P, mask_k, C, R)
         P_next = Phi @ g.P_f @ Phi.T + Qd
         P_next = 0.5 * (P_next + P_next.T)
-        return g._replace(
-            W=jax.scipy.linalg.solve_triangular(g.L, jnp.eye(C.shape[0]), lower=True),
-            logdet=2 * jnp.sum(jnp.log(jnp.diag(g.L))) + mask_k.sum() * LOG_2PI,
-            std=jnp.sqrt(jnp.diag(g.S)) * mask_k, P_next=P_next,
-            settles=_settled(P_next, P, floor))
+        return g._replace(P_next=P_next, settles=_settled(P_next, P, floor))
     return covariances
 
 
