@@ -164,11 +164,17 @@ def reference():
                                    options=dict(maxiter=4000, xatol=1e-8, fatol=1e-9))
 
 
-@pytest.mark.slow
-def test_kalman_fit_reaches_the_optimum_with_zero_process_noise(reference):
-    t, U, Y = make_data()
+@pytest.fixture(scope="module")
+def direct_fit():
+    """`fit_start()` and what it said."""
     said = []
-    result = fit_start(progress=said.append)
+    return fit_start(progress=said.append), said
+
+
+@pytest.mark.slow
+def test_kalman_fit_reaches_the_optimum_with_zero_process_noise(reference, direct_fit):
+    t, U, Y = make_data()
+    result, said = direct_fit
     ref = reference
     assert result.nll <= ref.fun + 0.05, (result.nll, ref.fun)
     assert "started from the file's values" in said[0] and not any("output-error" in m
@@ -232,8 +238,36 @@ def test_kalman_fit_falls_back_to_the_output_error_start(reference, monkeypatch,
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("gap", [-1.0, 1000.0])
+def test_a_start_far_above_its_nested_model_is_not_polished(reference, direct_fit, gap):
+    """`nested_nll`, the −log L of a model nested in this one: a start whose scoring steps
+    end more than `_BEYOND_POLISH` above it sits in a local optimum the polish does not
+    leave (on PRBS1, 1894 above: 215 s of polish gained 8.9). Such a start is not
+    polished and the fit goes on from the output-error start; a nested model within reach
+    (here: 1 below SciPy's optimum, as a nested model may be) changes nothing. The far
+    case stands in a nested model 1000 better than the optimum, so both starts are far."""
+    from thermojax.fitting._kalman_fit import _BEYOND_POLISH
+
+    plain, plain_said = direct_fit
+    said = []
+    result = fit_start(progress=said.append, nested_nll=reference.fun - gap)
+    if gap < 0:
+        assert said == plain_said and result.nll == plain.nll and result.converged
+        return
+    assert any(m.startswith("polish") for m in plain_said)  # the plain fit polishes
+    assert not any(m.startswith("polish") for m in said)
+    assert sum("a local optimum, not polished" in m for m in said) == 2, said
+    assert any("did not converge; trying again from the output-error fit" in m
+               for m in said)
+    assert not result.converged  # unpolished: not confirmed
+    # the scoring steps alone end near the optimum here: the skip loses only the polish
+    assert result.nll <= reference.fun + _BEYOND_POLISH, (result.nll, reference.fun)
+
+
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore:.*shorter than the slowest time constant")
 def test_a_held_out_fold_fit_reaches_the_folds_optimum_without_the_polish(reference,
+                                                                            direct_fit,
                                                                             monkeypatch):
     """A Kalman held-out fit (`_fit_without`: one of four contiguous blocks masked, started
     at the fit to all the data) ends after its scoring steps and the boundary check, with
@@ -244,7 +278,7 @@ def test_a_held_out_fold_fit_reaches_the_folds_optimum_without_the_polish(refere
     from thermojax.investigation._investigate import _fit_without
 
     t, U, Y = make_data()
-    full = fit_start()
+    full, _ = direct_fit
     fold = (0, (N // 4, N // 2))
     Ym = Y.copy()
     Ym[slice(*fold[1])] = np.nan

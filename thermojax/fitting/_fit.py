@@ -47,7 +47,8 @@ __all__ = ["FitResult", "LIKELIHOODS", "fit", "output_error_at", "profile_interv
 def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "output_error",
         solver=None, max_steps: int = 100, prior_log_std: float = 3.0, n_starts: int = 1,
         seed: int = 0, progress=None, holdout: int | None = None,
-        restart_plateaus: bool = True, polish: bool = True) -> FitResult:
+        restart_plateaus: bool = True, polish: bool = True,
+        nested_nll: float | None = None) -> FitResult:
     """Fit the free parameters of `spec` to several runs at once.
 
     **Arguments:**
@@ -82,6 +83,10 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
       docs/extensions.md). False leaves that out: a fit warm-started at a nearby optimum
       (a held-out fold's, from the fit to all the data) whose last few 0.1 of −log L do
       not matter.
+    - `nested_nll`: −log L of a model nested in `spec` (`spec` without an effect, which
+      `spec` reaches with the effect at zero). A Kalman start whose scoring steps end far
+      above it is in a local optimum: it is not polished, and the fit goes on as from a
+      start that did not converge.
 
     **Returns:** a `FitResult`.
     """
@@ -97,7 +102,7 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     kalman = likelihood == "kalman"
     if kalman:
         sol = _kalman_stages(prep, solver, max_steps, prior_log_std, n_starts, seed, say,
-                             polish)
+                             polish, nested_nll)
     else:
         sol = fit_output_error(prep, solver, max_steps, n_starts, seed, say)
     result = summarize(prep, sol, likelihood, t_start)
@@ -133,7 +138,7 @@ def _off_plateau(result: FitResult, experiments, say, **options) -> FitResult:
 
 
 def _kalman_stages(prep, solver, max_steps, prior_log_std, n_starts, seed, say,
-                   polish=True) -> Solution:
+                   polish=True, nested_nll=None) -> Solution:
     """The Kalman likelihood's solution. The default solver starts from the file's values
     (one compiled program fewer than an output-error stage first: a third of a first
     fit's time) and only when that does not converge (or diverges) again from the
@@ -142,7 +147,8 @@ def _kalman_stages(prep, solver, max_steps, prior_log_std, n_starts, seed, say,
     direct = None
     if solver is None and n_starts == 1:
         try:
-            direct = fit_kalman(prep, None, solver, max_steps, prior_log_std, say, polish)
+            direct = fit_kalman(prep, None, solver, max_steps, prior_log_std, say, polish,
+                                nested_nll)
         except InputError as err:  # diverged from the file's values
             why = f"failed ({err})"
         else:
@@ -153,7 +159,8 @@ def _kalman_stages(prep, solver, max_steps, prior_log_std, n_starts, seed, say,
     start = fit_output_error(integrated_for_output_error(prep), None, max_steps, n_starts,
                              seed, say)
     try:
-        sol = fit_kalman(prep, start, solver, max_steps, prior_log_std, say, polish)
+        sol = fit_kalman(prep, start, solver, max_steps, prior_log_std, say, polish,
+                         nested_nll)
     except InputError:
         if direct is None:
             raise

@@ -81,6 +81,14 @@ class Step:
                if p is None or not p > white_p]
         return float(max([self.lrv.get(c, 1.0) for c in bad], default=1.0))
 
+    @property
+    def thermal_nll(self) -> float:
+        """−log L of the thermal model alone: a Kalman fit's record adds its bias
+        channels' (`fitting._summary`)."""
+        kalman = self.result.likelihood == "kalman"
+        return self.record["nll"] - (sum(b.nll for b in self.biases.values()) if kalman
+                                     else 0.0)
+
 
 # ---------------------------------------------------------------------------
 # Evaluating one model
@@ -103,13 +111,16 @@ def _bias_runs(result, runs, bias):
 
 
 def evaluate(spec: ModelSpec, runs: list[Telemetry], likelihood: str, progress=None,
-             holdout: int | None = None, n_starts: int = 1) -> Step:
+             holdout: int | None = None, n_starts: int = 1,
+             nested_nll: float | None = None) -> Step:
     """Fit `spec` to the runs, its bias channels with it (docs/formats.md §4), and measure
-    the fit (docs/formats.md §5 keys). `n_starts` > 1 adds perturbed output-error starts."""
+    the fit (docs/formats.md §5 keys). `n_starts` > 1 adds perturbed output-error starts;
+    `nested_nll`: −log L of the model `spec` extends (`fit`'s)."""
     # Plateau restarts (`fitting._plateau`) stay with `fit`: here a candidate's node
     # beyond the data is evidence against it, and each step's fit is compared as it is.
     result = fit(spec, _experiments(spec, runs), likelihood=likelihood, progress=progress,
-                 holdout=holdout, n_starts=n_starts, restart_plateaus=False)
+                 holdout=holdout, n_starts=n_starts, restart_plateaus=False,
+                 nested_nll=nested_nll)
     biases = result.biases
     spec_out = result.spec
     nll, n_params, n = result.nll, result.n_params, result.n_samples
@@ -486,26 +497,28 @@ def _refit_side_by_side(cands: list[Candidate], step: Step, runs, likelihood, ne
     for c in cands:
         say(f"refitting with {c.kind} {list(c.where)} (score {c.score:.1f})")
         plans.append(_refit_starts(c, step, new_columns, initial, runs))
-    fits = _fit_plans(plans, runs, likelihood)
+    fits = _fit_plans(plans, runs, likelihood, step.thermal_nll)
     retry = [i for i, f in enumerate(fits) if _needs_retry(f, step)]
     for i in retry:
         say(f"refitting {cands[i].kind} {list(cands[i].where)} again from {START_NESTED}")
     more = _fit_plans([_refit_starts(cands[i], step, new_columns, initial, runs, nested=True)
-                       for i in retry], runs, likelihood)
+                       for i in retry], runs, likelihood, step.thermal_nll)
     for i, m in zip(retry, more):
         fits[i] = fits[i] + m
     return [_refit(c, step, runs, new_columns, fits[i], say, white_p)
             for i, c in enumerate(cands)]
 
 
-def _fit_plans(plans: list[list[tuple]], runs, likelihood) -> list[list[tuple]]:
-    """Every `(hold, start, model)` of every plan fitted side by side, first starts first:
-    per plan, `(hold, start, Step or the exception its fit raised)`."""
+def _fit_plans(plans: list[list[tuple]], runs, likelihood, nested_nll: float
+               ) -> list[list[tuple]]:
+    """Every `(hold, start, model)` of every plan, each a model that extends one with
+    −log L `nested_nll`, fitted side by side, first starts first: per plan, `(hold, start,
+    Step or the exception its fit raised)`."""
     order = sorted((k, i) for i, plan in enumerate(plans) for k in range(len(plan)))
 
     def evaluated(model):  # a Step, or the exception `_refit` reports for its candidate
         try:
-            return evaluate(model, runs, likelihood)
+            return evaluate(model, runs, likelihood, nested_nll=nested_nll)
         except Exception as err:
             return err
 
