@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -73,7 +74,8 @@ def test_every_start_of_every_candidate_is_fitted_side_by_side(monkeypatch, cpus
         n = 1 if c.kind == "radiation" else 2
         return [(None, f"start {k}", f"{c.where[0]}:{k}") for k in range(n)]
 
-    def fake_evaluate(model, runs, likelihood):
+    def fake_evaluate(model, runs, likelihood, nested_nll):
+        assert nested_nll == -12.5  # every start knows the likelihood it can reach
         with lock:
             submitted.append(model)
         time.sleep(0.02)
@@ -93,7 +95,9 @@ def test_every_start_of_every_candidate_is_fitted_side_by_side(monkeypatch, cpus
     monkeypatch.setattr(inv, "_needs_retry", lambda fits, step: False)
     monkeypatch.setattr(os, "cpu_count", lambda: cpus)
     cands = _cands(["radiation", "sensor_offset", "extra_node"])
-    ok = inv._refit_side_by_side(cands, None, [], "output_error", set(), None, lambda m: None)
+    nested = SimpleNamespace(thermal_nll=-12.5)  # the step the candidates extend
+    ok = inv._refit_side_by_side(cands, nested, [], "output_error", set(), None,
+                                 lambda m: None)
     assert ok == [True, True, False]
     assert sorted(submitted) == ["n0:0", "n1:0", "n1:1", "n2:0", "n2:1"]
     if cpus == 1:
