@@ -139,9 +139,10 @@ def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
                nested_nll: float | None = None) -> Solution:
     """The Kalman stage, started from the output-error `start` or, with `start` None,
     from the file's values; `polish` False ends it after the scoring steps and the boundary
-    check, as does a start that ends above `nested_nll` (`fit`'s). A nonlinear model is integrated in the fewest ETD2 substeps
-    its likelihood needs at the start (`_integration.fewest_kalman_substeps`), and solved
-    again from the solution with more as long as the solution needs more."""
+    check, as does a start that ends far above `nested_nll` (`fit`'s). A nonlinear model
+    is integrated in the fewest ETD2 substeps its likelihood needs at the start
+    (`_integration.fewest_kalman_substeps`), and solved again from the solution with more
+    as long as the solution needs more."""
     template = prep.template if start is None else start.state
     p = len(prep.spec.sensors)  # the filter's own noise is in theta; sigma rides along
     sigma = prep.sigma[:p] if start is None else start.problem.sigma[:p]
