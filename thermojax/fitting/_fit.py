@@ -109,7 +109,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     if restart_plateaus:
         result = _off_plateau(result, experiments, say, likelihood=likelihood, solver=solver,
                               max_steps=max_steps, prior_log_std=prior_log_std,
-                              n_starts=n_starts, seed=seed, holdout=holdout)
+                              n_starts=n_starts, seed=seed, holdout=holdout,
+                              nested_nll=nested_nll)
         result.wall_time_s = time.perf_counter() - t_start
     say(f"fit done: -log L = {result.nll:.2f}, {result.n_params} parameters, {result.message}")
     return result

@@ -187,17 +187,18 @@ def _fit_kalman_from(prep: Prepared, template, sigma, solver, max_steps: int,
     at_zero = []
     if isinstance(solver, TruncatedNewton) and converged:  # max_steps hit: stop there
         plain = make_problem(template, index, prep.data, sigma, prior_mean)
-        theta, at_zero, steps = _zero_variances(theta, plain, names, solver, max_steps, say)
+        theta, at_zero, steps, nll = _zero_variances(theta, plain, names, solver, max_steps,
+                                                     say)
         gain, polished = 0.0, True
         if polish and nested_nll is not None:
-            polish = polished = _within_reach(float(_value(theta, plain)), nested_nll, say)
+            polish = polished = _within_reach(nll, nested_nll, say)
         if polish:
             theta, gain, polished = _polish(theta, plain, names, at_zero, say, last=False)
         for k in range(_RESCORE_ROUNDS):  # far from where scoring stopped: the boundary
             if gain <= _RESCORE:  # check and scoring again (the polish walks noises down)
                 break
-            theta, at_zero, more = _zero_variances(theta, plain, names, solver, max_steps,
-                                                   say, at_zero)
+            theta, at_zero, more, _ = _zero_variances(theta, plain, names, solver,
+                                                      max_steps, say, at_zero)
             steps += more
             theta, more, converged = _solve_kalman(theta, _pinned(plain, at_zero), solver,
                                                    max_steps, at_zero)
@@ -270,7 +271,7 @@ def _zero_variances(theta, problem, names, solver, max_steps, say, pins=()):
     solver's `min_curvature`), smallest first, is held at zero and the rest refitted; the
     zero is kept when −log L does not rise by more than `_ZERO_TOL`.
 
-    **Returns:** `(theta, indices held at zero, Newton steps taken)`."""
+    **Returns:** `(theta, indices held at zero, Newton steps taken, −log L there)`."""
     nll, _, hess = (np.asarray(a) for a in _value_grad_information(theta, problem))
     theta = np.array(theta)
     pins, steps = list(pins), 0
@@ -288,7 +289,7 @@ def _zero_variances(theta, problem, names, solver, max_steps, say, pins=()):
             say(f"{names[i]} held at zero: -log L {float(nll):.3f} -> {new_nll:.3f}")
             pins.append(i)
             theta, nll = np.asarray(new), new_nll
-    return jax.device_put(theta), pins, steps
+    return jax.device_put(theta), pins, steps, float(nll)
 
 
 def _polish(theta, problem, names, pins, say, tol: float = 1e-3, last: bool = True):
