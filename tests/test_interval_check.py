@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -155,3 +156,29 @@ def test_fit_reports_the_check_and_can_skip_it(case, tmp_path, capsys):
             assert c["lower"] == pytest.approx(checks[name]["lower"], rel=1e-6)
             assert f"profile check of {name}" in md
         assert "| profile |" in md  # the parameter table shows the profile interval
+
+
+def test_a_run_config_checks_intervals_unless_told_not_to(case, tmp_path, capsys):
+    """`thermojax run`: `options.interval_check` (default true) as `fit --no-interval-check`;
+    anything but a boolean is refused, naming the field."""
+    import json
+
+    from thermojax.cli import main
+
+    U, Y, _, checks = case
+    (tmp_path / "weak.toml").write_text(TEXT)
+    tj.write_telemetry(tmp_path / "w.csv", np.arange(N, dtype=float), {
+        "T_fluid": U[:, 0], "P_heater": U[:, 1], "T_core": Y[:, 0], "T_sheath": Y[:, 1]})
+    for option, checked in (("", True), ("interval_check = false", False)):
+        (tmp_path / "cfg.toml").write_text('name = "weak"\nmodel = "weak.toml"\nout = "res"\n'
+                                           f'data = ["w.csv"]\n\n[options]\n{option}\n')
+        capsys.readouterr()
+        assert main(["run", str(tmp_path / "cfg.toml"), "--quiet"]) == 0
+        folder = capsys.readouterr().out.strip().splitlines()[-1].split("results in ")[1]
+        report = json.loads((Path(folder) / "report.json").read_text())
+        assert set(report.get("profile_intervals", {})) == (set(checks) if checked else set())
+    (tmp_path / "cfg.toml").write_text('name = "weak"\nmodel = "weak.toml"\nout = "res"\n'
+                                       'data = ["w.csv"]\n\n[options]\ninterval_check = "no"\n')
+    assert main(["run", str(tmp_path / "cfg.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "cfg.toml" in err and "options.interval_check" in err and "Traceback" not in err

@@ -26,6 +26,7 @@ seed = 0
 starts = 1
 perturb = 0.3                      # start every free parameter this far off (relative)
 outliers = "stop"                  # or "drop": as `fit --outliers`
+interval_check = true              # false: as `fit --no-interval-check`
 ```
 """
 
@@ -44,7 +45,21 @@ import numpy as np
 from .._errors import InputError
 
 _KEYS = {"name", "model", "likelihood", "out", "data", "synthetic", "options"}
-_OPTIONS = {"starts", "perturb", "max_steps", "outliers"}
+_OPTIONS = {"starts", "perturb", "max_steps", "outliers", "interval_check"}
+
+
+def check_options(options: dict, path: str | Path) -> None:
+    """Raise `InputError` on an unknown or ill-typed `[options]` entry of config `path`."""
+    if set(options) - _OPTIONS:
+        raise InputError(f"unknown option(s) {sorted(set(options) - _OPTIONS)}; allowed "
+                         f"are {sorted(_OPTIONS)}.", file=str(path), field="options")
+    if options.get("outliers", "stop") not in ("stop", "drop"):
+        raise InputError(f"options.outliers must be \"stop\" or \"drop\", got "
+                         f"{options['outliers']!r}.", file=str(path), field="options.outliers")
+    if not isinstance(options.get("interval_check", True), bool):
+        raise InputError(f"options.interval_check must be true or false, got "
+                         f"{options['interval_check']!r}.", file=str(path),
+                         field="options.interval_check")
 
 
 def load_config(path: str | Path) -> dict:
@@ -82,13 +97,7 @@ def load_config(path: str | Path) -> dict:
         "out": resolve(raw.get("out", "results"), "out"),
         "options": dict(raw.get("options", {})),
     }
-    if set(cfg["options"]) - _OPTIONS:
-        raise InputError(f"unknown option(s) {sorted(set(cfg['options']) - _OPTIONS)}; allowed "
-                         f"are {sorted(_OPTIONS)}.", file=str(path), field="options")
-    if cfg["options"].get("outliers", "stop") not in ("stop", "drop"):
-        raise InputError(f"options.outliers must be \"stop\" or \"drop\", got "
-                         f"{cfg['options']['outliers']!r}.", file=str(path),
-                         field="options.outliers")
+    check_options(cfg["options"], path)
     if "data" in raw:
         if not isinstance(raw["data"], list) or not raw["data"]:
             raise InputError("data must be a non-empty list of CSV paths.", file=str(path),
@@ -179,15 +188,20 @@ def perturbed(spec, factor: float, seed: int = 0):
         heat_inputs=tuple(dataclasses.replace(h, gain=move(h.gain)) for h in spec.heat_inputs))
 
 
-def run_config(path: str | Path, progress=print, out: str | Path | None = None) -> Path:
+def run_config(path: str | Path, progress=print, out: str | Path | None = None,
+               options: dict | None = None) -> Path:
     """Run one config; return the new results folder (under `out` when given, else
-    under the config's own `out`)."""
+    under the config's own `out`). `options` replace entries of the config's
+    `[options]` (as a study's command-line flags do)."""
     from .. import io
     from ..fitting._fit_report import comparison_table, write_fit_outputs
     from ..fitting._interval_check import check_intervals
     from ._checked_runs import fit_dropping, load_runs
 
     cfg = load_config(path)
+    if options:
+        cfg["options"].update(options)
+        check_options(cfg["options"], path)
     spec = io.load_model(cfg["model"])
     opts = cfg["options"]
     outliers = opts.get("outliers", "stop")
@@ -209,7 +223,8 @@ def run_config(path: str | Path, progress=print, out: str | Path | None = None) 
         spec, experiments, telemetry, dropped, outliers, progress,
         likelihood=cfg["likelihood"], n_starts=int(opts.get("starts", 1)),
         max_steps=int(opts.get("max_steps", 200)))
-    profiles = check_intervals(result, progress)  # as `fit` does (output error)
+    profiles = (check_intervals(result, progress)  # as `fit` does (output error)
+                if opts.get("interval_check", True) else {})
     write_fit_outputs(result, experiments, folder, data, profiles, dropped=dropped)
     progress(comparison_table(result))
     return folder
