@@ -83,10 +83,11 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
       docs/extensions.md). False leaves that out: a fit warm-started at a nearby optimum
       (a held-out fold's, from the fit to all the data) whose last few 0.1 of −log L do
       not matter.
-    - `nested_nll`: −log L of a model nested in `spec` (`spec` without an effect, which
-      `spec` reaches with the effect at zero). A Kalman start whose scoring steps end far
-      above it is in a local optimum: it is not polished, and the fit goes on as from a
-      start that did not converge.
+    - `nested_nll`: a −log L `spec` is known to reach: a nested model's (`spec` without an
+      effect, which `spec` reaches with the effect at zero), or for a plateau restart the
+      first fit's. A Kalman start whose scoring steps end far above it is in a local
+      optimum: it is not polished, and the fit goes on as from a start that did not
+      converge.
 
     **Returns:** a `FitResult`.
     """
@@ -126,6 +127,11 @@ def _off_plateau(result: FitResult, experiments, say, **options) -> FitResult:
         return result
     say(f"{invisible[0].describe()}: the data cannot move its parameters there; refitting "
         "from a time constant they can see")
+    # the model reaches the first fit's likelihood: a Kalman restart that ends its scoring
+    # steps far above it is a local optimum, not polished (as one far above a nested model)
+    reached = result.nll if options.get("nested_nll") is None else min(result.nll,
+                                                                       options["nested_nll"])
+    options = {**options, "nested_nll": reached}
     with warnings.catch_warnings():  # its start is ours, not the user's: not warned about
         warnings.filterwarnings("ignore", message=f".*{SHORT_RUN}")
         again = fit(visible_start(result.spec, invisible), experiments, progress=say,

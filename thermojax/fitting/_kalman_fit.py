@@ -228,12 +228,12 @@ _BEYOND_POLISH = 10.0
 
 
 def _within_reach(nll: float, nested_nll: float, say) -> bool:
-    """Whether the scoring steps ended within `_BEYOND_POLISH` of a nested model's −log L
-    (which the model reaches with its added effect at zero), else say why not polished."""
+    """Whether the scoring steps ended within `_BEYOND_POLISH` of a −log L the model is
+    known to reach (`fit`'s `nested_nll`), else say why not polished."""
     if nll <= nested_nll + _BEYOND_POLISH:
         return True
-    say(f"the scoring steps ended at -log L {nll:.2f}, {nll - nested_nll:.2f} above the "
-        "nested model's: a local optimum, not polished")
+    say(f"the scoring steps ended at -log L {nll:.2f}, {nll - nested_nll:.2f} above a "
+        "likelihood the model reaches: a local optimum, not polished")
     return False
 
 
