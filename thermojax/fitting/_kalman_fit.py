@@ -64,8 +64,7 @@ def _newton_except(theta0, problem, pins, solver, max_steps: int):
         v, g, info = _value_grad_information(full(z), problem)
         return v, np.asarray(g)[free], np.asarray(info)[np.ix_(free, free)]
 
-    sol = newton(value_grad_information, lambda z: _value(full(z), problem), theta[free],
-                 solver, int(max_steps))
+    sol = newton(value_grad_information, theta[free], solver, int(max_steps))
     theta[free] = sol.value
     return dataclasses.replace(sol, value=theta)
 
@@ -109,8 +108,10 @@ def _value_grad_information(theta, problem):
             info + jnp.diag(w ** 2))
 
 
-# `-log L` alone, at the scoring steps' trial points: the smallest program.
-_value = stored_jit(_kalman_loss)
+def _nll(theta, problem) -> float:
+    """`-log L` (with the prior rows) from the scoring program: a program of its own
+    would cost its compilation for a handful of calls a fit."""
+    return float(_value_grad_information(theta, problem)[0])
 
 
 # Compiled once per structure: called eagerly, the simulator would trace anew every fit.
@@ -284,7 +285,7 @@ def _zero_variances(theta, problem, names, solver, max_steps, say, pins=()):
         new, n, _ = _solve_kalman(jax.device_put(trial), pinned, solver, max_steps,
                                    pins + [i])
         steps += int(n)
-        new_nll = float(_value(new, problem))
+        new_nll = _nll(new, problem)
         if np.isfinite(new_nll) and new_nll <= float(nll) + _ZERO_TOL:
             say(f"{names[i]} held at zero: -log L {float(nll):.3f} -> {new_nll:.3f}")
             pins.append(i)
@@ -309,7 +310,7 @@ def _polish(theta, problem, names, pins, say, tol: float = 1e-3, last: bool = Tr
 
     pinned = _pinned(problem, pins)
     theta = np.array(theta, float)
-    start = float(_value(jax.device_put(theta), pinned))
+    start = _nll(jax.device_put(theta), pinned)
     full = TruncatedNewton(min_curvature=_POLISH_CURVATURE, tol=_POLISH_TOL)
     sol = _newton_except(theta, pinned, pins, full, _POLISH_STEPS)
     if sol.loss < start:

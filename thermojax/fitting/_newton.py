@@ -13,11 +13,14 @@ far from the optimum is taken by its magnitude; steps are damped as in
 Levenberg-Marquardt (Nielsen's update, starting nearly undamped: the Kalman fit
 starts at the output-error optimum) and capped at `max_step`.
 
-The iteration runs on the host around two compiled programs the caller passes:
-the value, gradient and curvature (the same program then gives the fit's final
-information matrix) and the value at trial points. A Newton loop compiled as one
-`while_loop` would be a third program as large as the curvature's, compiled anew for
-every model structure: on a CPU that compilation, not the steps, is the cost.
+The iteration runs on the host around one compiled program the caller passes: the
+value, gradient and curvature (the same program then gives the fit's final information
+matrix), evaluated at every trial point. An accepted trial is the next step's start, so
+only a rejected trial costs more than a value-only program would, and that program's
+compilation is saved: on the six-node IMU 2.1 s against some 30 rejected trials of
+0.06 s. A Newton loop compiled as one `while_loop` would be another program as large
+as the curvature's, compiled anew for every model structure: on a CPU that
+compilation, not the steps, is the cost.
 """
 
 from __future__ import annotations
@@ -52,19 +55,13 @@ class NewtonSolution:
     converged: bool
 
 
-def newton(value_grad_curvature: Callable, value: Callable, theta0,
+def newton(value_grad_curvature: Callable, theta0,
            solver: TruncatedNewton = TruncatedNewton(), max_steps: int = 100
            ) -> NewtonSolution:
     """Minimise from `theta0` (params,) in at most `max_steps` Newton steps.
 
-    `value_grad_curvature(theta) -> (f, g, H)` and `value(theta) -> f` evaluate the
-    objective (compiled once per structure by the caller); a non-finite `f` at a trial
-    point counts as infinite."""
-
-    def loss_of(theta):
-        v = float(value(theta))
-        return v if np.isfinite(v) else np.inf
-
+    `value_grad_curvature(theta) -> (f, g, H)` evaluates the objective (compiled once per
+    structure by the caller); a non-finite `f` counts as infinite."""
     theta = np.array(theta0, float)
     lam, k, converged = 1e-3, 0, False
     loss, g, H = _evaluate(value_grad_curvature, theta)
@@ -82,25 +79,26 @@ def newton(value_grad_curvature: Callable, value: Callable, theta0,
             dx = -(V @ np.where(keep, Vg / (curv + lam), 0.0))
             dx = dx * min(1.0, solver.max_step / max(np.max(np.abs(dx)), 1e-300))
             predicted = -(g @ dx + 0.5 * dx @ (H @ dx))
-            new = loss_of(theta + dx)
-            return dx, new, (loss - new) / max(abs(predicted), 1e-300)
+            at = _evaluate(value_grad_curvature, theta + dx)
+            return dx, at, (loss - at[0]) / max(abs(predicted), 1e-300)
 
-        dx, new, rho = trial(lam)
+        dx, at, rho = trial(lam)
         nu = 2.0
         for _ in range(solver.max_backtracks):
             if rho > 0:
                 break
             lam *= nu
             nu *= 2
-            dx, new, rho = trial(lam)
+            dx, at, rho = trial(lam)
         if not rho > 0:
             break
         lam *= max(1 / 3, 1 - (2 * min(rho, 1.0) - 1) ** 3)
         theta = theta + dx
-        loss, g, H = _evaluate(value_grad_curvature, theta)
+        loss, g, H = at
     return NewtonSolution(theta, float(loss), k, converged)
 
 
 def _evaluate(value_grad_curvature, theta):
     f, g, H = value_grad_curvature(theta)
-    return float(f), np.asarray(g, float), np.asarray(H, float)
+    f = float(f)
+    return (f if np.isfinite(f) else np.inf), np.asarray(g, float), np.asarray(H, float)
