@@ -17,8 +17,8 @@ The iteration runs on the host around one compiled program the caller passes: th
 value, gradient and curvature (the same program then gives the fit's final information
 matrix), evaluated at every trial point. An accepted trial is the next step's start, so
 only a rejected trial costs more than a value-only program would, and that program's
-compilation is saved: on the six-node IMU 2.1 s against some 30 rejected trials of
-0.06 s. A Newton loop compiled as one `while_loop` would be another program as large
+compilation is saved: on the six-node IMU 2.1 s, against 41 more scoring calls a fit
+(221 against 180) of 0.06 s. A Newton loop compiled as one `while_loop` would be another program as large
 as the curvature's, compiled anew for every model structure: on a CPU that
 compilation, not the steps, is the cost.
 """
