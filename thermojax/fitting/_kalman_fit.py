@@ -310,9 +310,9 @@ def _polish(theta, problem, names, pins, say, tol: float = 1e-3, last: bool = Tr
 
     pinned = _pinned(problem, pins)
     theta = np.array(theta, float)
-    start = _nll(jax.device_put(theta), pinned)
     full = TruncatedNewton(min_curvature=_POLISH_CURVATURE, tol=_POLISH_TOL)
     sol = _newton_except(theta, pinned, pins, full, _POLISH_STEPS)
+    start = sol.initial_loss  # the steps' first evaluation, at `theta`
     if sol.loss < start:
         theta = np.array(sol.value, float)
     ok = sol.converged

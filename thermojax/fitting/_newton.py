@@ -47,12 +47,13 @@ class TruncatedNewton(eqx.Module):
 @dataclass(frozen=True)
 class NewtonSolution:
     """What `newton` returns: the parameters (params,), `-log L` there, steps taken
-    (curvature evaluations), convergence."""
+    (curvature evaluations), convergence, and `-log L` at the start."""
 
     value: np.ndarray
     loss: float
     num_steps: int
     converged: bool
+    initial_loss: float
 
 
 def newton(value_grad_curvature: Callable, theta0,
@@ -65,6 +66,7 @@ def newton(value_grad_curvature: Callable, theta0,
     theta = np.array(theta0, float)
     lam, k, converged = 1e-3, 0, False
     loss, g, H = _evaluate(value_grad_curvature, theta)
+    initial_loss = loss
     while k < max_steps:
         mu, V = np.linalg.eigh(0.5 * (H + H.T))
         curv = np.abs(mu)
@@ -95,7 +97,7 @@ def newton(value_grad_curvature: Callable, theta0,
         lam *= max(1 / 3, 1 - (2 * min(rho, 1.0) - 1) ** 3)
         theta = theta + dx
         loss, g, H = at
-    return NewtonSolution(theta, float(loss), k, converged)
+    return NewtonSolution(theta, float(loss), k, converged, initial_loss)
 
 
 def _evaluate(value_grad_curvature, theta):
