@@ -183,7 +183,7 @@ class _ErrorModel:
         return total
 
     def _setup_grid(self, run, carriers, s_values):
-        carriers = jnp.asarray(list(carriers))
+        carriers = jnp.asarray(list(carriers), int)
         sigmas = s_values[:, None] * self.capacitance[carriers][None, :]
         F, Q = _augmented_grid(self.A, self.capacitance, carriers, self.q_x, sigmas, run.dt)
         H, P0, z0 = self._measurement(carriers)
@@ -197,7 +197,7 @@ class _ErrorModel:
         return H, P0, jnp.zeros(n + k)
 
     def _setup(self, run, carriers, s):
-        carriers = jnp.asarray(list(carriers))
+        carriers = jnp.asarray(list(carriers), int)  # none: the model's own error dynamics
         sigma = s * self.capacitance[carriers]
         F, Q = _augmented(self.A, self.capacitance, carriers, self.q_x, sigma, run.dt)
         H, P0, z0 = self._measurement(carriers)
@@ -212,7 +212,7 @@ class _ErrorModel:
 
     def baseline(self) -> float:
         """log L of the error model without disturbance (process noise only)."""
-        return float(self.logliks([0], [0.0])[0])
+        return float(self.logliks([], [0.0])[0])
 
 
 def _finite_or_worst(lls) -> np.ndarray:
@@ -254,7 +254,7 @@ def missing_heat(result, nodes: tuple[str, ...] | None = None, say=None) -> Miss
     while remaining:
         trials = [(j, *_best_intensity(em, carriers + [j])) for j in remaining]
         j, s, ll = max(trials, key=lambda t: t[2])
-        if not np.isfinite(ll) or (carriers and ll - best_ll < penalty):
+        if not np.isfinite(ll) or ll - best_ll < penalty:  # the first one too
             break
         carriers.append(j)
         remaining.remove(j)
