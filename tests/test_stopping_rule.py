@@ -168,6 +168,35 @@ def test_holdout_verdict_counts_the_votes_of_conclusive_folds_only():
     assert ok is None and "inconclusive" in why
 
 
+def test_held_out_blocks_under_output_error_that_reject_a_significant_effect_get_advice(
+        tmp_path):
+    """PRBS1 under output error, one log: extra_node [Ti, Ta] with LR 1018 rejected by its
+    four blocks (-1253.5 from the first, +54.5, +184.1, +171.8). The report advises the
+    Kalman likelihood or more runs; not under `kalman`, not with three runs (a held-out
+    run is evidence), not when the check passed or could not decide."""
+    from thermojax.investigation._investigation_report import _summary
+    from thermojax.investigation._candidates import Candidate
+    from thermojax.investigation._selection import held_out_advice
+
+    def cand(kind, where, votes):
+        c = Candidate(kind, where, score=1018.5, p_value=1e-29)
+        c.holdout_votes = votes
+        return c
+
+    rejected = cand("extra_node", ("Ti", "Ta"), _votes(-1253.5, 54.5, 184.1, 171.8))
+    passed = cand("extra_node", ("Ti",), _votes(132.2, 52.0, -88.7, 10.7))
+    undecided = cand("sensor_lag", ("yTi",), _votes(-5e4, 30.0, 1.0, 2.0, broken=(0, 2, 3)))
+    unchecked = cand("sensor_offset", ("yTi",), [])
+    advice = held_out_advice([rejected, passed, undecided, unchecked], "output_error", 1)
+    assert advice.startswith("extra_node ['Ti', 'Ta'] passes the likelihood-ratio test")
+    assert "--likelihood kalman" in advice and "three or more runs" in advice
+    assert held_out_advice([rejected], "kalman", 1) is None
+    assert held_out_advice([rejected], "output_error", 3) is None
+    assert held_out_advice([passed, undecided, unchecked], "output_error", 2) is None
+    md = "\n".join(_summary({"advice": advice, "steps": []}, [], [], {}, {}))
+    assert f"Advice: {advice}" in md
+
+
 def test_a_fold_dominated_by_a_few_samples_or_a_failed_fit_cannot_vote():
     from thermojax.investigation._selection import fold_vote
 

@@ -372,6 +372,8 @@ def cmd_diagnose(args) -> int:
         if bad:
             print(f"unexplained: the residuals of {', '.join(bad)} are not white and no "
                   "candidate effect is supported")
+    if report.get("advice"):
+        print(f"advice: {report['advice']}")
     print(f"wrote {Path(args.out) / 'report.json'}, {Path(args.out) / 'report.md'} and plots")
     return 0
 
@@ -423,6 +425,8 @@ def _print_story(report: dict) -> None:
     print(f"  stopped because: {report['stopped_because']}")
     if report.get("unexplained"):  # only when something is left unexplained
         print(f"  unexplained: {report['unexplained']}")
+    if report.get("advice"):
+        print(f"  advice: {report['advice']}")
 
 
 def _add_diagnose(sub):

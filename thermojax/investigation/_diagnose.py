@@ -10,7 +10,7 @@ from ._diagnostics import diagnose_traces, slowest_time_constant
 from ._investigate import (N_BLOCKS, HeldOutFits, check_holdout, diagnose_step, evaluate,
                            record_missing_heat, record_unexplained,
                            _noise, _version)
-from ._selection import significance_rule
+from ._selection import held_out_advice, significance_rule
 from .._json import json_safe
 from .._plots import column_units
 from ..model._spec import ModelSpec
@@ -42,6 +42,7 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
             except Exception as err:  # the check could not run: say so, keep the verdict
                 c.add_note(f"held-out check could not run: {type(err).__name__}: {err}"[:200],
                            first=True)
+    advice = held_out_advice(cands, likelihood, len(runs))
     if not any(c.supported for c in cands):
         record_unexplained(step, missing, say)
     columns = list(spec.sensor_columns) + [b.column for b in spec.biases]
@@ -60,6 +61,7 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
         "noise": _noise(step),
         "significance_rule": significance_rule(fdr, N_BLOCKS),
         **{k: rec[k] for k in ("missing_heat", "unexplained") if k in rec},
+        **({"advice": advice} if advice else {}),
     }
     report = json_safe(report)
     if out is not None:
@@ -69,7 +71,8 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
         out.mkdir(parents=True, exist_ok=True)
         story = {"steps": [{**rec, "candidates": report["candidates"]}],
                  "stopped_because": "diagnosis only", "likelihood": likelihood,
-                 "noise": report["noise"], "significance_rule": report["significance_rule"]}
+                 "noise": report["noise"], "significance_rule": report["significance_rule"],
+                 **({"advice": advice} if advice else {})}
         # report.md and every plot, each written once (`diagnose_<key>.png`)
         write_investigation_report(out, json_safe(story), [step.traces], columns, inputs,
                                    boundary, diagnosis=True, units=units)

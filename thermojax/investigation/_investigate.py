@@ -47,8 +47,8 @@ from ..model._model_file import dump_model, save_model
 from ..model._parameters_by_name import spec_parameters, with_spec_parameters
 from .._residual_analysis import ljung_box, long_run_variance_ratio
 from ._diagnostics import davies_p_value, davies_variation
-from ._selection import (FoldVote, fold_vote, holdout_verdict, judge, prefer_vocabulary,
-                         significance_rule)
+from ._selection import (FoldVote, fold_vote, held_out_advice, holdout_verdict, judge,
+                         prefer_vocabulary, significance_rule)
 from ..discovery import learned_places
 from ..model._spec import EFFECT_KINDS, ModelSpec
 from ..model.effects import KINDS
@@ -1132,7 +1132,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
     steps_traces = [None] * (len(records) - 1) + [current.traces]
     held_out = HeldOutFits()
     plots = PlotsAhead() if out is not None else None
-    stopped = "max_steps"
+    stopped, advice = "max_steps", None
     try:
         while True:
             i = len(records) - 1
@@ -1167,6 +1167,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
                                                                        chosen.tied_with)})
             if chosen is None:
                 record_unexplained(current, missing, say)
+                advice = held_out_advice(cands, likelihood, len(runs))
                 stopped = "no_supported_candidate"
                 break
             current = _extend(current, chosen, runs, likelihood)
@@ -1179,6 +1180,8 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
         report = _report(records, stopped, likelihood, fdr, white_p,
                          time.perf_counter() - t0)
         report["noise"] = _noise(current)
+        if advice:
+            report["advice"] = advice
         if out is not None:
             _write_outputs(out, report, current, steps_traces, runs, plots)
         return json_safe(report)

@@ -282,6 +282,8 @@ def _summary(report: dict, steps: list[dict], columns, noise: dict, units: dict,
     if "unexplained" in report:
         u = report.get("unexplained")
         md.append(f"Left unexplained: {u}" if u else "Nothing is flagged as left unexplained.")
+    if report.get("advice"):
+        md.append(f"Advice: {report['advice']}")
     if report.get("final_model"):
         md.append(f"Final model: [`{report['final_model']}`]({report['final_model']}).")
     md.append("")

@@ -176,3 +176,26 @@ def holdout_verdict(votes: list[FoldVote]) -> tuple[bool | None, float, str]:
         return False, total, f"summed held-out gain {total:.1f} is not positive{aside}"
     return True, total, (f"better in {wins} of {len(voting)} conclusive folds, summed "
                          f"held-out gain {total:.1f}{aside}")
+
+
+def held_out_advice(cands: list[Candidate], likelihood: str, n_runs: int) -> str | None:
+    """What to try when, on one or two logs under output error, held-out blocks rejected
+    candidates that the likelihood-ratio test supports (on PRBS1's building log the
+    first block, started from a state its fit cannot see, outweighed three better
+    blocks); None otherwise (a held-out *run* is evidence, and the Kalman likelihood's
+    held-out terms are one-step predictions)."""
+    rejected = [c for c in cands if c.holdout_votes
+                and holdout_verdict(c.holdout_votes)[0] is False]
+    if likelihood != "output_error" or n_runs >= 3 or not rejected:
+        return None
+    names = ", ".join(f"{c.kind} {list(c.where)}" for c in rejected[:3])
+    return (f"{names} pass{'es' * (len(rejected) == 1)} the likelihood-ratio test but "
+            "held-out blocks of the run reject "
+            f"{'it' if len(rejected) == 1 else 'them'}. Under output error a held-out block "
+            "is predicted by a free run that nothing corrects (the first one from a start "
+            "state its fit cannot see), so where residuals are far from white (disturbances "
+            "no column records, as in a building) the blocks judge the start and the "
+            "disturbances more than the effect. On one log the field's practice is forward "
+            "selection on the Kalman likelihood: rerun with `--likelihood kalman` (its "
+            "held-out terms are one-step predictions), or give three or more runs (one "
+            "held out at a time).")
