@@ -42,9 +42,10 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
             except Exception as err:  # the check could not run: say so, keep the verdict
                 c.add_note(f"held-out check could not run: {type(err).__name__}: {err}"[:200],
                            first=True)
-    advice = held_out_advice(cands, likelihood, len(runs))
+    advice = None
     if not any(c.supported for c in cands):
         record_unexplained(step, missing, say)
+        advice = held_out_advice(cands, likelihood, len(runs))  # as `investigate` stops
     columns = list(spec.sensor_columns) + [b.column for b in spec.biases]
     inputs = list(spec.input_columns)
     boundary = list(spec.boundary_columns)
