@@ -176,7 +176,7 @@ def test_held_out_blocks_under_output_error_that_reject_a_significant_effect_get
     run is evidence), not when the check passed or could not decide."""
     from thermojax.investigation._investigation_report import _summary
     from thermojax.investigation._candidates import Candidate
-    from thermojax.investigation._selection import held_out_advice
+    from thermojax.investigation._selection import FoldVote, held_out_advice
 
     def cand(kind, where, votes):
         c = Candidate(kind, where, score=1018.5, p_value=1e-29)
@@ -187,12 +187,14 @@ def test_held_out_blocks_under_output_error_that_reject_a_significant_effect_get
     passed = cand("extra_node", ("Ti",), _votes(132.2, 52.0, -88.7, 10.7))
     undecided = cand("sensor_lag", ("yTi",), _votes(-5e4, 30.0, 1.0, 2.0, broken=(0, 2, 3)))
     unchecked = cand("sensor_offset", ("yTi",), [])
-    advice = held_out_advice([rejected, passed, undecided, unchecked], "output_error", 1)
+    by_run = cand("extra_node", ("Ti", "Ta"), [FoldVote((r, None), g) for r, g in
+                                               enumerate((-1253.5, 54.5, 184.1))])
+    advice = held_out_advice([rejected, passed, undecided, unchecked], "output_error")
     assert advice.startswith("extra_node ['Ti', 'Ta'] passes the likelihood-ratio test")
     assert "--likelihood kalman" in advice and "three or more runs" in advice
-    assert held_out_advice([rejected], "kalman", 1) is None
-    assert held_out_advice([rejected], "output_error", 3) is None
-    assert held_out_advice([passed, undecided, unchecked], "output_error", 2) is None
+    assert held_out_advice([rejected], "kalman") is None
+    assert held_out_advice([by_run], "output_error") is None  # three runs, one held out
+    assert held_out_advice([passed, undecided, unchecked], "output_error") is None
     md = "\n".join(_summary({"advice": advice, "steps": []}, [], [], {}, {}))
     assert f"Advice: {advice}" in md
 

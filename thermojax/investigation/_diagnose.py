@@ -45,7 +45,7 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
     advice = None
     if not any(c.supported for c in cands):
         record_unexplained(step, missing, say)
-        advice = held_out_advice(cands, likelihood, len(runs))  # as `investigate` stops
+        advice = held_out_advice(cands, likelihood)  # as `investigate` stops
     columns = list(spec.sensor_columns) + [b.column for b in spec.biases]
     inputs = list(spec.input_columns)
     boundary = list(spec.boundary_columns)

@@ -1167,7 +1167,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
                                                                        chosen.tied_with)})
             if chosen is None:
                 record_unexplained(current, missing, say)
-                advice = held_out_advice(cands, likelihood, len(runs))
+                advice = held_out_advice(cands, likelihood)
                 stopped = "no_supported_candidate"
                 break
             current = _extend(current, chosen, runs, likelihood)

@@ -178,15 +178,16 @@ def holdout_verdict(votes: list[FoldVote]) -> tuple[bool | None, float, str]:
                          f"held-out gain {total:.1f}{aside}")
 
 
-def held_out_advice(cands: list[Candidate], likelihood: str, n_runs: int) -> str | None:
-    """What to try when, on one or two logs under output error, held-out blocks rejected
+def held_out_advice(cands: list[Candidate], likelihood: str) -> str | None:
+    """What to try when, under output error, held-out *blocks* (one or two runs) rejected
     candidates that the likelihood-ratio test supports (on PRBS1's building log the
     first block, started from a state its fit cannot see, outweighed three better
     blocks); None otherwise (a held-out *run* is evidence, and the Kalman likelihood's
     held-out terms are one-step predictions)."""
     rejected = [c for c in cands if c.holdout_votes
+                and c.holdout_votes[0].fold[1] is not None  # blocks, not runs
                 and holdout_verdict(c.holdout_votes)[0] is False]
-    if likelihood != "output_error" or n_runs >= 3 or not rejected:
+    if likelihood != "output_error" or not rejected:
         return None
     names = ", ".join(f"{c.kind} {list(c.where)}" for c in rejected[:3])
     return (f"{names} pass{'es' * (len(rejected) == 1)} the likelihood-ratio test but "
