@@ -166,7 +166,9 @@ def test_hinted_jacobian_gets_the_hint_of_its_own_point():
     plain = jax.jit(lambda t0, d: gauss_newton(_residuals, t0, d, TruncatedGaussNewton(
         min_singular_value=1e-6, tol=1e-14)))(jnp.zeros(3), data)
     assert bool(sol.converged)
-    np.testing.assert_array_equal(np.asarray(sol.value), np.asarray(plain.value))
+    # two programs: the same steps to rounding (XLA may fuse them differently); a stale
+    # hint would land elsewhere, far beyond this
+    np.testing.assert_allclose(np.asarray(sol.value), np.asarray(plain.value), rtol=1e-12)
     assert int(sol.num_steps) == int(plain.num_steps)
 
     ref = _scipy_reference(data)
