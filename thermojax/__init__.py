@@ -4,7 +4,8 @@ The everyday API is re-exported lazily (module-level `__getattr__`) from the sta
 subpackages, in the order data flows through them: `model` -> `measurements` ->
 `dynamics` -> `fitting` -> `discovery` -> `investigation`, with `cli` on top. `import thermojax`
 alone loads no JAX. Importing any stage switches JAX to float64 (`jax_enable_x64`):
-stiff thermal networks need it.
+stiff thermal networks need it; and, unless `XLA_FLAGS` says otherwise, turns XLA's CPU
+fusion emitters off, which halves compilation (`_jax_settings`).
 """
 
 import importlib

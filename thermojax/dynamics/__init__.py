@@ -1,7 +1,7 @@
 """Time: exact discretization, simulation (exact hold, diffrax), ETD2 for nonlinear
 effects, and forward sensitivities for the fit's Jacobian."""
 
-from .. import _jax_settings  # noqa: F401  (float64 before any array is made)
+from .. import _jax_settings  # noqa: F401  (float64 and XLA options before any array is made)
 from ._discretize import (AbstractDiscretization, ForwardEuler, MatrixExponential, Modal, Tustin,
                           discretize, discretize_process_noise)
 from ._simulate import (AbstractSimulator, DiffraxSimulator, ExactHold, Solution, simulate,

@@ -1,7 +1,7 @@
 """Fitting: likelihoods (output error, Kalman), solvers, `fit()`, uncertainty,
 identifiability, bias channels and the fit report."""
 
-from .. import _jax_settings  # noqa: F401  (float64 before any array is made)
+from .. import _jax_settings  # noqa: F401  (float64 and XLA options before any array is made)
 from ._bias import BiasFit, fit_bias
 from ._correlated_noise import CorrelatedNoiseStds, correlated_noise_stds
 from ._fit import FitResult, fit, profile_interval

@@ -1,7 +1,7 @@
 """The missing-physics loop: residual diagnostics, candidate effects, `investigate`,
 `diagnose` and their report."""
 
-from .. import _jax_settings  # noqa: F401  (float64 before any array is made)
+from .. import _jax_settings  # noqa: F401  (float64 and XLA options before any array is made)
 from ._diagnose import diagnose
 from ._investigate import evaluate, investigate
 

@@ -1,6 +1,6 @@
 """Telemetry files, chamber profiles, and the experiments and datasets a fit reads."""
 
-from .. import _jax_settings  # noqa: F401  (float64 before any array is made)
+from .. import _jax_settings  # noqa: F401  (float64 and XLA options before any array is made)
 from ._data import Dataset, Experiment
 from ._inputs import load_profile, model_inputs, model_outputs, profile_inputs
 from ._plausibility import Outlier, check_plausibility

@@ -1,6 +1,6 @@
 """A model as written (spec, TOML file) and as a network: nodes, links, parameters, effects."""
 
-from .. import _jax_settings  # noqa: F401  (float64 before any array is made)
+from .. import _jax_settings  # noqa: F401  (float64 and XLA options before any array is made)
 from . import effects
 from ._model import ThermalModel, model_to_spec
 from ._model_file import dump_model, load_model, parse_model, save_model

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .. import _jax_settings  # noqa: F401  (float64 before any array is made)
+from .. import _jax_settings  # noqa: F401  (float64 and XLA options before any array is made)
 import equinox as eqx
 import jax
 import jax.numpy as jnp

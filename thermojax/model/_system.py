@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .. import _jax_settings  # noqa: F401  (float64 before any array is made)
+from .. import _jax_settings  # noqa: F401  (float64 and XLA options before any array is made)
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float

@@ -2,7 +2,7 @@
 per-unit fitted and own models), and resumable chunked runs sharded over devices and
 processes (issue 14)."""
 
-from .. import _jax_settings  # noqa: F401  (float64 before any array is made)
+from .. import _jax_settings  # noqa: F401  (float64 and XLA options before any array is made)
 from ._chunks import ChunkStore, atomic_write_bytes, config_hash
 from ._population import (PRESETS, Population, UnitParameters, Voids, log_prior,
                           population_from_config, preset_population, sample_units,

@@ -2,7 +2,7 @@
 steady-state Kalman filter), the observer in JAX, and lag compensation by input
 reconstruction."""
 
-from .. import _jax_settings  # noqa: F401  (float64 before any array is made)
+from .. import _jax_settings  # noqa: F401  (float64 and XLA options before any array is made)
 from ._adaptive import AdaptiveRun, adaptive_design, track_conductances
 from ._design import design_observer
 from ._export import ExportResult, export_observer
