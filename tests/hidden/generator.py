@@ -43,8 +43,7 @@ import scipy.optimize
 
 KELVIN = 273.15
 T_REF = 25.0  # °C, reference of every temperature coefficient
-RTOL = 1e-10
-ATOL = 1e-10
+TOL = 1e-10  # Radau's rtol and atol
 
 HERE = Path(__file__).resolve().parent
 CASES = HERE / "cases"
@@ -539,7 +538,8 @@ def _verified(ts, U, holds, i, j):
 
 
 def simulate_truth(model, ts, inputs: dict[str, np.ndarray], rng=None, noise: bool = True, *,
-                   holds: dict[str, str] | None = None, return_states: bool = False):
+                   holds: dict[str, str] | None = None, return_states: bool = False,
+                   tol: float = TOL):
     """Simulate a model file (plus its effects) through sampled inputs.
 
     **Arguments:**
@@ -553,6 +553,7 @@ def simulate_truth(model, ts, inputs: dict[str, np.ndarray], rng=None, noise: bo
     - `rng`: `numpy.random.Generator` for the sensor noise.
     - `noise`: add white Gaussian noise of each sensor's (bias's) `noise` std.
     - `holds`: column → "foh"/"zoh" for columns the model's entries do not name.
+    - `tol`: Radau's rtol and atol (the truth's 1e-10 unless a check needs less).
 
     **Returns:** column → samples for every sensor and bias column (with
     `return_states`, also `(states, state_names)`).
@@ -586,7 +587,7 @@ def simulate_truth(model, ts, inputs: dict[str, np.ndarray], rng=None, noise: bo
             return net.jacobian(x, u0 + slope * (t - t0))
 
         sol = scipy.integrate.solve_ivp(fun, (t0, t1), X[i], method="Radau", jac=jac,
-                                        t_eval=ts[i + 1:j + 1], rtol=RTOL, atol=ATOL)
+                                        t_eval=ts[i + 1:j + 1], rtol=tol, atol=tol)
         if not sol.success:
             raise RuntimeError(f"integration failed on [{t0}, {t1}] s: {sol.message}")
         X[i + 1:j + 1] = sol.y.T
@@ -825,13 +826,14 @@ def run_inputs(case: dict, index: int, seed, horizon_s: float | None = None):
 
 
 def generate_case(name, seed: int = 0, *, horizon_s: float | None = None, noise: bool = True,
-                  model: str = "truth", runs=None) -> list[tuple[np.ndarray, dict[str, np.ndarray]]]:
+                  model: str = "truth", runs=None, tol: float = TOL
+                  ) -> list[tuple[np.ndarray, dict[str, np.ndarray]]]:
     """One `(ts, columns)` per run: the recorded input columns and the sensor/bias columns
     of the believed model, simulated from the case's truth (or, with `model="believed"`,
     from the believed model; inputs and noise draws are the same for both).
 
     `horizon_s` cuts every run short (a prefix of the full run: same inputs, same
-    noise); `runs` picks run indices (default all)."""
+    noise); `runs` picks run indices (default all); `tol` as `simulate_truth`'s."""
     case = load_case(name)
     if model not in ("truth", "believed"):
         raise ValueError(f"model must be 'truth' or 'believed', got {model!r}")
@@ -843,7 +845,7 @@ def generate_case(name, seed: int = 0, *, horizon_s: float | None = None, noise:
              "sensors": case["truth"]["sensors"],
              "biases": case["truth"].get("biases", [])}
         rng = np.random.default_rng([*np.atleast_1d(seed), i, 1])
-        y = simulate_truth(m, ts, inputs, rng, noise=noise)
+        y = simulate_truth(m, ts, inputs, rng, noise=noise, tol=tol)
         cols = {c: inputs[c] for c in case["input_columns"]}
         cols.update({c: y[c] for c in case["output_columns"]})
         out.append((ts, cols))

@@ -645,14 +645,14 @@ def _noise(case, col):
 _BELIEVED: dict = {}  # believed-model runs shared by the cases with the same model and runs
 
 
-def _effect_rms(name, horizon_s=None, runs=None):
+def _effect_rms(name, horizon_s=None, runs=None, tol=g.TOL):
     case = g.load_case(name)
-    tr = g.generate_case(name, 0, horizon_s=horizon_s, noise=False, runs=runs)
+    tr = g.generate_case(name, 0, horizon_s=horizon_s, noise=False, runs=runs, tol=tol)
     key = (case.get("believed_path"), repr(case["runs"]), repr(case["truth"].get("biases")),
-           repr(case.get("extra_columns")), horizon_s, repr(runs))
+           repr(case.get("extra_columns")), horizon_s, repr(runs), tol)
     if key not in _BELIEVED:
         _BELIEVED[key] = g.generate_case(name, 0, horizon_s=horizon_s, noise=False, runs=runs,
-                                         model="believed")
+                                         model="believed", tol=tol)
     be = _BELIEVED[key]
     return case, {col: float(np.sqrt(np.mean(np.concatenate(
         [(a[1][col] - b[1][col]) ** 2 for a, b in zip(tr, be)])))) for col in case["output_columns"]}
@@ -669,7 +669,10 @@ def test_hidden_effect_shows_early(name):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", NON_NULL)
 def test_hidden_effect_shows_over_the_whole_case(name):
-    case, rms = _effect_rms(name)
+    """As above over every run at full length. Integrated at 1e-7, not the truth's 1e-10:
+    errors of a millionth of a kelvin leave a ratio to the noise (0.01 K and up) as it
+    is to the first decimal (checked on four cases), at a third of the time."""
+    case, rms = _effect_rms(name, tol=1e-7)
     assert max(rms[c] / _noise(case, c) for c in rms) >= 3.0, rms
 
 
