@@ -26,6 +26,7 @@ import pytest
 
 import thermojax as tj
 from thermojax.measurements._data import Dataset, Experiment
+from thermojax.fitting._kalman_fit import standardized_innovations
 from thermojax.fitting._likelihood import kalman_nll, kalman_run, rts_smoother
 from thermojax.model._model import ThermalModel
 
@@ -309,12 +310,35 @@ def test_kalman_fit_nll_is_the_filter_likelihood(kalman_fit, tmp_path):
     fitted_q = np.array([result.parameters[f"nodes.{n}.process_noise"]["value"]
                          for n in mm["names"]])
     np.testing.assert_allclose(mm["q"], fitted_q, rtol=1e-12)  # written to the file
-    total = 0.0
+    total = sum(ref["nll"] for ref in _numpy_filters(result, experiments, mm))
+    assert result.nll == pytest.approx(total, rel=1e-9)  # roundoff; same definition
+
+
+def _numpy_filters(result, experiments, mm):
+    """The NumPy filter's output per run at the fitted values (`mm` from the fitted file)."""
+    refs = []
     for r, e in enumerate(experiments):
         x0 = np_steady(mm["A"], mm["B"], e.inputs[0])
         x0[1] = result.parameters[f"runs.{r}.nodes.core.initial"]["value"]
-        total += np_kalman(mm, e.inputs, e.outputs, e.dt, x0)["nll"]
-    assert result.nll == pytest.approx(total, rel=1e-9)  # roundoff; same definition
+        refs.append(np_kalman(mm, e.inputs, e.outputs, e.dt, x0))
+    return refs
+
+
+@pytest.mark.slow
+def test_standardized_innovations_are_the_filters(kalman_fit, tmp_path):
+    """The whiteness evidence of a Kalman fit (`standardized_innovations`, from the fit's
+    last scoring call) is the NumPy filter's innovations over their std at the fitted
+    values, NaN where nothing was measured."""
+    result, experiments = kalman_fit["result"], kalman_fit["experiments"]
+    path = tmp_path / "fitted.toml"
+    tj.save_model(result.spec, path)
+    got = standardized_innovations(result)
+    for e, g, ref in zip(experiments, got, _numpy_filters(result, experiments,
+                                                          model_matrices(path))):
+        measured = np.isfinite(e.outputs)
+        assert g.shape == e.outputs.shape and np.array_equal(np.isfinite(g), measured)
+        want = ref["innovations"][measured] / ref["innovation_std"][measured]
+        np.testing.assert_allclose(g[measured], want, rtol=1e-6, atol=1e-8)
 
 
 @pytest.mark.parametrize("chunked", [False, True])

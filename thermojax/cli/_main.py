@@ -217,7 +217,7 @@ def cmd_fit(args) -> int:
         warnings.simplefilter("always")
         result, experiments = fit_dropping(spec, experiments, telemetry, dropped, outliers,
                                            args.progress, likelihood=args.likelihood,
-                                           n_starts=args.starts)
+                                           n_starts=args.starts, smoothed=True)
         profiles = ({} if getattr(args, "no_interval_check", False)
                     else check_intervals(result, args.progress))
         for name in args.profile or []:

@@ -222,7 +222,7 @@ def run_config(path: str | Path, progress=print, out: str | Path | None = None,
     result, experiments = fit_dropping(
         spec, experiments, telemetry, dropped, outliers, progress,
         likelihood=cfg["likelihood"], n_starts=int(opts.get("starts", 1)),
-        max_steps=int(opts.get("max_steps", 200)))
+        max_steps=int(opts.get("max_steps", 200)), smoothed=True)
     profiles = (check_intervals(result, progress)  # as `fit` does (output error)
                 if opts.get("interval_check", True) else {})
     write_fit_outputs(result, experiments, folder, data, profiles, dropped=dropped)

@@ -61,7 +61,7 @@ def _newton_except(theta0, problem, pins, solver, max_steps: int):
         return jax.device_put(t)
 
     def value_grad_information(z):
-        v, g, info = _value_grad_information(full(z), problem)
+        v, g, info, _ = _value_grad_information(full(z), problem)
         return v, np.asarray(g)[free], np.asarray(info)[np.ix_(free, free)]
 
     sol = newton(value_grad_information, theta[free], solver, int(max_steps))
@@ -87,7 +87,8 @@ def _value_grad_information(theta, problem):
     `g` is the exact gradient; `I` the expected curvature given the past, the
     asymptotic inverse covariance of the estimate. One forward-mode program per structure
     (a third of the Hessian's compilation) for the steps, the boundary check, the polish
-    and the final information."""
+    and the final information; fourth, the standardized innovations `e_k / sqrt(diag S_k)`
+    (runs, times, outputs; 0 where unmeasured), a solution's whiteness evidence."""
     def filtered(t):
         s = _state(t, problem)
         out = kalman_runs(s.model, problem.data, s.run_initial,
@@ -104,8 +105,9 @@ def _value_grad_information(theta, problem):
     info = (jnp.einsum("rtiq,rtij,rtjw->qw", de, Sinv, de)
             + 0.5 * jnp.einsum("rtijq,rtjiw->qw", Sinv_dS, Sinv_dS))
     prior, w = _prior(theta, problem), problem.prior_weight
+    standardized = e / jnp.sqrt(jnp.diagonal(S, axis1=2, axis2=3))
     return (jnp.sum(nll) + 0.5 * jnp.sum(prior ** 2), g + prior * w,
-            info + jnp.diag(w ** 2))
+            info + jnp.diag(w ** 2), standardized)
 
 
 def _nll(theta, problem) -> float:
@@ -137,10 +139,11 @@ def _compile_ahead(*programs) -> None:
 
 def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
                prior_log_std: float, say, polish: bool = True,
-               nested_nll: float | None = None) -> Solution:
+               nested_nll: float | None = None, smoothed: bool = False) -> Solution:
     """The Kalman stage, started from the output-error `start` or, with `start` None,
     from the file's values; `polish` False ends it after the scoring steps and the boundary
-    check, as does a start that ends far above `nested_nll` (`fit`'s). A nonlinear model
+    check, as does a start that ends far above `nested_nll` (`fit`'s); `smoothed` as
+    `fit`'s. A nonlinear model
     is integrated in the fewest ETD2 substeps its likelihood needs at the start
     (`_integration.fewest_kalman_substeps`), and solved again from the solution with more
     as long as the solution needs more."""
@@ -151,11 +154,11 @@ def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
         + ("the file's values" if start is None else "the output-error fit"))
     if not template.model.is_nonlinear:
         return _fit_kalman_from(prep, template, sigma, solver, max_steps, prior_log_std, say,
-                                polish, nested_nll)
+                                polish, nested_nll, smoothed)
     used = _kalman_substeps(template, prep.data, remember=False)
     while True:  # at most once per rung of the ladder
         sol = _fit_kalman_from(prep, with_substeps(template, used), sigma, solver,
-                               max_steps, prior_log_std, say, polish, nested_nll)
+                               max_steps, prior_log_std, say, polish, nested_nll, smoothed)
         more = _kalman_substeps(sol.state, prep.data)  # what the solution needs, remembered
         if more <= used:
             return sol
@@ -173,7 +176,8 @@ def _kalman_substeps(state, data, remember: bool = True) -> int:
 
 
 def _fit_kalman_from(prep: Prepared, template, sigma, solver, max_steps: int,
-                     prior_log_std: float, say, polish: bool, nested_nll=None) -> Solution:
+                     prior_log_std: float, say, polish: bool, nested_nll=None,
+                     smoothed: bool = False) -> Solution:
     """`fit_kalman` from the values of `template` (a `FitState`), integrated as it is."""
     index, names = prep.free("kalman")
     theta0 = free_parameters(template, index)
@@ -184,7 +188,7 @@ def _fit_kalman_from(prep: Prepared, template, sigma, solver, max_steps: int,
     theta, n_steps, converged = _solve_kalman(theta0, problem, solver, max_steps)
     _check_finite(theta, theta0, names)
     run = (template.model, prep.data, template.run_initial)  # once the steps' are compiled
-    _compile_ahead((_simulate_jit, run), (kalman_smoothed, run))
+    _compile_ahead((_simulate_jit, run), *[(kalman_smoothed, run)] * smoothed)
     at_zero = []
     if isinstance(solver, TruncatedNewton) and converged:  # max_steps hit: stop there
         plain = make_problem(template, index, prep.data, sigma, prior_mean)
@@ -210,7 +214,7 @@ def _fit_kalman_from(prep: Prepared, template, sigma, solver, max_steps: int,
         converged = converged and polished
     state = with_free_parameters(template, index, theta)
     problem = make_problem(template, index, prep.data, sigma, prior_mean)
-    nll, _, info = _value_grad_information(theta, problem)
+    nll, _, info, standardized = _value_grad_information(theta, problem)
     info = np.array(info)
     if at_zero:  # held on the boundary: known, not estimated; decoupled, never "weak"
         top = float(np.max(np.diag(info)))
@@ -219,7 +223,8 @@ def _fit_kalman_from(prep: Prepared, template, sigma, solver, max_steps: int,
     predictions = _simulate_jit(state.model, prep.data, state.run_initial)
     return Solution(problem, np.asarray(theta), state, names, info, float(nll),
                     int(n_steps), bool(converged), np.asarray(predictions),
-                    at_bound=tuple(names[i] for i in at_zero))
+                    at_bound=tuple(names[i] for i in at_zero),
+                    innovations=np.asarray(standardized))
 
 
 # −log L above a nested model's at which the scoring steps' end is a local optimum that
@@ -273,7 +278,7 @@ def _zero_variances(theta, problem, names, solver, max_steps, say, pins=()):
     zero is kept when −log L does not rise by more than `_ZERO_TOL`.
 
     **Returns:** `(theta, indices held at zero, Newton steps taken, −log L there)`."""
-    nll, _, hess = (np.asarray(a) for a in _value_grad_information(theta, problem))
+    nll, _, hess = (np.asarray(a) for a in _value_grad_information(theta, problem)[:3])
     theta = np.array(theta)
     pins, steps = list(pins), 0
     candidates = [i for i, n in enumerate(names) if n.endswith(".process_noise")
@@ -321,7 +326,7 @@ def _polish(theta, problem, names, pins, say, tol: float = 1e-3, last: bool = Tr
         return jax.device_put(theta), start - sol.loss, False
     if not ok:
         free = np.setdiff1d(np.arange(theta.size), pins)
-        _, _, info = _value_grad_information(jax.device_put(theta), pinned)
+        _, _, info, _ = _value_grad_information(jax.device_put(theta), pinned)
         # in units of each parameter's std (curvature floored at 1, a log unit): the
         # curvatures of a fit span ten decades, which L-BFGS-B alone crawls through
         scale = 1.0 / np.sqrt(np.maximum(np.diag(np.asarray(info))[free], 1.0))
@@ -329,7 +334,7 @@ def _polish(theta, problem, names, pins, say, tol: float = 1e-3, last: bool = Tr
         def f(z):
             full = theta.copy()
             full[free] += z * scale
-            v, g, _ = _value_grad_information(jax.device_put(full), pinned)
+            v, g, _, _ = _value_grad_information(jax.device_put(full), pinned)
             g = np.asarray(g)[free] * scale
             return (float(v), g) if np.isfinite(v) and np.all(np.isfinite(g)) else (1e300,
                                                                                    0 * g)
@@ -351,20 +356,15 @@ def _polish(theta, problem, names, pins, say, tol: float = 1e-3, last: bool = Tr
 @stored_jit(once=True)
 def kalman_smoothed(model, data, run_initial):
     """RTS-smoothed node temperatures of every run: mean and std, each (runs, times,
-    states) °C; and the innovations over their std (runs, times, outputs): one filter
-    pass and one program for a fit's summary and `standardized_innovations`."""
-    def per_run(ts, kf):
-        mean, std = rts_smoother(model, ts, kf)
-        return mean, std, kf.innovations / jnp.where(kf.innovation_std > 0,
-                                                     kf.innovation_std, 1.0)
-    return kalman_runs(model, data, run_initial, per_run)
+    states) °C."""
+    return kalman_runs(model, data, run_initial, lambda ts, kf: rts_smoother(model, ts, kf))
 
 
 def standardized_innovations(result: FitResult) -> list[np.ndarray]:
     """Kalman fits: each run's one-step innovations over their std, (times, outputs), NaN
-    where nothing was measured."""
+    where nothing was measured (from the fit's last scoring call: no program of its own)."""
     data = result.problem.data
-    e = np.asarray(kalman_smoothed(result.model, data, result.state.run_initial)[2])
+    e = result.innovations
     mask = np.asarray(data.mask)
     return [np.where(mask[r, :len(p)], e[r, :len(p)], np.nan)
             for r, p in enumerate(result.predictions)]

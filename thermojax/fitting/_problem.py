@@ -96,6 +96,7 @@ class Solution:
     noise: dict[str, tuple[float, float]] = field(default_factory=dict)
     n_evaluations: int | None = None  # residual evaluations at trial points
     at_bound: tuple[str, ...] = ()  # free parameters held at zero (a variance's boundary)
+    innovations: np.ndarray | None = None  # Kalman: standardized, (runs, times, outputs)
 
 
 # ---------------------------------------------------------------------------

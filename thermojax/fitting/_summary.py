@@ -54,8 +54,9 @@ class FitResult:
     message: str
     wall_time_s: float
     predictions: list[np.ndarray] = field(repr=False, default_factory=list)  # (times, outputs)
-    # Kalman only: RTS-smoothed node temperatures per run, (times, nodes) mean and std (°C).
-    smoothed: list[tuple[np.ndarray, np.ndarray]] = field(repr=False, default_factory=list)
+    # Kalman only: the one-step innovations over their std, (runs, times, outputs), 0 where
+    # unmeasured (`standardized_innovations`).
+    innovations: np.ndarray | None = field(repr=False, default=None)
     theta: np.ndarray | None = field(repr=False, default=None)
     problem: _Problem | None = field(repr=False, default=None)
     # Output error with the default solver: residual evaluations at trial points (each
@@ -69,6 +70,20 @@ class FitResult:
     # Samples that alone carry a quarter or more of their sensor's squared error
     # (`_dominance`); the fit is then not converged.
     dominant: list[DominantSample] = field(default_factory=list)
+    _smoothed: list | None = field(repr=False, default=None)  # `smoothed`, once computed
+
+    @property
+    def smoothed(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Kalman only (else empty): RTS-smoothed node temperatures per run, (times, nodes)
+        mean and std (°C), computed when first read."""
+        if self._smoothed is None:
+            self._smoothed = []
+            if self.likelihood == "kalman":
+                data = self.problem.data
+                mean, std = kalman_smoothed(self.model, data, self.state.run_initial)
+                self._smoothed = [(np.asarray(mean[r, :n]), np.asarray(std[r, :n]))
+                                  for r, n in enumerate(data.lengths)]
+        return self._smoothed
 
 
 def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) -> FitResult:
@@ -98,11 +113,6 @@ def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) ->
         n_samples += int(sum(np.isfinite(r).sum() for r in b.residuals))
         _add_bias_metrics(metrics, b)
         fitted_spec = _with_bias(fitted_spec, b)
-    smoothed = []
-    if likelihood == "kalman":
-        m_s, s_s, _ = kalman_smoothed(sol.state.model, data, sol.state.run_initial)
-        smoothed = [(np.asarray(m_s[r, :n]), np.asarray(s_s[r, :n]))
-                    for r, n in enumerate(data.lengths)]
     renames = prep.lowered.renames()
     in_fit = [dataclasses.replace(e, outputs=np.where(
         np.asarray(data.mask)[r, :e.n_times], e.outputs, np.nan))
@@ -125,7 +135,7 @@ def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) ->
         identifiability=_rename_identifiability(ident, {k: v[0] for k, v in renames.items()}),
         n_steps=sol.n_steps, converged=converged, message=message, dominant=dominant,
         n_evaluations=sol.n_evaluations, wall_time_s=time.perf_counter() - t_start, predictions=predictions,
-        smoothed=smoothed, theta=sol.theta, problem=sol.problem,
+        innovations=sol.innovations, theta=sol.theta, problem=sol.problem,
         lowered_as={target: (scale, power) for target, scale, power in renames.values()},
         biases=biases)
 
