@@ -143,10 +143,9 @@ def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
     """The Kalman stage, started from the output-error `start` or, with `start` None,
     from the file's values; `polish` False ends it after the scoring steps and the boundary
     check, as does a start that ends far above `nested_nll` (`fit`'s); `smoothed` as
-    `fit`'s. A nonlinear model
-    is integrated in the fewest ETD2 substeps its likelihood needs at the start
-    (`_integration.fewest_kalman_substeps`), and solved again from the solution with more
-    as long as the solution needs more."""
+    `fit`'s. A nonlinear model is integrated in the fewest ETD2 substeps its likelihood
+    needs at the start (`_integration.fewest_kalman_substeps`), and solved again from the
+    solution with more as long as the solution needs more."""
     template = prep.template if start is None else start.state
     p = len(prep.spec.sensors)  # the filter's own noise is in theta; sigma rides along
     sigma = prep.sigma[:p] if start is None else start.problem.sigma[:p]
@@ -188,7 +187,7 @@ def _fit_kalman_from(prep: Prepared, template, sigma, solver, max_steps: int,
     theta, n_steps, converged = _solve_kalman(theta0, problem, solver, max_steps)
     _check_finite(theta, theta0, names)
     run = (template.model, prep.data, template.run_initial)  # once the steps' are compiled
-    _compile_ahead((_simulate_jit, run), *[(kalman_smoothed, run)] * smoothed)
+    _compile_ahead((_simulate_jit, run), *([(kalman_smoothed, run)] if smoothed else []))
     at_zero = []
     if isinstance(solver, TruncatedNewton) and converged:  # max_steps hit: stop there
         plain = make_problem(template, index, prep.data, sigma, prior_mean)
