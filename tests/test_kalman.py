@@ -9,8 +9,8 @@ NumPy from the definition in formats spec §2 ("Likelihood"):
 - `Qd = ∫ e^{As} Qc e^{Aᵀs} ds` by `scipy.integrate.quad_vec` (Van Loan's integral);
 - update before predict, every measured sample included (the first one too),
   `log L = Σ_k −½ (log det(2π S_k) + e_kᵀ S_k⁻¹ e_k)` over the measured rows only;
-- the textbook covariance update `P − K S Kᵀ` (thermojax uses the Joseph form: the
-  same matrix in exact arithmetic).
+- the textbook covariance update `P − K S Kᵀ` (thermojax writes it as `P − UᵀU`,
+  `U = L⁻¹ C P`: the same matrix in exact arithmetic).
 
 The RTS smoother reference is the textbook backward pass. The information criteria
 of a Kalman fit are checked against the formulas of spec §2 with `n_params` and `N`

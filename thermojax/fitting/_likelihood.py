@@ -70,7 +70,7 @@ class KalmanOutput(eqx.Module):
 
 def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None, substeps=None
                ) -> KalmanOutput:
-    """The continuous-discrete Kalman filter over one run (Joseph-form update).
+    """The continuous-discrete Kalman filter over one run (covariance update `P − K S Kᵀ`).
 
     Process noise `Qc = diag(q²)` is discretized by Van Loan; inputs are held
     as their `hold` says; the initial mean is the model's initial state, the
@@ -163,12 +163,10 @@ def _update(P, mask_k, C, R) -> _Covariances:
     both = mask_k[:, None] & mask_k[None, :]
     S = jnp.where(both, Cm @ P @ Cm.T + R, jnp.eye(C.shape[0]))
     L = jnp.linalg.cholesky(S)
-    K = jax.scipy.linalg.cho_solve((L, True), Cm @ P).T  # P Cmᵀ S⁻¹
-    IKC = jnp.eye(P.shape[0]) - K @ Cm
-    P_f = IKC @ P @ IKC.T + K @ jnp.where(both, R, 0.0) @ K.T
+    W = jax.scipy.linalg.solve_triangular(L, jnp.eye(C.shape[0]), lower=True)
+    U = W @ (Cm @ P)  # L⁻¹ C P: the gain is Uᵀ L⁻¹ = P Cᵀ S⁻¹, and K S Kᵀ = Uᵀ U
     return _Covariances(
-        P, S, L, K, 0.5 * (P_f + P_f.T), mask_k,
-        W=jax.scipy.linalg.solve_triangular(L, jnp.eye(C.shape[0]), lower=True),
+        P, S, L, U.T @ W, P - U.T @ U, mask_k, W=W,
         logdet=2 * jnp.sum(jnp.log(jnp.diag(L))) + mask_k.sum() * LOG_2PI,
         std=jnp.sqrt(jnp.diag(S)) * mask_k)
 
