@@ -7,7 +7,6 @@ the lagged score directions of candidate effects (`investigation._candidates`).
 from __future__ import annotations
 
 import numpy as np
-import scipy.signal
 
 
 def first_order_lag(x: np.ndarray, dt, tau: float) -> np.ndarray:
@@ -31,6 +30,8 @@ def first_order_lag(x: np.ndarray, dt, tau: float) -> np.ndarray:
 
     **Returns:** `y`, same shape and unit as `x`, float64.
     """
+    import scipy.signal  # where used: it costs every command's start 0.6 s
+
     x = np.asarray(x, dtype=float)
     if x.shape[0] < 2:
         return x.copy()

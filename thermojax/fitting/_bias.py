@@ -19,7 +19,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.optimize
 
 from .._errors import InputError
 from ..dynamics._lag import first_order_lag
@@ -250,6 +249,8 @@ class _Problem:
 
     def search(self, taus) -> np.ndarray:
         """τ's (s) minimising −log L from `taus`, free ones searched in [1, 1e5] s on log τ."""
+        import scipy.optimize  # where used: it costs every fit's start 0.4 s
+
         taus = np.array(taus, dtype=float)
         free = np.array(self.free_tau, dtype=bool)
         if not free.any():
