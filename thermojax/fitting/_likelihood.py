@@ -158,7 +158,11 @@ class _Covariances(NamedTuple):
 
 def _update(P, mask_k, C, R) -> _Covariances:
     """The measurement update's covariances at prior `P`, the sensors `mask_k` measured
-    (unmeasured rows of `S` are identity rows, their gain columns zero)."""
+    (unmeasured rows of `S` are identity rows, their gain columns zero). The posterior is
+    `P − K S Kᵀ` as `P − UᵀU`: with the optimal gain the Joseph form's matrix, at half the
+    cost of its forward derivatives (the Riccati steps of a scoring call); a measured
+    node's posterior variance carries a relative rounding error of about 1e-16 × prior /
+    sensor variance (1e-12 for a prior of 1 °C² and a sensor of 0.01 °C)."""
     Cm = C * mask_k[:, None]
     both = mask_k[:, None] & mask_k[None, :]
     S = jnp.where(both, Cm @ P @ Cm.T + R, jnp.eye(C.shape[0]))
