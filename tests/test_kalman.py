@@ -341,6 +341,55 @@ def test_standardized_innovations_are_the_filters(kalman_fit, tmp_path):
         np.testing.assert_allclose(g[measured], want, rtol=1e-6, atol=1e-8)
 
 
+@pytest.mark.slow
+def test_scoring_gradient_and_information_from_their_definitions(kalman_fit):
+    """The scoring program's gradient and Fisher information (`_value_grad_information`,
+    forward derivatives and two matrix products) at a point off the optimum, against
+    central differences in the free parameters: the gradient of its own −log L (the
+    NumPy filter's value: the tests above), and the information summed in NumPy from its
+    definition, `I = Σ_k ∂eᵀS⁻¹∂e + ½ tr(S⁻¹∂S S⁻¹∂S)`, with the innovations `e_k` and
+    their covariances `S_k` of `kalman_run` differenced."""
+    import equinox as eqx
+    import jax
+
+    from thermojax.fitting._kalman_fit import _value_grad_information
+    from thermojax.fitting._likelihood import kalman_runs
+    from thermojax.fitting._problem import _state
+
+    result = kalman_fit["result"]
+    problem = result.problem
+    theta = np.asarray(result.theta) + 0.05 * np.sin(np.arange(result.theta.size) + 1.0)
+    _, g, info, _ = (np.asarray(a) for a in _value_grad_information(jax.device_put(theta),
+                                                                     problem))
+
+    @eqx.filter_jit
+    def filtered(t):
+        s = _state(t, problem)
+        return kalman_runs(s.model, problem.data, s.run_initial,
+                           lambda ts, kf: (kf.nll, kf.innovations, kf.innovation_cov))
+
+    h = 1e-5
+    plus, minus = [], []
+    for i in range(theta.size):
+        step = np.zeros(theta.size)
+        step[i] = h
+        plus.append([np.asarray(a, float) for a in filtered(jax.device_put(theta + step))])
+        minus.append([np.asarray(a, float) for a in filtered(jax.device_put(theta - step))])
+    g_fd = np.array([(p[0].sum() - m[0].sum()) / (2 * h) for p, m in zip(plus, minus)])
+    de = np.stack([(p[1] - m[1]) / (2 * h) for p, m in zip(plus, minus)])  # (q, runs, T, p)
+    dS = np.stack([(p[2] - m[2]) / (2 * h) for p, m in zip(plus, minus)])
+    _, _, S = (np.asarray(a, float) for a in filtered(jax.device_put(theta)))
+    Sinv = np.linalg.inv(S)
+    info_ref = np.zeros((theta.size, theta.size))
+    for q in range(theta.size):
+        for w in range(theta.size):
+            info_ref[q, w] = (np.einsum("rti,rtij,rtj->", de[q], Sinv, de[w])
+                              + 0.5 * np.einsum("rtij,rtjk,rtkl,rtli->", Sinv, dS[q], Sinv,
+                                                dS[w]))
+    np.testing.assert_allclose(g, g_fd, rtol=1e-5, atol=1e-5 * np.abs(g_fd).max())
+    np.testing.assert_allclose(info, info_ref, rtol=1e-5, atol=1e-6 * np.abs(info_ref).max())
+
+
 @pytest.mark.parametrize("chunked", [False, True])
 @pytest.mark.parametrize("process_noise", ["file", "zero"])
 def test_settled_covariances_are_reused_and_the_likelihood_and_its_gradient_stay_exact(
