@@ -157,3 +157,95 @@ def test_investigate_under_the_kalman_likelihood(tmp_path):
     assert (added["kind"], added["where"]) == ("sensor_offset", ["T_die"])
     assert abs(added["parameters"]["offset"] - 0.15) < 0.01
     assert report["steps"][1]["rmse"]["T_die"] < 1.5 * 0.01
+
+
+def test_heat_responses_hold_the_heat_as_told_against_scipy():
+    """`heat_responses` of a two-node network to a switching heat, zero- and first-order
+    hold, against `scipy.signal.lsim` (`interp` False / True) from the same steady state."""
+    from scipy import signal
+
+    from thermojax.investigation._candidates import heat_responses
+
+    cap = np.array([200.0, 50.0])  # J/K
+    G01, G0a = 2.0, 1.5  # W/K: node 0 - node 1, node 0 - ambient
+    A = np.array([[-(G01 + G0a), G01], [G01, -G01]]) / cap[:, None]
+    C = np.array([[0.0, 1.0]])
+    ts = np.arange(200) * 20.0  # s; the fast time constant is about 20 s
+    rng = np.random.default_rng(3)
+    W = np.zeros((1, ts.size, 2))
+    W[0, :, 0] = 5.0 * rng.integers(0, 2, ts.size)  # W into node 0, switching
+    W[0, :, 1] = np.linspace(0.0, 1.0, ts.size)
+    got = heat_responses(A, C, cap, ts[None], [W, W], ["zoh", "foh"])
+    system = signal.StateSpace(A, np.diag(1.0 / cap), C, np.zeros((1, 2)))
+    x0 = np.linalg.solve(A, -np.diag(1.0 / cap) @ W[0, 0])
+    for k, interp in enumerate((False, True)):
+        _, y, _ = signal.lsim(system, W[0], ts, X0=x0, interp=interp)
+        np.testing.assert_allclose(got[k, 0, :, 0], y, rtol=1e-9, atol=1e-9 * np.abs(y).max())
+    assert np.abs(got[0] - got[1]).max() > 0.1  # the two holds differ here
+
+
+@pytest.mark.slow
+def test_a_law_on_a_zero_order_hold_input_is_scored_as_its_refit_integrates_it():
+    """A learned law `c·P^p·exp(k(T − 25))` at the node a zero-order-hold power `P` already
+    heats: at p = 1, k = 0 it is the model's own gain on `P`, so its score is zero. The
+    data were made with `P` held to first order (PRBS1's solar input behaves so), which
+    the model cannot follow; scored with `P` held to first order instead of as the model
+    holds it (before this was fixed), the law would take that misfit for an effect its
+    refit, integrated as the model holds `P`, cannot reach."""
+    import dataclasses
+
+    import thermojax as tj
+    from thermojax.discovery._library import LIBRARY, LearnedLaw
+    from thermojax.fitting._fit import output_error_at
+    from thermojax.investigation._candidates import score_candidates
+
+    model = """
+name = "one_node"
+[[nodes]]
+name = "T"
+capacitance = 600.0
+initial = 25.0
+[[boundaries]]
+node = "T"
+input = "Ta"
+conductance = 10.0
+hold = "zoh"
+[[heat_inputs]]
+node = "T"
+input = "P"
+gain = 1.0
+hold = "HOLD"
+[[sensors]]
+node = "T"
+column = "yT"
+noise = 0.01
+"""
+    believed, truth = (parse_model(model.replace("HOLD", h)) for h in ("zoh", "foh"))
+    rng = np.random.default_rng(0)
+    ts = np.arange(300) * 30.0  # s, the node's time constant 60 s
+    P = 20.0 * rng.integers(0, 2, ts.size)
+    Ta = 25.0 + np.zeros(ts.size)
+    u = np.stack([Ta, P], 1)  # the input order of both specs: Ta, P
+    assert list(truth.input_columns) == ["Ta", "P"]
+    data = tj.Dataset.from_experiments([tj.Experiment(ts, u, np.zeros((ts.size, 1)))])
+    y = np.asarray(tj.simulate_dataset(tj.ThermalModel.from_spec(truth), data))[0]
+    y = y + 0.01 * rng.standard_normal(y.shape)
+    experiments = [tj.Experiment(ts, u, y)]
+    result = tj.fit(believed, experiments)
+    assert result.rmse["yT"] > 5 * 0.01  # the hold's misfit is far above the noise
+    data, weights, r, J, states = output_error_at(result, experiments)
+    term = next(t for t in LIBRARY if t.places == "input" and t.shape == ("p", "k"))
+    law = LearnedLaw(dataclasses.replace(term, trials=((1.0, 0.0),)), column="P")
+    columns = {"P": P[None], "Ta": Ta[None]}
+    [cand] = score_candidates(result, data, [(law, ("T",))], columns, np.asarray(weights),
+                              np.asarray(r), np.asarray(J), states=states)
+    assert cand.score < 1e-6 * float(np.sum(np.asarray(r) ** 2)), cand.score
+    # the same direction held to first order: a large, spurious score
+    class FirstOrder(LearnedLaw):
+        def heat_hold(self, ctx, where):
+            return "foh"
+
+    foh = FirstOrder(law.term, column="P")
+    [wrong] = score_candidates(result, data, [(foh, ("T",))], columns, np.asarray(weights),
+                               np.asarray(r), np.asarray(J), states=states)
+    assert wrong.score > 100.0, wrong.score
