@@ -108,12 +108,6 @@ class LearnedLaw:
             out.append(w)
         return "heat", out
 
-    def heat_hold(self, ctx, where) -> str:
-        """An input term's heat follows its column: held as the model holds that column
-        (the refit's ETD2 steps keep a zero-order-hold input at its sample), else
-        first-order."""
-        return ctx.spec.hold_for(self.column) if self.column is not None else "foh"
-
     def nested_kind(self, where) -> tuple[str, tuple[str, ...]] | None:
         """`(kind, where)` of the kind of the vocabulary this law reduces to, or None."""
         if self.term.nested is None:

@@ -282,43 +282,33 @@ def _states_jit(model, data, run_initial):
     return dataset_states_nonlinear(model, data, run_initial)
 
 
-def _impl(kind):
-    """A place's effect: a kind of the vocabulary (by name), or a learned law (itself)."""
-    return KINDS[kind] if isinstance(kind, str) else kind
-
-
 _HEAT_BATCH = 16  # heat directions per call: one program for every step of a loop
 
 
-def heat_responses(A, C, capacitance, ts, W, holds=None) -> np.ndarray:
+def heat_responses(A, C, capacitance, ts, W) -> np.ndarray:
     """Output responses (K, runs, T, p) of the linear network `A` (n, n), `C` (p, n),
     `capacitance` (n,) J/K to heat inputs `W` (K arrays (runs, T, n), W), each from the
-    steady state of its first sample and held between samples as `holds` (K of "zoh" or
-    "foh"; default all "foh") says; `ts` (runs, T) s. In batches of `_HEAT_BATCH` of one
-    hold (the last padded with zeros), so that the program depends on the shapes and the
-    hold alone, not on the model or K."""
+    steady state of its first sample; `ts` (runs, T) s. In batches of `_HEAT_BATCH` (the
+    last padded with zeros), so that the program depends on the shapes alone, not on the
+    model or K."""
     K = len(W)
-    holds = ["foh"] * K if holds is None else list(holds)
     out = np.empty((K, *np.shape(ts), C.shape[0]))
-    for hold in dict.fromkeys(holds):
-        ks = [k for k in range(K) if holds[k] == hold]
-        for i in range(0, len(ks), _HEAT_BATCH):
-            part = ks[i:i + _HEAT_BATCH]
-            batch = np.zeros((_HEAT_BATCH, *np.shape(W[part[0]])))
-            batch[:len(part)] = [W[k] for k in part]
-            out[part] = np.asarray(_heat_batch(A, C, capacitance, ts, batch,
-                                               hold))[:len(part)]
+    for k in range(0, K, _HEAT_BATCH):
+        batch = np.zeros((_HEAT_BATCH, *np.shape(W[k])))
+        batch[:min(_HEAT_BATCH, K - k)] = W[k:k + _HEAT_BATCH]
+        out[k:k + _HEAT_BATCH] = np.asarray(_heat_batch(A, C, capacitance, ts,
+                                                        batch))[:K - k]
     return out
 
 
 @stored_jit
-def _heat_batch(A, C, capacitance, ts, W, hold):
+def _heat_batch(A, C, capacitance, ts, W):
     from ..dynamics._simulate import ExactHold
     from ..model._system import LinearSystem
 
     n = A.shape[0]
     heat = LinearSystem(A, jnp.diag(1.0 / capacitance), C, jnp.zeros((C.shape[0], n)),
-                        holds=(hold,) * n, capacitance=capacitance)
+                        holds=("foh",) * n, capacitance=capacitance)
 
     def one(w, t):
         x0 = heat.steady_state(w[0])
@@ -352,7 +342,7 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
 
     raw = []
     for kind, where in places:
-        impl = _impl(kind)
+        impl = KINDS[kind] if isinstance(kind, str) else kind  # a kind, or a learned law
         try:
             how, dirs = impl.score_direction(ctx, where)
         except (KeyError, ValueError, NotImplementedError, TypeError):
@@ -362,12 +352,8 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
             for j in range(len(dirs))]
     responses = {}
     if heat:
-        # each held as the refit will integrate it: a heat that follows a zero-order-hold
-        # column steps with it (a first-order hold there is a half-sample shift the
-        # nested model cannot make, scored as if the effect could)
-        holds = {i: _impl(raw[i][0]).heat_hold(ctx, raw[i][1]) for i, _ in heat}
         out = heat_responses(ctx.A, ctx.C, ctx.capacitance, np.asarray(data.ts),
-                             [raw[i][3][j] for i, j in heat], [holds[i] for i, _ in heat])
+                             [raw[i][3][j] for i, j in heat])
         responses = {key: out[k] for k, key in enumerate(heat)}
     shape = np.shape(weights)
     keys = [(i, j) for i, (_, _, _, dirs) in enumerate(raw) for j in range(len(dirs))]
@@ -384,7 +370,7 @@ def score_candidates(result, data: Dataset, places, columns: dict, weights, resi
         directions = {k: (d * weights).reshape(-1) for k, d in directions.items()}
     cands = []
     for i, (kind, where, how, dirs) in enumerate(raw):
-        impl = _impl(kind)
+        impl = KINDS[kind] if isinstance(kind, str) else kind
         lead = EFFECT_KINDS[impl.kind].parameters
         one_sided = bool(lead) and lead[0] in EFFECT_KINDS[impl.kind].positive
         scores, estimates = [], []

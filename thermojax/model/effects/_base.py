@@ -113,12 +113,6 @@ class AbstractEffect:
         """A physical first guess of every parameter at this place."""
         raise NotImplementedError
 
-    def heat_hold(self, ctx, where: tuple[str, ...]) -> str:
-        """How a `("heat", w)` direction of `score_direction` is held between samples when
-        its response is computed: as the refit will integrate it. "foh" by default (heat
-        that follows the temperatures varies within a sample period)."""
-        return "foh"
-
     def direction_time_constant(self, ctx, j: int) -> float | None:
         """The time constant (s) that score direction `j` of `score_direction` tried, for
         a kind whose own time constant the first-order score cannot know; else None."""

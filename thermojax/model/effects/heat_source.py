@@ -32,11 +32,6 @@ class HeatSource(AbstractEffect):
     def initial_parameters(self, spec, where):
         return {"gain": 0.1}
 
-    def heat_hold(self, ctx, where):
-        """The column's hold where the model already uses it (the refit keeps it), else
-        first-order."""
-        return ctx.spec.hold_for(where[0])
-
     def score_direction(self, ctx, where):
         col, node = where
         w = np.zeros_like(ctx.T)
