@@ -26,13 +26,8 @@ import pytest
 # removes it at the end (`pytest_unconfigure`): a run leaves about 80 MB.
 _OWN_CACHE = None
 if "THERMOJAX_CACHE_DIR" not in os.environ:
-    _RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID")  # a worker that did not inherit it
-    if _RUN:
-        os.environ["THERMOJAX_CACHE_DIR"] = os.path.join(tempfile.gettempdir(),
-                                                         f"thermojax-test-cache-{_RUN}")
-    else:
-        _OWN_CACHE = os.environ["THERMOJAX_CACHE_DIR"] = tempfile.mkdtemp(
-            prefix="thermojax-test-cache-")
+    _OWN_CACHE = os.environ["THERMOJAX_CACHE_DIR"] = tempfile.mkdtemp(
+        prefix="thermojax-test-cache-")
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
