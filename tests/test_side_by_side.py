@@ -51,16 +51,26 @@ def test_waves_try_the_candidates_one_at_a_time_would_try():
                 c.score = 0.0
         succeeds = {c.where: bool(rng.random() < 0.6) for c in cands}
         refits = int(rng.integers(0, 5))
+        # a learned law refitted beside the kinds, whatever its rank; its outcome
+        # does not count (and a law scored nothing, or refitted already, is not refitted)
+        law = Candidate("expression", ("law",), score=float(rng.choice([0.0, 50.0])),
+                        p_value=0.0)
+        law.method = "refit" if rng.random() < 0.15 else "score"
+        beside = [law] if rng.random() < 0.5 else []
+        succeeds[law.where] = bool(rng.random() < 0.5)
         tried, waves = [], []
 
         def wave(batch):
-            waves.append(len(batch))
-            tried.extend(c.where for c in batch)
+            waves.append([c.where for c in batch])
+            tried.extend(c.where for c in batch if c is not law)
             return [succeeds[c.where] for c in batch]
 
-        inv.refit_best(cands, refits, wave)
+        inv.refit_best(cands, refits, wave, beside=beside)
         assert tried == _one_at_a_time(cands, refits, succeeds), trial
-        assert all(w <= refits for w in waves)
+        assert all(len(w) <= refits + (w[:1] == [law.where]) for w in waves)
+        law_refitted = bool(beside) and law.method == "score" and law.score > 0
+        assert [w for w in waves if law.where in w] == (waves[:1] if law_refitted else [])
+        assert all(w.index(law.where) == 0 for w in waves if law.where in w)
 
 
 @pytest.mark.parametrize("cpus", [1, 8])

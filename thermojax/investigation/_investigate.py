@@ -470,19 +470,24 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
     return True
 
 
-def refit_best(cands: list[Candidate], refits: int, refit_wave) -> None:
+def refit_best(cands: list[Candidate], refits: int, refit_wave,
+               beside: list[Candidate] = ()) -> None:
     """Refit the best-scored thermal candidates (`cands` in decreasing score) until
     `refits` succeeded or `2 refits` were tried (a failure counts half), in waves:
     `refit_wave(list) -> list[bool]` refits each wave's candidates (side by side), a
     wave as many as are still wanted, so exactly the candidates that refitting one at a
-    time would try are tried."""
+    time would try are tried. The `beside` candidates (score-tested, scored above zero)
+    are refitted whatever their rank, first in the first wave: they fill the cores while
+    the ranked candidates fit, and their outcome does not count."""
     pending = [c for c in cands if c.method == "score" and c.score > 0]
+    extra = [c for c in beside if c.method == "score" and c.score > 0 and c not in pending]
     done = tried = 0
-    while pending and done < refits and tried < 2 * refits:
-        size = min(refits - done, 2 * refits - tried)
-        wave, pending = pending[:size], pending[size:]
+    while extra or (pending and done < refits and tried < 2 * refits):
+        size = min(refits - done, 2 * refits - tried) if pending else 0
+        wave, pending = pending[:max(size, 0)], pending[max(size, 0):]
         tried += len(wave)
-        done += sum(refit_wave(wave))
+        done += sum(refit_wave(extra + wave)[len(extra):])
+        extra = []
 
 
 def _refit_side_by_side(cands: list[Candidate], step: Step, runs, likelihood, new_columns,
@@ -659,14 +664,16 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
         return _refit_side_by_side(w, step, runs, likelihood, set(unused), initial, say,
                                    white_p if white_p is not None else 0.01)
 
-    refit_best([c for c in cands if c.learned is None], refits, wave)
     # The best learned law significant by its score is refitted too, beside the kinds
     # (never instead of them: a law may mimic a kind, and the kind is the simpler form),
-    # unless a kind has the larger score or the law's shape is its nested kind's.
+    # unless a kind has the larger score or the law's shape is its nested kind's. Its
+    # refit, a nonlinear model (the costliest), goes first in the kinds' first wave.
     best_law = [c for c in cands if c.learned is not None and c.p_value < fdr][:1]
-    if refits and best_law and not _law_outranked(best_law[0], cands) and \
-            not _law_adds_nothing(best_law[0], cands, fdr):
-        refit_best(best_law, 1, wave)
+    if not (refits and best_law and not _law_outranked(best_law[0], cands) and
+            not _law_adds_nothing(best_law[0], cands, fdr)):
+        best_law = []
+    refit_best([c for c in cands if c.learned is None], refits, wave, beside=best_law)
+    if best_law:
         # the kind the law reduces to (a column's heat_source), refitted too if it was
         # not: the law must beat the simpler form it nests (`prefer_vocabulary`)
         nested = best_law[0].learned.nested_kind(best_law[0].where)
