@@ -76,12 +76,13 @@ def test_waves_try_the_candidates_one_at_a_time_would_try():
 @pytest.mark.parametrize("cpus", [1, 8])
 def test_every_start_of_every_candidate_is_fitted_side_by_side(monkeypatch, cpus):
     """A wave's fits (each candidate's starts) all go to the threads, first starts
-    before second starts; each candidate concludes from its own fits in start order,
-    a failed fit passed on as its exception (the loop goes on)."""
+    before later ones, the later starts of the candidate with the most first; each
+    candidate concludes from its own fits in start order, a failed fit passed on as its
+    exception (the loop goes on)."""
     submitted, lock = [], threading.Lock()
 
     def fake_starts(c, step, new_columns, initial, runs=(), nested=False):
-        n = 1 if c.kind == "radiation" else 2
+        n = {"radiation": 1, "capacitance_temperature": 3}.get(c.kind, 2)
         return [(None, f"start {k}", f"{c.where[0]}:{k}") for k in range(n)]
 
     def fake_evaluate(model, runs, likelihood, nested_nll):
@@ -104,14 +105,16 @@ def test_every_start_of_every_candidate_is_fitted_side_by_side(monkeypatch, cpus
     monkeypatch.setattr(inv, "_refit", fake_refit)
     monkeypatch.setattr(inv, "_needs_retry", lambda fits, step: False)
     monkeypatch.setattr(os, "cpu_count", lambda: cpus)
-    cands = _cands(["radiation", "sensor_offset", "extra_node"])
+    cands = _cands(["radiation", "sensor_offset", "extra_node", "capacitance_temperature"])
     nested = SimpleNamespace(thermal_nll=-12.5)  # the step the candidates extend
     ok = inv._refit_side_by_side(cands, nested, [], "output_error", set(), None,
                                  lambda m: None)
-    assert ok == [True, True, False]
-    assert sorted(submitted) == ["n0:0", "n1:0", "n1:1", "n2:0", "n2:1"]
+    assert ok == [True, True, False, True]
+    assert sorted(submitted) == ["n0:0", "n1:0", "n1:1", "n2:0", "n2:1", "n3:0", "n3:1",
+                                 "n3:2"]
     if cpus == 1:
-        assert submitted == ["n0:0", "n1:0", "n2:0", "n1:1", "n2:1"]
+        assert submitted == ["n0:0", "n1:0", "n2:0", "n3:0", "n3:1", "n3:2", "n1:1", "n2:1"]
+    assert concluded["n3"] == [(None, f"start {k}", f"fit of n3:{k}") for k in range(3)]
     assert concluded["n1"] == [(None, "start 0", "fit of n1:0"),
                                (None, "start 1", "fit of n1:1")]
     assert concluded["n2"][0] == (None, "start 0", "fit of n2:0")
