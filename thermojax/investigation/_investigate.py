@@ -484,7 +484,7 @@ def refit_best(cands: list[Candidate], refits: int, refit_wave,
     done = tried = 0
     while extra or (pending and done < refits and tried < 2 * refits):
         size = min(refits - done, 2 * refits - tried) if pending else 0
-        wave, pending = pending[:max(size, 0)], pending[max(size, 0):]
+        wave, pending = pending[:size], pending[size:]
         tried += len(wave)
         done += sum(refit_wave(extra + wave)[len(extra):])
         extra = []
