@@ -492,3 +492,16 @@ def imu6_fit():
                 "start": start}
 
     return cached_fit(("imu6", "output_error"), make)
+
+
+def law_truths(expression: str, truths: dict) -> dict:
+    """The parameters `truths` of a generated law `c·u^p·…` as a learned `expression`
+    states them: a column read in its size, `(u / U)`, has `c·U^p` for its coefficient
+    (c·u^p = c·U^p·(u/U)^p); the other parameters are unchanged."""
+    import re
+
+    scaled = re.search(r"\(\s*[A-Za-z_]\w*\s*/\s*([0-9.]+(?:[eE][+-]?\d+)?)\s*\)", expression)
+    out = dict(truths)
+    if scaled is not None:
+        out["c"] = truths["c"] * float(scaled.group(1)) ** truths["p"]
+    return out

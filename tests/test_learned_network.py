@@ -13,7 +13,7 @@ from thermojax import Experiment, parse_model
 from thermojax.discovery import learn_network_heat
 from thermojax.model.effects import lower_effects
 
-from helpers import CONFIGS
+from helpers import CONFIGS, law_truths
 from hidden import generator as g
 
 CHAIN3 = CONFIGS.parent / "tests" / "hidden" / "models" / "chain3.toml"
@@ -55,7 +55,8 @@ def test_the_loop_asks_the_network_and_its_proposal_recovers_the_truth(monkeypat
     refit = chosen.result.result
     assert refit.converged
     assert all(r < 1.5 * 0.01 for r in refit.rmse.values()), refit.rmse
-    for name, truth in (("c", 0.03), ("p", 2.0), ("k", 0.015)):
+    truths = law_truths(chosen.learned.text(chosen.where), {"c": 0.03, "p": 2.0, "k": 0.015})
+    for name, truth in truths.items():
         p = refit.parameters[f"effects.expression.pcb.{name}"]
         assert p["std"] > 0 and abs(p["value"] - truth) < 3 * p["std"], (name, p)
 

@@ -68,13 +68,20 @@ class LearnedLaw:
     term: LibraryTerm
     column: str | None = None  # {u}
     kind: str = "expression"
+    # {u} is read as `(column / scale)` where given: the column's size in the data
+    # (`column_scales`), so that `c` is the heat at that value. On the raw column, a
+    # power law's c and exponent move together wherever the column's log varies little
+    # around a large mean (a heater's thousands of watts).
+    scale: float | None = None
 
     def text(self, where) -> str:
         fill = {"a": where[0]}
         if self.term.places == "pair":
             fill["b"] = where[1]
         if self.column is not None:
-            fill["u"] = self.column
+            fill["u"] = (self.column if self.scale is None else
+                         f"({self.column} / "
+                         f"{np.format_float_positional(self.scale, trim='-')})")
         return self.term.template.format(**fill)
 
     def effect(self, where, c: float = 0.0, shape: tuple | None = None,
@@ -128,19 +135,35 @@ class LearnedLaw:
         return None
 
 
-def learned_places(lowered, columns: dict[str, str]) -> list[tuple[LearnedLaw, tuple]]:
+def column_scales(columns: dict[str, np.ndarray]) -> dict[str, float]:
+    """Per data column (name -> values, any shape), its largest magnitude to three
+    significant digits, the `scale` an input term reads it in; a column that is zero
+    throughout, or not finite, gets none."""
+    out = {}
+    for name, values in columns.items():
+        size = float(np.max(np.abs(values))) if np.size(values) else 0.0
+        if np.isfinite(size) and size > 0.0:
+            out[name] = float(f"{size:.3g}")
+    return out
+
+
+def learned_places(lowered, columns: dict[str, str], scales: dict[str, float] | None = None
+                   ) -> list[tuple[LearnedLaw, tuple]]:
     """Every `(LearnedLaw, where)` the library allows on a (lowered) spec: pair terms on
     its conduction paths, input terms at every node for each column of `columns` (name ->
-    role guess) that is not a temperature, node terms at every node."""
+    role guess) that is not a temperature, read in its `scales` (`column_scales`) where
+    given, node terms at every node."""
     from ..model.effects._base import conduction_paths
 
     out = []
     inputs = [c for c, role in columns.items() if role != "temperature"]
+    scales = scales or {}
     for term in LIBRARY:
         if term.places == "pair":
             out += [(LearnedLaw(term), tuple(p)) for p in conduction_paths(lowered)]
         elif term.places == "input":
-            out += [(LearnedLaw(term, u), (n,)) for u in inputs for n in lowered.node_names]
+            out += [(LearnedLaw(term, u, scale=scales.get(u)), (n,)) for u in inputs
+                    for n in lowered.node_names]
         else:
             out += [(LearnedLaw(term), (n,)) for n in lowered.node_names]
     return out

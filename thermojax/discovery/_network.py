@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ._library import LearnedLaw, learned_places
+from ._library import LearnedLaw, column_scales, learned_places
 from ._missing_heat import missing_heat
 from ..dynamics._nonlinear import initial_state_nonlinear, readings, simulate_run_nonlinear
 from ..model._expression import evaluate_numpy, parse, resolve
@@ -261,7 +261,8 @@ def _distil(q, values, names, spec, columns, node) -> list[Distilled]:
     by R². The refit of the chosen term frees its shape."""
     total = float(np.sum((q - q.mean()) ** 2)) or 1.0
     out = []
-    for law, where in learned_places(spec, columns):
+    scales = column_scales({c: values[:, names.index(c)] for c in columns if c in names})
+    for law, where in learned_places(spec, columns, scales):
         if where[0] != node:
             continue
         eff = law.effect(where, 1.0)

@@ -49,7 +49,7 @@ from .._residual_analysis import ljung_box, long_run_variance_ratio
 from ._diagnostics import davies_p_value, davies_variation
 from ._selection import (FoldVote, fold_vote, held_out_advice, holdout_verdict, judge,
                          prefer_vocabulary, significance_rule)
-from ..discovery import learned_places
+from ..discovery import column_scales, learned_places
 from ..model._spec import EFFECT_KINDS, ModelSpec
 from ..model.effects import KINDS
 from ..model.effects._base import T_REF
@@ -649,7 +649,7 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
         r = whiten((r.reshape(weights.shape) * scale)[..., None]).reshape(-1)
         J = whiten(J.reshape(*weights.shape, -1) * scale[..., None]).reshape(r.size, -1)
     columns = _padded_columns(runs, set(unused) | set(spec.input_columns), data.ts.shape[1])
-    laws = _learned_places(spec, lowered, unused)
+    laws = _learned_places(spec, lowered, unused, column_scales(columns))
     say(f"scoring {len(places)} candidate effects and {len(laws)} learned laws")
     try:
         cands = score_candidates(result, data, thermal + laws, columns, weights, r, J,
@@ -725,13 +725,15 @@ def _law_adds_nothing(law: Candidate, cands: list[Candidate], fdr: float) -> boo
     return True
 
 
-def _learned_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str]) -> list:
+def _learned_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str],
+                    scales: dict[str, float]) -> list:
     """The library's laws at every place (`discovery.learned_places`): the unused columns
-    and the model's own power columns as inputs, except a law the model already holds."""
+    and the model's own power columns as inputs (read in `scales`), except a law the
+    model already holds."""
     roles = {**unused, **{h.input: "power" for h in spec.heat_inputs}}
     have = {(tuple(e.where), e.expression) for e in spec.effects if e.kind == "expression"}
     helpers = helper_nodes(spec, lowered)
-    return [(law, where) for law, where in learned_places(lowered, roles)
+    return [(law, where) for law, where in learned_places(lowered, roles, scales)
             if (tuple(where), law.text(where)) not in have and not helpers & set(where)]
 
 
