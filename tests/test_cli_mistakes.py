@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -268,19 +269,40 @@ def test_export_implausibly_high_rate_names_the_rate(capsys, tmp_path):
 # Ctrl-C
 
 
-def interrupt_after(argv, seconds, tmp_path, until=None):
-    """Start `thermojax argv...` as a real process, send SIGINT after `seconds` (or, with
-    `until` a path, as soon as that file appears, `seconds` at most)."""
+def interrupt_after(argv, seconds, tmp_path, until=None, after_line=None):
+    """Start `thermojax argv...` as a real process and send SIGINT after `seconds`, or
+    sooner: as soon as the file `until` appears, or a second after the command prints a
+    line containing `after_line` (its work under way: a fixed delay raced the end of a
+    fit that a warm compilation cache makes short). Returns `(rc, stdout, stderr)`."""
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     proc = subprocess.Popen([sys.executable, "-m", "thermojax", *map(str, argv)], cwd=tmp_path,
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    out, err, started = [], [], threading.Event()
+
+    def read(stream, into, watch):
+        for line in stream:
+            into.append(line)
+            if watch is not None and watch in line:
+                started.set()
+
+    readers = [threading.Thread(target=read, args=(proc.stdout, out, after_line), daemon=True),
+               threading.Thread(target=read, args=(proc.stderr, err, None), daemon=True)]
+    for r in readers:
+        r.start()
     deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline and not (until is not None and until.is_file()):
+    while time.monotonic() < deadline and not (until is not None and until.is_file()) \
+            and not started.is_set():
         time.sleep(0.2)
-    assert proc.poll() is None, proc.communicate()  # still working when interrupted
+    if started.is_set():
+        time.sleep(1.0)
+    assert proc.poll() is None, ("".join(out), "".join(err))  # still working when interrupted
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=120)
-    return proc.returncode, out, err
+    proc.wait(timeout=120)
+    for r in readers:
+        r.join(timeout=10)
+    proc.stdout.close()
+    proc.stderr.close()
+    return proc.returncode, "".join(out), "".join(err)
 
 
 @pytest.mark.parametrize("command, says, not_says", [
@@ -299,8 +321,10 @@ def test_interrupted_message_matches_the_command(command, says, not_says):
 @pytest.mark.slow
 def test_ctrl_c_during_fit_exits_130_and_writes_nothing(tmp_path, shock_csv):
     out = tmp_path / "fit"
+    # interrupted a second into the fit (10-15 s of work after the first message)
     rc, _, err = interrupt_after(["fit", "--model", RTD2, "--data", shock_csv, "--out", out,
-                                  "--likelihood", "kalman"], 10, tmp_path)  # ~1 min of work
+                                  "--likelihood", "kalman"], 60, tmp_path,
+                                 after_line="fitting 1 run(s)")
     assert rc == 130, err
     assert "Traceback" not in err and "interrupted" in err
     assert not out.exists()
