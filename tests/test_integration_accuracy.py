@@ -221,3 +221,47 @@ def test_fits_side_by_side_start_from_one_memory_and_keep_the_most(monkeypatch, 
             side_by_side([fit_needing(strong, 8), lambda: int("second"),
                           fit_needing(mild, 16)])
         assert _integration.shared_substeps(mild, 1) == 16
+
+
+@pytest.mark.slow
+def test_a_kalman_fit_started_far_from_the_data_starts_coarse(monkeypatch):
+    """A start whose filter needs 16 substeps (α three times the truth) is solved first
+    in `START_SUBSTEPS` (a solve in 16 costs four times as much a call); the solution's
+    own need decides the rest: the returned −log L is within `KALMAN_TOLERANCE` of the
+    filter's in 256 substeps, and α is recovered."""
+    import jax.numpy as jnp
+
+    from thermojax.fitting import _kalman_fit
+    from thermojax.fitting._integration import substep_memory
+
+    name = "conductance_temperature"
+    truth = _truth_spec(g.load_case(name))
+    spec = truth.replace(effects=tuple(
+        dataclasses.replace(e, parameters={k: dataclasses.replace(p, value=3 * p.value)
+                                           for k, p in e.parameters.items()})
+        for e in truth.effects))
+    _, data, reference = _case(name, noise=True)
+    data = dataclasses.replace(data, outputs=jnp.asarray(reference)[None])
+    start = FitState(ThermalModel.from_spec(spec), np.zeros((1, 0)), np.zeros(0))
+    assert fewest_kalman_substeps(start, data)[0] > _kalman_fit.START_SUBSTEPS
+    solved_in = []
+    solve = _kalman_fit._fit_kalman_from
+
+    def spy(prep, template, *args, **kwargs):
+        solved_in.append(template.model.etd2_substeps)
+        return solve(prep, template, *args, **kwargs)
+
+    monkeypatch.setattr(_kalman_fit, "_fit_kalman_from", spy)
+    ts, cols = g.generate_case(name, seed=0, horizon_s=HORIZON_S, noise=True)[0]
+    u = np.stack([cols[c] for c in lower_effects(spec).spec.input_columns], 1)
+    y = np.stack([cols[c] for c in spec.sensor_columns], 1)
+    with substep_memory({}):
+        result = fit(spec, [Experiment(ts, u, y)], likelihood="kalman")
+    assert solved_in[0] == _kalman_fit.START_SUBSTEPS
+    data = dataclasses.replace(result.problem.data, outputs=jnp.asarray(y)[None])
+    fine = float(kalman_nll_in_substeps(result.state.model, data, result.state.run_initial,
+                                        jax.device_put(np.asarray(256))))
+    assert abs(result.nll - fine) <= KALMAN_TOLERANCE
+    alpha = next(v["value"] for k, v in result.parameters.items() if k.endswith("alpha"))
+    true_alpha = next(p.value for e in truth.effects for k, p in e.parameters.items())
+    assert alpha == pytest.approx(true_alpha, rel=0.1)

@@ -16,8 +16,10 @@ filter corrects the state every sample, so only one sample's error, not the free
 reaches it, and far fewer substeps do. On PRBS1's four-state model with a
 temperature-dependent conductance the free-run rule asked for 16 (its readings' error at
 1 % of a 0.003 °C noise), while 4 put −log L within 0.01 of its converged value; the
-extended filter's cost grows with the substeps. It is checked at the start values and
-again at the solution (`_kalman_fit`), and only the solution's need is remembered.
+extended filter's cost grows with the substeps. It is checked at the start values (a
+start far from the data, which can need 16 where its solution needs 2-8, is solved in at
+most `_kalman_fit.START_SUBSTEPS`) and again at the solution (`_kalman_fit`), and only
+the solution's need is remembered.
 Fits of one structure share the most any of them needed (`shared_substeps`), Kalman and
 output-error fits each their own.
 """
@@ -77,13 +79,15 @@ def fewest_substeps(state, data: Dataset, tolerance: float, read_states: bool = 
     return SUBSTEP_LADDER[-1], float("nan")
 
 
-def fewest_kalman_substeps(state, data: Dataset, tolerance: float = KALMAN_TOLERANCE
-                           ) -> tuple[int, float]:
+def fewest_kalman_substeps(state, data: Dataset, tolerance: float = KALMAN_TOLERANCE,
+                           at_most: int = SUBSTEP_LADDER[-1]) -> tuple[int, float]:
     """`(substeps, estimated error in −log L)`: the fewest of `SUBSTEP_LADDER` whose
     Kalman −log L of `state` (a `FitState` with a nonlinear model)
     differs from the same filter's in four times as many substeps by at most
     `tolerance` × 15/16 (ETD2's error falls as the square of the step); the last one
-    unchecked, error NaN. A filter that fails (non-finite −log L) takes the last."""
+    unchecked, error NaN. A filter that fails (non-finite −log L) takes the last.
+    `at_most`: the ladder ends there where the filter is finite, whatever the error (a
+    fit's start: its solution decides how many it needs)."""
     model = dataclasses.replace(state.model, etd2_substeps=DEFAULT_ETD2_SUBSTEPS)
 
     @functools.cache
@@ -93,7 +97,8 @@ def fewest_kalman_substeps(state, data: Dataset, tolerance: float = KALMAN_TOLER
 
     for substeps in SUBSTEP_LADDER[:-1]:
         error = (16 / 15) * abs(nll(substeps) - nll(4 * substeps))
-        if error <= tolerance:  # False for NaN
+        # (error <= tolerance is False for NaN)
+        if error <= tolerance or (substeps >= at_most and np.isfinite(nll(substeps))):
             return substeps, error
     return SUBSTEP_LADDER[-1], float("nan")
 

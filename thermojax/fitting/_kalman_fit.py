@@ -19,7 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ._integration import fewest_kalman_substeps, shared_substeps, with_substeps
+from ._integration import (SUBSTEP_LADDER, fewest_kalman_substeps, shared_substeps,
+                           with_substeps)
 from ._likelihood import kalman_nll, kalman_runs, rts_smoother, simulate_dataset
 from ._newton import TruncatedNewton, newton
 from ._problem import Prepared, Solution, _check_finite, _prior, _state, make_problem
@@ -166,11 +167,19 @@ def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
         template, used = sol.state, more
 
 
+# The most ETD2 substeps a Kalman fit starts in, whatever its start needs: a start far
+# from the data (the user's values, an effect at its score's estimate) can need 16 where
+# its solution needs 2-8, and a solve in 16 costs four times one in 4 a call (PRBS1). The
+# solution's check decides whether the fit is solved again, from there, in more.
+START_SUBSTEPS = 4
+
+
 def _kalman_substeps(state, data, remember: bool = True) -> int:
-    """The ETD2 substeps a Kalman fit of `state`'s structure takes from here (remembered
-    for later fits of the structure: `remember`, at a solution; a start far from the data,
-    such as the user's values, can need 16 where its solution needs 4)."""
-    substeps, _ = fewest_kalman_substeps(state, data)
+    """The ETD2 substeps a Kalman fit of `state`'s structure takes from here: at a
+    solution (`remember`, for later fits of the structure too) the fewest its likelihood
+    needs, at a start at most `START_SUBSTEPS` (where its filter is finite)."""
+    substeps, _ = fewest_kalman_substeps(
+        state, data, at_most=SUBSTEP_LADDER[-1] if remember else START_SUBSTEPS)
     return shared_substeps(state.model, substeps, kalman=True, remember=remember)
 
 
