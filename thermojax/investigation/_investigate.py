@@ -23,6 +23,7 @@ import hashlib
 import json
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -1055,6 +1056,26 @@ def record_missing_heat(step: Step, out: Path | None, i: int, white_p: float, sa
         return None
 
 
+def _beside(task, *args, say):
+    """Start `task(*args, say=...)` on a thread of its own; returns `wait()`, which waits
+    for it, says what it said (held till then, so that its lines do not interleave with
+    the step's) and returns its result. The missing heat, which only the step's end reads,
+    so runs beside the candidates' scoring and refits: its single-threaded programs fill
+    the core the refits leave idle at their waves' ends (5 s a step on PRBS1)."""
+    said: list[str] = []
+    pool = ThreadPoolExecutor(1, thread_name_prefix="thermojax-beside")
+    future = pool.submit(task, *args, said.append)
+    pool.shutdown(wait=False)
+
+    def wait():
+        try:
+            return future.result()
+        finally:
+            for line in said:
+                say(line)
+    return wait
+
+
 def _network_step(current: Step, runs, mh, cands: list[Candidate], likelihood, fdr,
                   white_p, initial, holdout_check, say, held_out) -> Candidate | None:
     """When no candidate was supported: the heat network's proposal
@@ -1164,11 +1185,12 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
             _plot_ahead(plots, out, i, current)
             if out is not None:
                 out.mkdir(parents=True, exist_ok=True)
-            missing = record_missing_heat(current, out, i, white_p, say)
+            missing = _beside(record_missing_heat, current, out, i, white_p, say=say)
             cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say,
                                   white_p=white_p, initial=spec)
             chosen = _choose(cands, current, runs, likelihood, holdout_check, say, held_out,
                              lambda c, i=i: _plot_ahead(plots, out, i + 1, c.result, _added(c)))
+            missing = missing()
             if chosen is None and network and missing is not None and missing.carriers:
                 chosen = _network_step(current, runs, missing, cands, likelihood, fdr,
                                        white_p, spec, holdout_check, say, held_out)
