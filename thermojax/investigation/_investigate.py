@@ -1057,7 +1057,7 @@ def record_missing_heat(step: Step, out: Path | None, i: int, white_p: float, sa
 
 
 def _beside(task, *args, say):
-    """Start `task(*args, say=...)` on a thread of its own; returns `wait()`, which waits
+    """Start `task(*args, say)` on a thread of its own; returns `wait()`, which waits
     for it, says what it said (held till then, so that its lines do not interleave with
     the step's) and returns its result. The missing heat, which only the step's end reads,
     so runs beside the candidates' scoring and refits: its single-threaded programs fill
