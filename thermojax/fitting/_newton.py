@@ -62,10 +62,15 @@ def newton(value_grad_curvature: Callable, theta0,
     """Minimise from `theta0` (params,) in at most `max_steps` Newton steps.
 
     `value_grad_curvature(theta) -> (f, g, H)` evaluates the objective (compiled once per
-    structure by the caller); a non-finite `f` counts as infinite."""
+    structure by the caller); a point where `f`, `g` or `H` is not finite counts as
+    `f` infinite, a trial the damping then shortens. A start that is such a point raises
+    `FloatingPointError`."""
     theta = np.array(theta0, float)
     lam, k, converged = 1e-3, 0, False
     loss, g, H = _evaluate(value_grad_curvature, theta)
+    if not np.isfinite(loss):
+        raise FloatingPointError("the likelihood or its derivatives are not finite at the "
+                                 "start of the Newton steps")
     initial_loss = loss
     while k < max_steps:
         mu, V = np.linalg.eigh(0.5 * (H + H.T))
@@ -101,6 +106,11 @@ def newton(value_grad_curvature: Callable, theta0,
 
 
 def _evaluate(value_grad_curvature, theta):
+    """`(f, g, H)` at `theta`, `f` infinite where any of them is not finite: a trial
+    whose value is finite but whose derivatives overflowed (a learned law's exponential
+    run far out: seen on PRBS1) would otherwise be accepted, and the next step's
+    eigendecomposition fail on it."""
     f, g, H = value_grad_curvature(theta)
-    f = float(f)
-    return (f if np.isfinite(f) else np.inf), np.asarray(g, float), np.asarray(H, float)
+    f, g, H = float(f), np.asarray(g, float), np.asarray(H, float)
+    finite = np.isfinite(f) and np.all(np.isfinite(g)) and np.all(np.isfinite(H))
+    return (f if finite else np.inf), g, H
