@@ -3,6 +3,7 @@ blocked held-out evidence and soft failures (issue 10, item 4)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -327,3 +328,41 @@ def test_a_learned_law_is_refitted_only_where_its_score_could_win():
     # a law that nests no kind of the list is always a refit candidate
     law = Candidate("expression", ("pcb",), 30.0, 0.0, learned=LearnedLaw(LIBRARY[0], None))
     assert not _law_adds_nothing(law, [law], 0.05) and not _law_outranked(law, [law])
+
+
+def test_a_learned_law_is_refitted_from_the_users_values_alone_where_given():
+    """A law's refit (a step's costliest) starts from the user's values, not also from
+    the fitted model, which has bent its parameters to mimic what it lacks; a kind keeps
+    both starts, and a law without the user's values (`diagnose`) starts from the fit."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from thermojax.discovery import LIBRARY, LearnedLaw
+    from thermojax.investigation import _investigate as inv
+    from thermojax.investigation._candidates import Candidate
+    from thermojax.model._model_file import load_model
+    from thermojax.model._parameters_by_name import spec_parameters
+
+    user = load_model(Path(__file__).parent / "hidden" / "models" / "chain3.toml")
+    bent = user.replace(links=tuple(dataclasses.replace(
+        k, conductance=dataclasses.replace(k.conductance, value=2 * k.conductance.value))
+        for k in user.links))  # the fit to the data: its conductances moved
+    step = SimpleNamespace(spec=bent, result=SimpleNamespace(lowered_spec=bent,
+                                                             likelihood="output_error"),
+                           record={"parameters": {}})
+    law = Candidate("expression", ("pcb",), 90.0, 0.0, estimate=0.3, shape=(2.0, 0.01),
+                    learned=LearnedLaw(LIBRARY[1], "P_die", scale=1.0))
+    kind = Candidate("sensor_offset", ("T_die",), 40.0, 0.0)
+
+    def starts(c, initial):
+        return [(hold, start, {k: p.value for k, p in spec_parameters(model).items()})
+                for hold, start, model in inv._refit_starts(c, step, set(), initial)]
+
+    (hold, start, values), = starts(law, user)
+    assert start == inv.START_USER and hold is None
+    assert values["links.housing-pcb.conductance"] == 0.4  # the user's, not the fit's 0.8
+    assert values["effects.expression.pcb.c"] == 0.3 and values[
+        "effects.expression.pcb.p"] == 2.0  # the law at its score's estimate and shape
+    (_, start, values), = starts(law, None)
+    assert start == inv.START_FITTED and values["links.housing-pcb.conductance"] == 0.8
+    assert [s for _, s, _ in starts(kind, user)] == [inv.START_FITTED, inv.START_USER]

@@ -336,12 +336,22 @@ def _refit_starts(c: Candidate, step: Step, new_columns, initial, runs=(), neste
                   ) -> list[tuple]:
     """`(hold, start, model)` for each fit that refitting the model of `step` with candidate
     `c` takes: from the fitted model plus the effect's first guess and, with `initial`,
-    also from the user's values; for a mass or a lag whose best score direction's time
+    also from the user's values (a learned law from the user's values alone: see
+    below); for a mass or a lag whose best score direction's time
     constant is over `TAU_START_RATIO` from the first guess's, also from the fitted model
     with the effect at that time constant; with `nested`, only from the fitted model with the effect
     at its null (`_at_null`: the retry of a refit that failed or ended below the nested
     model). An effect that brings a data column into the model (one of `new_columns`) is
-    tried with the column held each way, "zoh" and "foh" (`_refit`)."""
+    tried with the column held each way, "zoh" and "foh" (`_refit`).
+
+    A learned law's refit, a nonlinear model whose shape is free, is a step's costliest
+    fit (under the Kalman likelihood 10-40 s a start on PRBS1, against 1-13 s for a
+    kind's), and the fitted model is the start where it does worst: that model has bent
+    its parameters to mimic what it lacks (docs/extensions.md), and on PRBS1 the law from
+    there ended at a likelihood ratio of 50.5 and 4.0 (steps 2 and 3) where from the
+    user's values it reached 60.3 and 48.4. So a law starts from the user's values
+    alone where they are given; a failed start is retried from the nested model's
+    optimum like any other (`_needs_retry`)."""
     spec, lowered = step.spec, step.result.lowered_spec
     brings = [w for w in c.columns() if w in new_columns]
     diffusing = _with_process_noise(c, step)
@@ -358,7 +368,8 @@ def _refit_starts(c: Candidate, step: Step, new_columns, initial, runs=(), neste
                                spec.replace(effects=spec.effects + (_at_null(effect),))))
                 continue
             extended = spec.replace(effects=spec.effects + (effect,))
-            starts.append((hold, START_FITTED, extended))
+            if initial is None or c.learned is None:
+                starts.append((hold, START_FITTED, extended))
             if initial is not None:
                 starts.append((hold, START_USER, with_spec_parameters(
                     extended, spec_parameters(initial))))
@@ -428,8 +439,9 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
     if ext is None:
         c.supported = False
         return False
-    failed = [start for _, start, got in fits if isinstance(got, Exception)]
-    c.note = (f"refit from {', '.join(failed)} failed; {c.refit_start} succeeded"
+    failed = [f"{start} ({type(got).__name__}: {str(got)[:120]})"
+              for _, start, got in fits if isinstance(got, Exception)]
+    c.note = (f"refit from {', '.join(failed)} failed; from {c.refit_start} it succeeded"
               if failed else "")
     if len(by_hold) == 2:
         other = next(h for h in by_hold if h != c.hold)
