@@ -85,8 +85,9 @@ def test_every_start_of_every_candidate_is_fitted_side_by_side(monkeypatch, cpus
         n = {"radiation": 1, "capacitance_temperature": 3}.get(c.kind, 2)
         return [(None, f"start {k}", f"{c.where[0]}:{k}") for k in range(n)]
 
-    def fake_evaluate(model, runs, likelihood, nested_nll):
+    def fake_evaluate(model, runs, likelihood, nested_nll, polish):
         assert nested_nll == -12.5  # every start knows the likelihood it can reach
+        assert polish  # a kind's refit is polished (a learned law's is not)
         with lock:
             submitted.append(model)
         time.sleep(0.02)
@@ -119,6 +120,31 @@ def test_every_start_of_every_candidate_is_fitted_side_by_side(monkeypatch, cpus
                                (None, "start 1", "fit of n1:1")]
     assert concluded["n2"][0] == (None, "start 0", "fit of n2:0")
     assert isinstance(concluded["n2"][1][2], FloatingPointError)
+
+
+def test_a_learned_laws_refit_is_not_polished_and_a_kinds_is(monkeypatch):
+    """Every start of a learned law (its retry from the nested optimum too) is fitted
+    without the Kalman polish; every start of a kind with it."""
+    from thermojax.discovery import LIBRARY, LearnedLaw
+
+    seen = []
+
+    def fake_starts(c, step, new_columns, initial, runs=(), nested=False):
+        return [(None, f"start {k}", f"{c.where[0]}:{k}:{nested}") for k in range(2)]
+
+    def fake_evaluate(model, runs, likelihood, nested_nll, polish):
+        seen.append((model, polish))
+        return "fit"
+
+    monkeypatch.setattr(inv, "_refit_starts", fake_starts)
+    monkeypatch.setattr(inv, "evaluate", fake_evaluate)
+    monkeypatch.setattr(inv, "_refit", lambda c, step, runs, nc, fits, say, w=0.01: True)
+    monkeypatch.setattr(inv, "_needs_retry", lambda fits, step: True)  # retried too
+    law = Candidate("expression", ("n1",), 99.0, 0.0, learned=LearnedLaw(LIBRARY[0], None))
+    inv._refit_side_by_side([_cands(["radiation"])[0], law], SimpleNamespace(thermal_nll=0.0),
+                            [], "kalman", set(), None, lambda m: None)
+    assert sorted(seen) == sorted((f"{n}:{k}:{nested}", n == "n0") for n in ("n0", "n1")
+                                  for k in range(2) for nested in (False, True))
 
 
 @pytest.mark.slow

@@ -113,15 +113,15 @@ def _bias_runs(result, runs, bias):
 
 def evaluate(spec: ModelSpec, runs: list[Telemetry], likelihood: str, progress=None,
              holdout: int | None = None, n_starts: int = 1,
-             nested_nll: float | None = None) -> Step:
+             nested_nll: float | None = None, polish: bool = True) -> Step:
     """Fit `spec` to the runs, its bias channels with it (docs/formats.md §4), and measure
     the fit (docs/formats.md §5 keys). `n_starts` > 1 adds perturbed output-error starts;
-    `nested_nll`: −log L of the model `spec` extends (`fit`'s)."""
+    `nested_nll`: −log L of the model `spec` extends, and `polish`, as `fit`'s."""
     # Plateau restarts (`fitting._plateau`) stay with `fit`: here a candidate's node
     # beyond the data is evidence against it, and each step's fit is compared as it is.
     result = fit(spec, _experiments(spec, runs), likelihood=likelihood, progress=progress,
                  holdout=holdout, n_starts=n_starts, restart_plateaus=False,
-                 nested_nll=nested_nll)
+                 nested_nll=nested_nll, polish=polish)
     biases = result.biases
     spec_out = result.spec
     nll, n_params, n = result.nll, result.n_params, result.n_samples
@@ -510,40 +510,48 @@ def _refit_side_by_side(cands: list[Candidate], step: Step, runs, likelihood, ne
     the threads). Each candidate's first start is fitted before any second start, so
     that fits of one model structure seldom wait for each other's compilation. A
     candidate whose every start failed or ended below the nested model is refitted once
-    more from the nested model's optimum with the effect at zero (`_needs_retry`)."""
+    more from the nested model's optimum with the effect at zero (`_needs_retry`). A
+    learned law's refit is not polished (`fit`'s `polish`): its coefficient and shape
+    move together, and the polish's walk along that valley, 0.4-1.2 in −log L on
+    PRBS1, cost it 16 s a step (docs/extensions.md)."""
     plans = []
     for c in cands:
         say(f"refitting with {c.kind} {list(c.where)} (score {c.score:.1f})")
         plans.append(_refit_starts(c, step, new_columns, initial, runs))
-    fits = _fit_plans(plans, runs, likelihood, step.thermal_nll)
+    polish = [c.learned is None for c in cands]
+    fits = _fit_plans(plans, runs, likelihood, step.thermal_nll, polish)
     retry = [i for i, f in enumerate(fits) if _needs_retry(f, step)]
     for i in retry:
         say(f"refitting {cands[i].kind} {list(cands[i].where)} again from {START_NESTED}")
     more = _fit_plans([_refit_starts(cands[i], step, new_columns, initial, runs, nested=True)
-                       for i in retry], runs, likelihood, step.thermal_nll)
+                       for i in retry], runs, likelihood, step.thermal_nll,
+                      [polish[i] for i in retry])
     for i, m in zip(retry, more):
         fits[i] = fits[i] + m
     return [_refit(c, step, runs, new_columns, fits[i], say, white_p)
             for i, c in enumerate(cands)]
 
 
-def _fit_plans(plans: list[list[tuple]], runs, likelihood, nested_nll: float
-               ) -> list[list[tuple]]:
+def _fit_plans(plans: list[list[tuple]], runs, likelihood, nested_nll: float,
+               polish: list[bool] | None = None) -> list[list[tuple]]:
     """Every `(hold, start, model)` of every plan, each a model that extends one with
-    −log L `nested_nll`, fitted side by side: first starts first, then the later starts
-    of the plans with the most starts (so that a wave seldom ends on one plan's last
-    start alone): per plan, `(hold, start, Step or the exception its fit raised)`."""
+    −log L `nested_nll`, fitted side by side (polished as `polish` says per plan, `fit`'s;
+    default all): first starts first, then the later starts of the plans with the most
+    starts (so that a wave seldom ends on one plan's last start alone): per plan,
+    `(hold, start, Step or the exception its fit raised)`."""
+    polish = [True] * len(plans) if polish is None else polish
     order = sorted(((k, i) for i, plan in enumerate(plans) for k in range(len(plan))),
                    key=lambda ki: (0, ki[1], 0) if ki[0] == 0 else
                    (1, -len(plans[ki[1]]), ki[1], ki[0]))
 
-    def evaluated(model):  # a Step, or the exception `_refit` reports for its candidate
+    def evaluated(model, polish):  # a Step, or the exception `_refit` reports
         try:
-            return evaluate(model, runs, likelihood, nested_nll=nested_nll)
+            return evaluate(model, runs, likelihood, nested_nll=nested_nll, polish=polish)
         except Exception as err:
             return err
 
-    done = dict(zip(order, side_by_side([functools.partial(evaluated, plans[i][k][2])
+    done = dict(zip(order, side_by_side([functools.partial(evaluated, plans[i][k][2],
+                                                           polish[i])
                                          for k, i in order])))
     return [[(hold, start, done[k, i]) for k, (hold, start, _) in enumerate(plan)]
             for i, plan in enumerate(plans)]
