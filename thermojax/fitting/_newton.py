@@ -63,15 +63,14 @@ def newton(value_grad_curvature: Callable, theta0,
 
     `value_grad_curvature(theta) -> (f, g, H)` evaluates the objective (compiled once per
     structure by the caller); a point where `f`, `g` or `H` is not finite counts as
-    `f` infinite, a trial the damping then shortens. A start that is such a point raises
-    `FloatingPointError`."""
+    `f` infinite, a trial the damping then shortens. From a start whose `g` or `H` is
+    not finite no step can be computed: it is returned as it is, not converged."""
     theta = np.array(theta0, float)
     lam, k, converged = 1e-3, 0, False
     loss, g, H = _evaluate(value_grad_curvature, theta)
-    if not np.isfinite(loss):
-        raise FloatingPointError("the likelihood or its derivatives are not finite at the "
-                                 "start of the Newton steps")
     initial_loss = loss
+    if not (np.all(np.isfinite(g)) and np.all(np.isfinite(H))):
+        return NewtonSolution(theta, loss, 0, False, initial_loss)
     while k < max_steps:
         mu, V = np.linalg.eigh(0.5 * (H + H.T))
         curv = np.abs(mu)

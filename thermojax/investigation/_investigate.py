@@ -533,13 +533,12 @@ def _refit_side_by_side(cands: list[Candidate], step: Step, runs, likelihood, ne
 
 
 def _fit_plans(plans: list[list[tuple]], runs, likelihood, nested_nll: float,
-               polish: list[bool] | None = None) -> list[list[tuple]]:
+               polish: list[bool]) -> list[list[tuple]]:
     """Every `(hold, start, model)` of every plan, each a model that extends one with
-    −log L `nested_nll`, fitted side by side (polished as `polish` says per plan, `fit`'s;
-    default all): first starts first, then the later starts of the plans with the most
-    starts (so that a wave seldom ends on one plan's last start alone): per plan,
-    `(hold, start, Step or the exception its fit raised)`."""
-    polish = [True] * len(plans) if polish is None else polish
+    −log L `nested_nll`, fitted side by side (polished as `polish` says per plan, `fit`'s):
+    first starts first, then the later starts of the plans with the most starts (so that
+    a wave seldom ends on one plan's last start alone): per plan, `(hold, start, Step or
+    the exception its fit raised)`."""
     order = sorted(((k, i) for i, plan in enumerate(plans) for k in range(len(plan))),
                    key=lambda ki: (0, ki[1], 0) if ki[0] == 0 else
                    (1, -len(plans[ki[1]]), ki[1], ki[0]))
