@@ -261,6 +261,24 @@ def test_max_steps_stops_the_kalman_solver(kalman):
     assert not result.converged and result.n_steps == 1
 
 
+
+@pytest.mark.slow  # reuses the Kalman compilation of `kalman`
+def test_an_unconverged_kalman_fit_is_restarted_unless_told_not_to(kalman, monkeypatch):
+    """A Kalman fit from the file's values that does not converge is fitted again from
+    the output-error fit; with `restart_unconverged=False` it is the answer as it is."""
+    import thermojax.fitting._fit as fit_module
+
+    calls = []
+    real = fit_module.fit_output_error
+    monkeypatch.setattr(fit_module, "fit_output_error",
+                        lambda *a, **k: calls.append(1) or real(*a, **k))
+    alone = fit(rtd2h_spec(), kalman["experiments"], likelihood="kalman", max_steps=1,
+                restart_unconverged=False)
+    assert not alone.converged and alone.n_steps == 1 and calls == []
+    fit(rtd2h_spec(), kalman["experiments"], likelihood="kalman", max_steps=1)
+    assert calls == [1]
+
+
 # ---------------------------------------------------------------------------------------------
 # Six-node IMU, started 3x off
 

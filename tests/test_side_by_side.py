@@ -85,7 +85,7 @@ def test_every_start_of_every_candidate_is_fitted_side_by_side(monkeypatch, cpus
         n = {"radiation": 1, "capacitance_temperature": 3}.get(c.kind, 2)
         return [(None, f"start {k}", f"{c.where[0]}:{k}") for k in range(n)]
 
-    def fake_evaluate(model, runs, likelihood, nested_nll, polish):
+    def fake_evaluate(model, runs, likelihood, nested_nll, polish, restart_unconverged):
         assert nested_nll == -12.5  # every start knows the likelihood it can reach
         assert polish  # a kind's refit is polished (a learned law's is not)
         with lock:
@@ -132,7 +132,7 @@ def test_a_learned_laws_refit_is_not_polished_and_a_kinds_is(monkeypatch):
     def fake_starts(c, step, new_columns, initial, runs=(), nested=False):
         return [(None, f"start {k}", f"{c.where[0]}:{k}:{nested}") for k in range(2)]
 
-    def fake_evaluate(model, runs, likelihood, nested_nll, polish):
+    def fake_evaluate(model, runs, likelihood, nested_nll, polish, restart_unconverged):
         seen.append((model, polish))
         return "fit"
 
@@ -145,6 +145,32 @@ def test_a_learned_laws_refit_is_not_polished_and_a_kinds_is(monkeypatch):
                             [], "kalman", set(), None, lambda m: None)
     assert sorted(seen) == sorted((f"{n}:{k}:{nested}", n == "n0") for n in ("n0", "n1")
                                   for k in range(2) for nested in (False, True))
+
+
+def test_only_a_holds_first_start_is_restarted_from_output_error(monkeypatch):
+    """A refit's first start of each hold, when its Kalman fit does not converge, is
+    fitted again from the output-error fit; its later starts (the user's values, the
+    score's τ) are not: each is one more start. The nested retry is a first start."""
+    seen = {}
+
+    def fake_starts(c, step, new_columns, initial, runs=(), nested=False):
+        if nested:
+            return [("zoh", "nested", f"{c.where[0]}:nested")]
+        return [(h, s, f"{c.where[0]}:{h}:{s}") for h in ("zoh", "foh")
+                for s in ("fitted", "user", "tau")]
+
+    def fake_evaluate(model, runs, likelihood, nested_nll, polish, restart_unconverged):
+        seen[model] = restart_unconverged
+        return "fit"
+
+    monkeypatch.setattr(inv, "_refit_starts", fake_starts)
+    monkeypatch.setattr(inv, "evaluate", fake_evaluate)
+    monkeypatch.setattr(inv, "_refit", lambda c, step, runs, nc, fits, say, w=0.01: True)
+    monkeypatch.setattr(inv, "_needs_retry", lambda fits, step: True)
+    inv._refit_side_by_side(_cands(["radiation"]), SimpleNamespace(thermal_nll=0.0), [],
+                            "kalman", set(), None, lambda m: None)
+    assert seen == {f"n0:{h}:{s}": s == "fitted" for h in ("zoh", "foh")
+                    for s in ("fitted", "user", "tau")} | {"n0:nested": True}
 
 
 @pytest.mark.slow

@@ -366,3 +366,61 @@ def test_a_learned_law_is_refitted_from_the_users_values_alone_where_given():
     (_, start, values), = starts(law, None)
     assert start == inv.START_FITTED and values["links.housing-pcb.conductance"] == 0.8
     assert [s for _, s, _ in starts(kind, user)] == [inv.START_FITTED, inv.START_USER]
+
+
+def _chain3_step(spec, nll, n_params=5, starts=1):
+    from types import SimpleNamespace
+
+    from thermojax.investigation._investigate import Step
+
+    record = {"nll": nll, "n_params": n_params, "bic": 2 * nll + n_params * math.log(900),
+              "n_samples": 900, "parameters": {}, "whiteness_p": {"T_die": 0.5},
+              "added": None}
+    return Step(spec, SimpleNamespace(lowered_spec=spec, likelihood="output_error"), {},
+                record, starts=starts)
+
+
+def test_a_refits_step_counts_the_starts_its_fit_is_the_best_of():
+    """The extended step a refit keeps knows how many of its hold's starts succeeded:
+    the user's-values start winning over a fitted start that failed counts one."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from thermojax.investigation import _investigate as inv
+    from thermojax.investigation._candidates import Candidate
+    from thermojax.model._model_file import load_model
+
+    user = load_model(Path(__file__).parent / "hidden" / "models" / "chain3.toml")
+    nested = _chain3_step(user, -100.0)
+    runs = [SimpleNamespace(ts=np.arange(900.0))]
+    for outcomes, expected in [((-120.0, -121.0), 2), ((FloatingPointError("nan"), -121.0), 1)]:
+        c = Candidate("sensor_offset", ("T_die",), 40.0, 0.0)
+        plan = inv._refit_starts(c, nested, set(), user)
+        fits = [(hold, start, got if isinstance(got, Exception) else
+                 _chain3_step(model, got, n_params=6))
+                for (hold, start, model), got in zip(plan, outcomes)]
+        assert inv._refit(c, nested, runs, set(), fits, lambda m: None)
+        assert c.refit_start == inv.START_USER and c.result.starts == expected
+        assert c.score == pytest.approx(42.0)
+
+
+def test_a_step_that_is_the_best_of_several_starts_is_not_checked_again(monkeypatch):
+    """The multi-start check (`confirmed_optimum`) refits a step fitted from one start
+    from `N_STARTS` output-error starts and keeps a better optimum; a step that is
+    already the best of `N_STARTS - 1` starts (its refit's) is taken as it is."""
+    from pathlib import Path
+
+    from thermojax.investigation import _investigate as inv
+    from thermojax.model._model_file import load_model
+
+    spec = load_model(Path(__file__).parent / "hidden" / "models" / "chain3.toml")
+    better = _chain3_step(spec, -101.5)
+    calls = []
+    monkeypatch.setattr(inv, "evaluate", lambda s, runs, lik, n_starts: calls.append(
+        n_starts) or better)
+    refitted = _chain3_step(spec, -100.0, starts=inv.N_STARTS - 1)
+    assert inv.confirmed_optimum(refitted, [], "kalman", print) is refitted
+    assert calls == [] and "multistart_gain" not in refitted.record
+    fitted_once = _chain3_step(spec, -100.0)
+    assert inv.confirmed_optimum(fitted_once, [], "kalman", print) is better
+    assert calls == [inv.N_STARTS] and better.record["multistart_gain"] == pytest.approx(1.5)

@@ -48,7 +48,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         solver=None, max_steps: int = 100, prior_log_std: float = 3.0, n_starts: int = 1,
         seed: int = 0, progress=None, holdout: int | None = None,
         restart_plateaus: bool = True, polish: bool = True,
-        nested_nll: float | None = None, smoothed: bool = False) -> FitResult:
+        nested_nll: float | None = None, smoothed: bool = False,
+        restart_unconverged: bool = True) -> FitResult:
     """Fit the free parameters of `spec` to several runs at once.
 
     **Arguments:**
@@ -88,6 +89,10 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
       first fit's. A Kalman start whose scoring steps end far above it is in a local
       optimum: it is not polished, and the fit goes on as from a start that did not
       converge.
+    - `restart_unconverged`: a Kalman fit with the default solver that does not converge
+      from the file's values is fitted again from the output-error fit (the better of
+      the two is kept). False returns the unconverged fit (a failure raises): one start
+      among several that are fitted anyway (an investigation's refit starts).
     - `smoothed`: Kalman fits whose `FitResult.smoothed` (RTS-smoothed node temperatures)
       will be read: their program is compiled beside the fit's last steps, where it
       costs no wall time on two cores. Otherwise they are computed when first read.
@@ -106,7 +111,7 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     kalman = likelihood == "kalman"
     if kalman:
         sol = _kalman_stages(prep, solver, max_steps, prior_log_std, n_starts, seed, say,
-                             polish, nested_nll, smoothed)
+                             polish, nested_nll, smoothed, restart_unconverged)
     else:
         sol = fit_output_error(prep, solver, max_steps, n_starts, seed, say)
     result = summarize(prep, sol, likelihood, t_start)
@@ -114,7 +119,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         result = _off_plateau(result, experiments, say, likelihood=likelihood, solver=solver,
                               max_steps=max_steps, prior_log_std=prior_log_std,
                               n_starts=n_starts, seed=seed, holdout=holdout,
-                              nested_nll=nested_nll, smoothed=smoothed)
+                              nested_nll=nested_nll, smoothed=smoothed,
+                              restart_unconverged=restart_unconverged)
         result.wall_time_s = time.perf_counter() - t_start
     say(f"fit done: -log L = {result.nll:.2f}, {result.n_params} parameters, {result.message}")
     return result
@@ -148,21 +154,26 @@ def _off_plateau(result: FitResult, experiments, say, **options) -> FitResult:
 
 
 def _kalman_stages(prep, solver, max_steps, prior_log_std, n_starts, seed, say,
-                   polish=True, nested_nll=None, smoothed=False) -> Solution:
+                   polish=True, nested_nll=None, smoothed=False,
+                   restart_unconverged=True) -> Solution:
     """The Kalman likelihood's solution. The default solver starts from the file's values
     (one compiled program fewer than an output-error stage first: a third of a first
     fit's time) and only when that does not converge (or diverges) again from the
     output-error fit, keeping the better of the two; multi-start (`n_starts` > 1) and
-    optimistix minimisers always start from the output-error fit."""
+    optimistix minimisers always start from the output-error fit. Without
+    `restart_unconverged` the fit from the file's values is the answer, converged or
+    not."""
     direct = None
     if solver is None and n_starts == 1:
         try:
             direct = fit_kalman(prep, None, solver, max_steps, prior_log_std, say, polish,
                                 nested_nll, smoothed)
         except InputError as err:  # diverged from the file's values
+            if not restart_unconverged:
+                raise
             why = f"failed ({err})"
         else:
-            if direct.converged:
+            if direct.converged or not restart_unconverged:
                 return direct
             why = "did not converge"
         say(f"Kalman fit from the file's values {why}; trying again from the output-error fit")

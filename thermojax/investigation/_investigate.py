@@ -74,6 +74,7 @@ class Step:
     record: dict  # the step's report.json entry
     traces: list[dict] = field(repr=False, default_factory=list)
     lrv: dict = field(default_factory=dict)  # column -> long-run variance ratio of residuals
+    starts: int = 1  # how many fits from distinct starts `result` is the best of
 
     def deflation(self, white_p: float) -> float:
         """The long-run variance ratio that deflates statistics: the largest over the
@@ -113,15 +114,18 @@ def _bias_runs(result, runs, bias):
 
 def evaluate(spec: ModelSpec, runs: list[Telemetry], likelihood: str, progress=None,
              holdout: int | None = None, n_starts: int = 1,
-             nested_nll: float | None = None, polish: bool = True) -> Step:
+             nested_nll: float | None = None, polish: bool = True,
+             restart_unconverged: bool = True) -> Step:
     """Fit `spec` to the runs, its bias channels with it (docs/formats.md §4), and measure
     the fit (docs/formats.md §5 keys). `n_starts` > 1 adds perturbed output-error starts;
-    `nested_nll`: −log L of the model `spec` extends, and `polish`, as `fit`'s."""
+    `nested_nll`: −log L of the model `spec` extends; `polish` and `restart_unconverged`
+    as `fit`'s."""
     # Plateau restarts (`fitting._plateau`) stay with `fit`: here a candidate's node
     # beyond the data is evidence against it, and each step's fit is compared as it is.
     result = fit(spec, _experiments(spec, runs), likelihood=likelihood, progress=progress,
                  holdout=holdout, n_starts=n_starts, restart_plateaus=False,
-                 nested_nll=nested_nll, polish=polish)
+                 nested_nll=nested_nll, polish=polish,
+                 restart_unconverged=restart_unconverged)
     biases = result.biases
     spec_out = result.spec
     nll, n_params, n = result.nll, result.n_params, result.n_samples
@@ -439,6 +443,7 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
     if ext is None:
         c.supported = False
         return False
+    ext.starts = sum(h == c.hold and not isinstance(got, Exception) for h, _, got in fits)
     failed = [f"{start} ({type(got).__name__}: {str(got)[:120]})"
               for _, start, got in fits if isinstance(got, Exception)]
     c.note = (f"refit from {', '.join(failed)} failed; from {c.refit_start} it succeeded"
@@ -538,19 +543,29 @@ def _fit_plans(plans: list[list[tuple]], runs, likelihood, nested_nll: float,
     −log L `nested_nll`, fitted side by side (polished as `polish` says per plan, `fit`'s):
     first starts first, then the later starts of the plans with the most starts (so that
     a wave seldom ends on one plan's last start alone): per plan, `(hold, start, Step or
-    the exception its fit raised)`."""
+    the exception its fit raised)`.
+
+    Only a hold's first start, when its Kalman fit does not converge, is fitted again
+    from the output-error fit (`fit`'s `restart_unconverged`): a later start is one
+    more start, not the candidate's only chance. On PRBS1 no later start's restart
+    won (the heater mass's τ start at step 3: 15 s, on the step's critical path, to end
+    0.026 above its first start)."""
     order = sorted(((k, i) for i, plan in enumerate(plans) for k in range(len(plan))),
                    key=lambda ki: (0, ki[1], 0) if ki[0] == 0 else
                    (1, -len(plans[ki[1]]), ki[1], ki[0]))
 
-    def evaluated(model, polish):  # a Step, or the exception `_refit` reports
+    def evaluated(model, polish, first):  # a Step, or the exception `_refit` reports
         try:
-            return evaluate(model, runs, likelihood, nested_nll=nested_nll, polish=polish)
+            return evaluate(model, runs, likelihood, nested_nll=nested_nll, polish=polish,
+                            restart_unconverged=first)
         except Exception as err:
             return err
 
+    def first(plan, k):
+        return k == 0 or plan[k][0] != plan[k - 1][0]
+
     done = dict(zip(order, side_by_side([functools.partial(evaluated, plans[i][k][2],
-                                                           polish[i])
+                                                           polish[i], first(plans[i], k))
                                          for k, i in order])))
     return [[(hold, start, done[k, i]) for k, (hold, start, _) in enumerate(plan)]
             for i, plan in enumerate(plans)]
@@ -1015,7 +1030,15 @@ def _viscoelastic_step(current: Step, c: Candidate, runs, likelihood) -> Step:
 def confirmed_optimum(step: Step, runs, likelihood, say) -> Step:
     """`step`, or a better fit of its model from `N_STARTS` output-error starts (the first
     at its fitted values, the others perturbed): a step is scored only from a fit that
-    is not a local optimum. The gain goes into the record (`multistart_gain`, −log L)."""
+    is not a local optimum. The gain goes into the record (`multistart_gain`, −log L).
+
+    A step whose fit is already the best of `N_STARTS - 1` or more starts (the refit of
+    the candidate it added: from the fitted values with the effect, the user's values,
+    the score's time constant) has had its check: on PRBS1 the check of such a step
+    never gained (at most 6e-6 at steps 1-3, under `MULTISTART_TOL`) and cost 8 s of
+    the loop, 6 s at its first nonlinear model (an output-error program of its own)."""
+    if step.starts >= N_STARTS - 1:
+        return step
     try:
         again = evaluate(step.spec, runs, likelihood, n_starts=N_STARTS)
     except Exception as err:  # the step's own fit stands
