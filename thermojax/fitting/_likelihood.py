@@ -274,21 +274,19 @@ _CHUNK = 16
 _CHUNKED_FROM = 2000
 
 
-# The most ETD2 substeps the extended filter writes out; more run as a loop. Under the
-# fit's forward derivatives PRBS1's four-state model compiled its scoring program in 16 s
-# instead of 30 s at 16 substeps, and ran it no slower; at 4 the unrolled one ran faster.
-UNROLLED_SUBSTEPS = 4
-
-
 def _extended_transition(model, system, dt, substeps=None):
     """`f(m, u_k, u_k1) -> (mean at the next sample, its Jacobian in m)` of a model with
     nonlinear effects: ETD2 (`_nonlinear`) and its Jacobian (an extended Kalman filter).
     The Jacobian is the linearized step applied to the identity: the same numbers as
     `jax.jacfwd(step)`, with the step evaluated once (under the fit's own forward
-    derivatives, the filter ran 1.7× faster on PRBS1's four-state model)."""
-    count = model.etd2_substeps if substeps is None else substeps
-    step = etd2_step(model, system, dt, unroll=isinstance(count, int)
-                     and count <= UNROLLED_SUBSTEPS, substeps=substeps)
+    derivatives, the filter ran 1.7× faster on PRBS1's four-state model).
+
+    The substeps run as a loop, never written out: under the fit's forward derivatives
+    the written-out steps' programs took longer to compile than they saved in calls
+    (PRBS1's loop, whose last two steps fit nonlinear models in 4-8 substeps: 80.9 s
+    against 86.8 s, two runs each, the same likelihoods; at 16 substeps session 33
+    measured the scoring program's compilation at 16 s against 30 s)."""
+    step = etd2_step(model, system, dt, unroll=False, substeps=substeps)
 
     def f(m, u_k, u_k1):
         m_next, tangent = jax.linearize(lambda x: step(x, u_k, u_k1), m)
