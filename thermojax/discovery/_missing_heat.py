@@ -23,6 +23,7 @@ import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -66,7 +67,6 @@ class MissingHeat:
         return out
 
 
-@jax.jit
 def _filter(F, Q, H, R, z0, P0, e, mask):
     """Kalman filter of `z_{k+1} = F z_k + w`, `e_k = H z_k + v` (update before predict):
     log-likelihood, filtered means and covariances, and one-step predictions."""
@@ -92,13 +92,6 @@ def _filter(F, Q, H, R, z0, P0, e, mask):
     return ll, out
 
 
-@jax.jit
-def _grid_loglik(F, Q, H, z0, P0, R, e, mask):
-    """log L of `_filter` for a stack of `(F, Q)` (one per intensity)."""
-    return jax.vmap(lambda f, q: _filter(f, q, H, R, z0, P0, e, mask)[0])(F, Q)
-
-
-@jax.jit
 def _smooth(F, zf, Pf, zp, Pp):
     """Rauch–Tung–Striebel: smoothed means and covariances from the filter's output."""
     def step(carry, inp):
@@ -127,9 +120,67 @@ def _augmented(A, capacitance, carriers, q_x, sigma, dt):
     return discretize_process_noise(Ac, Lc, dt)
 
 
+class _Errors(NamedTuple):
+    """The error model's arrays, and one run's residuals: the arguments of the compiled
+    filters below, which take them whole (one program per state and carrier count, not
+    one per operation)."""
+
+    A: jax.Array  # (n, n) 1/s, the model's linear part
+    capacitance: jax.Array  # (n,) J/K
+    q_x: jax.Array  # (n,) the model's process noise, °C/√s
+    H: jax.Array  # (p, n)
+    R: jax.Array  # (p,) °C²
+    initial_var: jax.Array  # (n,) °C²
+    dt: jax.Array  # s
+    e: jax.Array  # (T, p) °C, measured minus free run
+    mask: jax.Array  # (T, p)
+
+
+def _measurement(err: _Errors, carriers):
+    """`(H, P0, z0)` of the state augmented with disturbances on `carriers`."""
+    n, k = err.A.shape[0], carriers.shape[0]
+    H = jnp.concatenate([err.H, jnp.zeros((err.H.shape[0], k))], 1)
+    d_std = err.capacitance[carriers] / 60.0  # 1 K/min of heat a priori
+    P0 = jnp.diag(jnp.concatenate([err.initial_var * 1e-4, d_std ** 2]))
+    return H, P0, jnp.zeros(n + k)
+
+
 @jax.jit
-def _augmented_grid(A, capacitance, carriers, q_x, sigmas, dt):
-    return jax.vmap(lambda sg: _augmented(A, capacitance, carriers, q_x, sg, dt))(sigmas)
+def _grid_loglik(err: _Errors, carriers, s_values):
+    """log L of the run at each intensity of `s_values` (K/s/√s), disturbances on
+    `carriers` (node indices)."""
+    H, P0, z0 = _measurement(err, carriers)
+
+    def one(s):
+        F, Q = _augmented(err.A, err.capacitance, carriers, err.q_x,
+                          s * err.capacitance[carriers], err.dt)
+        return _filter(F, Q, H, err.R, z0, P0, err.e, err.mask)[0]
+    return jax.vmap(one)(s_values)
+
+
+@jax.jit
+def _smoothed(err: _Errors, carriers, s):
+    """Smoothed augmented means (T, n + k) and variances (T, n + k) of the run at
+    intensity `s`."""
+    H, P0, z0 = _measurement(err, carriers)
+    F, Q = _augmented(err.A, err.capacitance, carriers, err.q_x, s * err.capacitance[carriers],
+                      err.dt)
+    _, (zf, Pf, zp, Pp) = _filter(F, Q, H, err.R, z0, P0, err.e, err.mask)
+    zs, Ps = _smooth(F, zf, Pf, zp, Pp)
+    return zs, jnp.diagonal(Ps, axis1=1, axis2=2)
+
+
+@jax.jit
+def _error_arrays(model, data, run_initial):
+    """`(A, capacitance, H, offset, states)` of a fitted model: its linear part, its
+    sensors' rows and offsets (every reading of `model`), and the free run's node
+    temperatures (runs, T, n) °C. One program, where its operations one by one
+    compiled a hundred small ones for every model an investigation reconstructs."""
+    from ..dynamics._nonlinear import dataset_states_nonlinear
+
+    system = model.linear_system()
+    x = dataset_states_nonlinear(model, data, run_initial)
+    return system.A, system.capacitance, system.C, model.output_offset(), x
 
 
 @dataclass
@@ -145,16 +196,12 @@ class _ErrorModel:
     """The fitted model's error dynamics and the runs' free-run residuals."""
 
     def __init__(self, result):
-        from ..dynamics._nonlinear import dataset_states_nonlinear
-
         model, data = result.model, result.problem.data
-        system = model.linear_system()
         p = len(result.lowered_spec.sensors)
-        x = np.asarray(dataset_states_nonlinear(model, data, result.state.run_initial))
-        H = np.asarray(system.C)[:p]
-        offset = np.asarray(model.output_offset())[:p]
-        self.A = jnp.asarray(system.A)
-        self.capacitance = jnp.asarray(system.capacitance)
+        A, capacitance, C, offset, x = _error_arrays(model, data, result.state.run_initial)
+        x, H, offset = np.asarray(x), np.asarray(C)[:p], np.asarray(offset)[:p]
+        self.A = jnp.asarray(A)
+        self.capacitance = jnp.asarray(capacitance)
         self.H = jnp.asarray(H)
         self.R = jnp.asarray(np.asarray(model.noise)[:p] ** 2)
         self.q_x = (jnp.asarray(model.process_noise) if result.likelihood == "kalman"
@@ -172,43 +219,21 @@ class _ErrorModel:
                                   np.where(mask, y - pred, 0.0), mask, x[r]))
         self.n_samples = int(sum(r.mask.sum() for r in self.runs))
 
+    def _errors(self, run: _Run) -> _Errors:
+        return _Errors(self.A, self.capacitance, self.q_x, self.H, self.R,
+                       jnp.asarray(self.initial_var), jnp.asarray(run.dt),
+                       jnp.asarray(run.e), jnp.asarray(run.mask))
+
     def logliks(self, carriers, s_values) -> np.ndarray:
         """log L at each intensity of `s_values` (one vmapped filter per run)."""
-        s_values = jnp.asarray(np.atleast_1d(s_values), float)
-        total = np.zeros(s_values.shape)
-        for run in self.runs:
-            total += np.asarray(_grid_loglik(*self._setup_grid(run, carriers, s_values),
-                                             self.R, jnp.asarray(run.e),
-                                             jnp.asarray(run.mask)))
-        return total
-
-    def _setup_grid(self, run, carriers, s_values):
-        carriers = jnp.asarray(list(carriers), int)
-        sigmas = s_values[:, None] * self.capacitance[carriers][None, :]
-        F, Q = _augmented_grid(self.A, self.capacitance, carriers, self.q_x, sigmas, run.dt)
-        H, P0, z0 = self._measurement(carriers)
-        return F, Q, H, z0, P0
-
-    def _measurement(self, carriers):
-        n, k = self.A.shape[0], len(carriers)
-        H = jnp.concatenate([self.H, jnp.zeros((self.H.shape[0], k))], 1)
-        d_std = self.capacitance[jnp.asarray(carriers)] / 60.0  # 1 K/min of heat a priori
-        P0 = jnp.diag(jnp.concatenate([jnp.asarray(self.initial_var) * 1e-4, d_std ** 2]))
-        return H, P0, jnp.zeros(n + k)
-
-    def _setup(self, run, carriers, s):
-        carriers = jnp.asarray(list(carriers), int)  # none: the model's own error dynamics
-        sigma = s * self.capacitance[carriers]
-        F, Q = _augmented(self.A, self.capacitance, carriers, self.q_x, sigma, run.dt)
-        H, P0, z0 = self._measurement(carriers)
-        return F, Q, H, P0, z0
+        s_values = np.atleast_1d(np.asarray(s_values, float))
+        carriers = np.asarray(list(carriers), int)
+        return sum(np.asarray(_grid_loglik(self._errors(run), carriers, s_values))
+                   for run in self.runs)
 
     def smooth(self, run, carriers, s):
-        F, Q, H, P0, z0 = self._setup(run, carriers, s)
-        _, (zf, Pf, zp, Pp) = _filter(F, Q, H, self.R, z0, P0, jnp.asarray(run.e),
-                                      jnp.asarray(run.mask))
-        zs, Ps = _smooth(F, zf, Pf, zp, Pp)
-        return np.asarray(zs), np.asarray(jax.vmap(jnp.diag)(Ps))
+        zs, var = _smoothed(self._errors(run), np.asarray(list(carriers), int), float(s))
+        return np.asarray(zs), np.asarray(var)
 
     def baseline(self) -> float:
         """log L of the error model without disturbance (process noise only)."""
