@@ -156,3 +156,25 @@ def test_jacobian_from_the_residuals_states_is_the_same(problem):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(b).max())
     r = np.stack(r, axis=-1)[:, :prob.data.outputs.shape[1]].ravel()
     np.testing.assert_allclose(r, own[0][:r.size], rtol=0, atol=1e-12 * np.abs(r).max())
+
+
+def test_one_evaluation_program_equals_the_scan_and_the_solves(problem):
+    """`weighted_residuals_and_jacobian` from a program of its own (a Kalman fit's score
+    tests) gives the data rows of the official residuals and of `jax.jacfwd` of them,
+    the free run's node temperatures, and the same arrays as the solve's evaluation."""
+    from thermojax.dynamics._nonlinear import dataset_states_nonlinear
+
+    theta, prob, _ = problem
+    r, J, states = _output_error.weighted_residuals_and_jacobian(theta, prob,
+                                                                 own_program=True)
+    n = r.size
+    r_ref = np.asarray(jax.jit(_output_error._oe_flat)(theta, prob))[:n]
+    J_ref = np.asarray(jax.jit(jax.jacfwd(_output_error._oe_flat))(theta, prob))[:n]
+    np.testing.assert_allclose(r.ravel(), r_ref, rtol=0, atol=1e-11 * np.abs(r_ref).max())
+    np.testing.assert_allclose(J.reshape(n, -1), J_ref, rtol=0,
+                               atol=1e-10 * np.abs(J_ref).max())
+    model, run_initial = problem_module._model_of(theta, prob)
+    x_ref = np.asarray(dataset_states_nonlinear(model, prob.data, run_initial))
+    np.testing.assert_allclose(states, x_ref, rtol=0, atol=1e-10)
+    for a, b in zip((r, J, states), _output_error.weighted_residuals_and_jacobian(theta, prob)):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(b).max())
