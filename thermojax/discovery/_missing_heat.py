@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..dynamics._discretize import discretize_process_noise
+from ..dynamics._model_arrays import free_run_states, linear_parts
 
 GRID = np.logspace(-8.0, -1.0, 15)  # s, K/s/√s: from no heat to a jump per sample
 _MISSING_R = 1e12  # °C², the noise of an unmeasured sample (so it carries no weight)
@@ -170,19 +171,6 @@ def _smoothed(err: _Errors, carriers, s):
     return zs, jnp.diagonal(Ps, axis1=1, axis2=2)
 
 
-@jax.jit
-def _error_arrays(model, data, run_initial):
-    """`(A, capacitance, H, offset, states)` of a fitted model: its linear part, its
-    sensors' rows and offsets (every reading of `model`), and the free run's node
-    temperatures (runs, T, n) °C. One program, where its operations one by one
-    compiled a hundred small ones for every model an investigation reconstructs."""
-    from ..dynamics._nonlinear import dataset_states_nonlinear
-
-    system = model.linear_system()
-    x = dataset_states_nonlinear(model, data, run_initial)
-    return system.A, system.capacitance, system.C, model.output_offset(), x
-
-
 @dataclass
 class _Run:
     ts: np.ndarray
@@ -198,7 +186,8 @@ class _ErrorModel:
     def __init__(self, result):
         model, data = result.model, result.problem.data
         p = len(result.lowered_spec.sensors)
-        A, capacitance, C, offset, x = _error_arrays(model, data, result.state.run_initial)
+        A, _, C, capacitance, offset = linear_parts(model)
+        x = free_run_states(model, data, result.state.run_initial)
         x, H, offset = np.asarray(x), np.asarray(C)[:p], np.asarray(offset)[:p]
         self.A = jnp.asarray(A)
         self.capacitance = jnp.asarray(capacitance)

@@ -29,6 +29,7 @@ from scipy import stats
 
 from .._traced_cache import stored_jit
 from ..dynamics._lag import first_order_lag
+from ..dynamics._model_arrays import free_run_states, linear_parts
 from ..measurements._data import Dataset
 from ..model._spec import EFFECT_KINDS, Effect, ModelSpec, Parameter
 from ..model.effects import KINDS
@@ -209,8 +210,9 @@ class ScoreContext:
                  states=None):
         self.spec = spec
         self.names = list(spec.node_names)
-        x = np.asarray(_states_jit(model, data, run_initial) if states is None else states)
-        A, B, C, capacitance = (np.asarray(a) for a in _linear_parts(model))
+        x = np.asarray(free_run_states(model, data, run_initial) if states is None
+                       else states)
+        A, B, C, capacitance, _ = (np.asarray(a) for a in linear_parts(model))
         self.A, self.C = A, C
         u = np.asarray(data.inputs)
         self.T = x
@@ -265,21 +267,6 @@ class ScoreContext:
         net = self.model.network
         return float(np.asarray(net.conductance if kind == "link"
                                 else net.boundary_conductance)[i])
-
-
-@stored_jit(once=True)
-def _linear_parts(model):
-    """`(A, B, C, capacitance)` of the model's linear part (one program, not one per
-    operation)."""
-    system = model.linear_system()
-    return system.A, system.B, system.C, system.capacitance
-
-
-@stored_jit(once=True)
-def _states_jit(model, data, run_initial):
-    from ..dynamics._nonlinear import dataset_states_nonlinear
-
-    return dataset_states_nonlinear(model, data, run_initial)
 
 
 _HEAT_BATCH = 16  # heat directions per call: one program for every step of a loop
