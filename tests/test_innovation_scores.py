@@ -121,6 +121,25 @@ def test_innovation_derivative_along_a_heat_input_is_minus_the_mapped_direction(
     np.testing.assert_allclose(-mapped[0, :, 0, 0], numeric, rtol=1e-6, atol=1e-9)
 
 
+def test_the_loops_whitening_of_many_directions_is_each_ones_filter(case):
+    """The loop whitens directions in padded blocks (`innovation_directions`): each of
+    33 columns (over one block) is the standardized innovations of the NumPy filter run
+    on that direction alone."""
+    from types import SimpleNamespace
+
+    from thermojax.investigation._investigate import WHITEN_BLOCK, innovation_directions
+
+    U, Y, mask, model, data = case
+    residual = np.where(mask, Y - free_run(np.column_stack([U[:, :2], 0 * U[:, 2]])), 0.0)
+    scales = np.linspace(-2.0, 3.0, WHITEN_BLOCK + 1)
+    V = residual[None, :, None, None] * scales  # (runs, T, p, 33)
+    whitened = innovation_directions(SimpleNamespace(model=model), data)(V)
+    assert whitened.shape == V.shape
+    truth = numpy_filter(np.column_stack([U[:, :2], 0 * U[:, 2]]), Y, mask)
+    for j, a in enumerate(scales):  # the map is linear: the residual scaled by a
+        np.testing.assert_allclose(whitened[0, :, 0, j], a * truth, rtol=1e-7, atol=1e-9)
+
+
 def test_per_sample_terms_for_held_out_blocks(case):
     # the prequential score of a held-out block sums these terms over its rows
     U, Y, mask, model, data = case
