@@ -58,3 +58,24 @@ def test_the_noise_start_does_not_move_the_optimum(tmp_path):
         sa = a["parameters"][f"sensors.{c}.noise"]["value"]
         sb = b["parameters"][f"sensors.{c}.noise"]["value"]
         assert abs(sa - sb) < 1e-4 * sa
+
+
+def test_a_steps_scoring_inputs_computed_ahead_are_the_ones_taken(tmp_path, monkeypatch):
+    """A candidate's score-test inputs, computed on a thread while its held-out folds
+    are fitted (`score_ahead`), are those computed when its step is scored, to the last
+    bit, and scoring the step takes them instead of computing them again."""
+    import numpy as np
+
+    from thermojax.investigation import _investigate as inv
+
+    spec, runs = _one_run("one_run", tmp_path, 900.0)
+    step = inv.evaluate(spec, runs, "kalman")
+    inv.score_ahead(step, runs, "kalman")
+    ahead = step.scoring[1].result()
+    again = inv.scoring_inputs(step, runs, "kalman")
+    for a, b in zip(ahead[1:5], again[1:5]):  # weights, r, J, states (None: linear)
+        assert (a is None and b is None) or np.array_equal(a, b)
+    monkeypatch.setattr(inv, "scoring_inputs", lambda *a: (_ for _ in ()).throw(
+        AssertionError("computed again")))
+    cands = inv.diagnose_step(step, runs, "kalman", refits=0, say=lambda m: None)
+    assert cands and all(c.method == "score" for c in cands)

@@ -75,6 +75,8 @@ class Step:
     traces: list[dict] = field(repr=False, default_factory=list)
     lrv: dict = field(default_factory=dict)  # column -> long-run variance ratio of residuals
     starts: int = 1  # how many fits from distinct starts `result` is the best of
+    # `(likelihood, Future)` of `scoring_inputs`, computed ahead (`score_ahead`)
+    scoring: tuple | None = field(default=None, repr=False)
 
     def deflation(self, white_p: float) -> float:
         """The long-run variance ratio that deflates statistics: the largest over the
@@ -686,16 +688,10 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     lowered = result.lowered_spec
     places = enumerate_places(spec, lowered, unused)
     thermal = [(k, w) for k, w in places if k != "viscoelastic"]
-    data, weights, r, J, states = output_error_at(result, _experiments(lowered, runs))
-    weights, r, J = np.array(weights), np.array(r), np.array(J)
-    whiten = None
-    if likelihood == "kalman":
-        # Score on the innovations: residuals, the fitted parameters' directions and
-        # every candidate's direction go through the fitted filter (`innovation_map`).
-        whiten = innovation_directions(result, data)
-        scale = np.where(weights > 0, 1.0 / np.where(weights > 0, weights, 1.0), 0.0)
-        r = whiten((r.reshape(weights.shape) * scale)[..., None]).reshape(-1)
-        J = whiten(J.reshape(*weights.shape, -1) * scale[..., None]).reshape(r.size, -1)
+    ahead = step.scoring
+    data, weights, r, J, states, whiten = (
+        ahead[1].result() if ahead is not None and ahead[0] == likelihood
+        else scoring_inputs(step, runs, likelihood))
     columns = _padded_columns(runs, set(unused) | set(spec.input_columns), data.ts.shape[1])
     laws = _learned_places(spec, lowered, unused, column_scales(columns))
     say(f"scoring {len(places)} candidate effects and {len(laws)} learned laws")
@@ -734,6 +730,36 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     judge(cands, fdr, separation_advice)
     prefer_vocabulary(cands)
     return cands
+
+
+def scoring_inputs(step: Step, runs: list[Telemetry], likelihood: str) -> tuple:
+    """`(data, weights, r, J, states, whiten)` the score tests of `step` start from: the
+    output-error problem at its fit (`output_error_at`); under the Kalman likelihood the
+    residuals `r` and Jacobian `J` whitened by the fitted filter, and `whiten` the map
+    that does it (`innovation_directions`), else None."""
+    result = step.result
+    data, weights, r, J, states = output_error_at(
+        result, _experiments(result.lowered_spec, runs))
+    weights, r, J = np.array(weights), np.array(r), np.array(J)
+    whiten = None
+    if likelihood == "kalman":
+        # Score on the innovations: residuals, the fitted parameters' directions and
+        # every candidate's direction go through the fitted filter (`innovation_map`).
+        whiten = innovation_directions(result, data)
+        scale = np.where(weights > 0, 1.0 / np.where(weights > 0, weights, 1.0), 0.0)
+        r = whiten((r.reshape(weights.shape) * scale)[..., None]).reshape(-1)
+        J = whiten(J.reshape(*weights.shape, -1) * scale[..., None]).reshape(r.size, -1)
+    return data, weights, r, J, states, whiten
+
+
+def score_ahead(step: Step, runs: list[Telemetry], likelihood: str) -> None:
+    """Compute `step`'s `scoring_inputs` on a thread of its own (`step.scoring`), for
+    `diagnose_step` to take when it scores the step: a candidate's, while its held-out
+    folds are fitted, so that their programs' compilation (1-3 s a step on PRBS1) is
+    off the loop's single-threaded scoring. A failure is raised where they are taken."""
+    pool = ThreadPoolExecutor(1, thread_name_prefix="thermojax-score-ahead")
+    step.scoring = (likelihood, pool.submit(scoring_inputs, step, runs, likelihood))
+    pool.shutdown(wait=False)
 
 
 def _law_outranked(law: Candidate, cands: list[Candidate]) -> bool:
@@ -1243,8 +1269,13 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
             missing = _beside(record_missing_heat, current, out, i, white_p, say=say)
             cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say,
                                   white_p=white_p, initial=spec)
+            def checking(c, i=i):  # while a candidate's held-out folds are fitted
+                _plot_ahead(plots, out, i + 1, c.result, _added(c))
+                if i + 1 < max_steps:  # the step it would make is scored next
+                    score_ahead(c.result, runs, likelihood)
+
             chosen = _choose(cands, current, runs, likelihood, holdout_check, say, held_out,
-                             lambda c, i=i: _plot_ahead(plots, out, i + 1, c.result, _added(c)))
+                             checking)
             missing = missing()
             if chosen is None and network and missing is not None and missing.carriers:
                 chosen = _network_step(current, runs, missing, cands, likelihood, fdr,
