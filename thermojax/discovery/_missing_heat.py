@@ -207,11 +207,14 @@ class _ErrorModel:
             self.runs.append(_Run(np.asarray(data.ts[r]), float(data.dt[r]),
                                   np.where(mask, y - pred, 0.0), mask, x[r]))
         self.n_samples = int(sum(r.mask.sum() for r in self.runs))
+        # each run's arrays on the device once, for every filter the search runs
+        self._on_device = {id(run): _Errors(
+            self.A, self.capacitance, self.q_x, self.H, self.R,
+            *jax.device_put((self.initial_var, np.asarray(run.dt), run.e, run.mask)))
+            for run in self.runs}
 
     def _errors(self, run: _Run) -> _Errors:
-        return _Errors(self.A, self.capacitance, self.q_x, self.H, self.R,
-                       jnp.asarray(self.initial_var), jnp.asarray(run.dt),
-                       jnp.asarray(run.e), jnp.asarray(run.mask))
+        return self._on_device[id(run)]
 
     def logliks(self, carriers, s_values) -> np.ndarray:
         """log L at each intensity of `s_values` (one vmapped filter per run)."""

@@ -23,7 +23,7 @@ import hashlib
 import json
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -757,9 +757,7 @@ def score_ahead(step: Step, runs: list[Telemetry], likelihood: str) -> None:
     `diagnose_step` to take when it scores the step: a candidate's, while its held-out
     folds are fitted, so that their programs' compilation (1-3 s a step on PRBS1) is
     off the loop's single-threaded scoring. A failure is raised where they are taken."""
-    pool = ThreadPoolExecutor(1, thread_name_prefix="thermojax-score-ahead")
-    step.scoring = (likelihood, pool.submit(scoring_inputs, step, runs, likelihood))
-    pool.shutdown(wait=False)
+    step.scoring = (likelihood, _on_thread(scoring_inputs, step, runs, likelihood))
 
 
 def _law_outranked(law: Candidate, cands: list[Candidate]) -> bool:
@@ -1137,6 +1135,14 @@ def record_missing_heat(step: Step, out: Path | None, i: int, white_p: float, sa
         return None
 
 
+def _on_thread(fn, *args) -> Future:
+    """`fn(*args)` started on a thread of its own; its `Future`."""
+    pool = ThreadPoolExecutor(1, thread_name_prefix="thermojax-beside")
+    future = pool.submit(fn, *args)
+    pool.shutdown(wait=False)
+    return future
+
+
 def _beside(task, *args, say):
     """Start `task(*args, say)` on a thread of its own; returns `wait()`, which waits
     for it, says what it said (held till then, so that its lines do not interleave with
@@ -1144,9 +1150,7 @@ def _beside(task, *args, say):
     so runs beside the candidates' scoring and refits: its single-threaded programs fill
     the core the refits leave idle at their waves' ends (5 s a step on PRBS1)."""
     said: list[str] = []
-    pool = ThreadPoolExecutor(1, thread_name_prefix="thermojax-beside")
-    future = pool.submit(task, *args, said.append)
-    pool.shutdown(wait=False)
+    future = _on_thread(task, *args, said.append)
 
     def wait():
         try:
