@@ -330,6 +330,47 @@ def test_a_learned_law_is_refitted_only_where_its_score_could_win():
     assert not _law_adds_nothing(law, [law], 0.05) and not _law_outranked(law, [law])
 
 
+def test_a_law_whose_best_shape_is_a_heat_the_model_has_is_not_refitted():
+    """A law at the shape where it is its nested kind (`c·u^p·exp(k(a − 25))` at p = 1,
+    k = 0: `heat_source [u, a]`) adds nothing when the model already routes `u` into `a`:
+    its score there is a heat the model fits, not heat it lacks (`_law_adds_nothing`
+    given the lowered model). At another shape, or where the model has no such heat,
+    the law's own rule decides, as does a law that nests no kind."""
+    from thermojax import parse_model
+    from thermojax.discovery import LIBRARY, LearnedLaw
+    from thermojax.investigation._candidates import Candidate
+    from thermojax.investigation._investigate import _law_adds_nothing
+
+    def model(heated):
+        heat = ('[[heat_inputs]]\nnode = "pcb"\ninput = "P_aux"\ngain = 0.8\n'
+                if heated else "")
+        return parse_model(
+            'name = "m"\n[[nodes]]\nname = "pcb"\ncapacitance = 5.0\n'
+            '[[boundaries]]\nnode = "pcb"\ninput = "T_amb"\nconductance = 0.1\n'
+            + heat + '[[sensors]]\nnode = "pcb"\ncolumn = "T_pcb"\nnoise = 0.01\n')
+
+    power = LearnedLaw(LIBRARY[1], "P_aux")
+    assert power.nested_kind(("pcb",)) == ("heat_source", ("P_aux", "pcb"))
+
+    def law(shape, learned=power):
+        return Candidate("expression", ("pcb",), 489.0, 0.0, learned=learned, shape=shape)
+
+    at_nested = law((1.0, 0.0))
+    assert _law_adds_nothing(at_nested, [at_nested], 0.05, model(True))
+    assert "p = 1, k = 0" in at_nested.note and "heat_source ['P_aux', 'pcb']" in \
+        at_nested.note and "already has" in at_nested.note
+    # another shape (a square law growing with temperature): the law may add heat
+    other = law((2.0, 0.01))
+    assert not _law_adds_nothing(other, [other], 0.05, model(True)) and other.note == ""
+    # no such heat in the model, or no model given: the nested kind's rule (none here)
+    for spec in (model(False), None):
+        c = law((1.0, 0.0))
+        assert not _law_adds_nothing(c, [c], 0.05, spec) and c.note == ""
+    # a law that nests no kind (a power law of a difference) at any shape
+    diff = law((1.0,), LearnedLaw(LIBRARY[0], None))
+    assert not _law_adds_nothing(diff, [diff], 0.05, model(True))
+
+
 def test_a_learned_law_is_refitted_from_the_users_values_alone_where_given():
     """A law's refit (a step's costliest) starts from the user's values, not also from
     the fitted model, which has bent its parameters to mimic what it lacks; a kind keeps

@@ -34,6 +34,7 @@ class LibraryTerm:
     # the kind of the vocabulary the law reduces to at some shape (where as a template of
     # {a}, {b}, {u}); the loop refits it beside the law, the simpler form
     nested: tuple[str, tuple[str, ...]] | None = None
+    nested_shape: tuple[float, ...] | None = None  # that shape
 
 
 def _grid(*axes):
@@ -52,7 +53,7 @@ LIBRARY: list[LibraryTerm] = [
     LibraryTerm("power of a column growing exponentially with temperature",
                 "c * {u}^p * exp(k * ({a} - 25))", "input", ("p", "k"),
                 _grid((1.0, 2.0, 3.0), (0.0, 0.01, 0.02, 0.05)),
-                nested=("heat_source", ("{u}", "{a}"))),  # p = 1, k = 0
+                nested=("heat_source", ("{u}", "{a}")), nested_shape=(1.0, 0.0)),
     # self-heating that grows with the node's own temperature (leakage current)
     LibraryTerm("exponential of a temperature", "c * exp(k * ({a} - 25))", "node", ("k",),
                 _grid((0.02, 0.05, 0.1))),
@@ -121,6 +122,11 @@ class LearnedLaw:
             return None
         fill = {"a": where[0], "b": where[-1], "u": self.column}
         return self.term.nested[0], tuple(w.format(**fill) for w in self.term.nested[1])
+
+    def is_nested_shape(self, shape) -> bool:
+        """Whether the law at shape values `shape` is its nested kind (`nested_kind`)."""
+        return (self.term.nested_shape is not None and shape is not None
+                and tuple(shape) == self.term.nested_shape)
 
     def columns(self, where, is_node) -> list[str]:
         """The data columns the law reads at `where`."""

@@ -113,6 +113,11 @@ class AbstractEffect:
         """A physical first guess of every parameter at this place."""
         raise NotImplementedError
 
+    def held_by(self, spec: ModelSpec, where: tuple[str, ...]) -> bool:
+        """Whether `spec` (lowered) already has this effect at `where`. Kinds a learned
+        law nests answer it (`discovery.LibraryTerm.nested`); others need not."""
+        return False
+
     def direction_time_constant(self, ctx, j: int) -> float | None:
         """The time constant (s) that score direction `j` of `score_direction` tried, for
         a kind whose own time constant the first-order score cannot know; else None."""

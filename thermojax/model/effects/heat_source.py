@@ -22,8 +22,11 @@ class HeatSource(AbstractEffect):
         return (spec.replace(heat_inputs=spec.heat_inputs + (heat,)),
                 [ParameterLink("gain", f"heat_inputs.{node}-{col}.gain")])
 
+    def held_by(self, spec, where):
+        return tuple(where) in _heated(spec)
+
     def places(self, spec, columns):
-        heated = {(h.input, h.node) for h in spec.heat_inputs}
+        heated = _heated(spec)
         routed = list(dict.fromkeys(h.input for h in spec.heat_inputs))
         unused = [c for c, role in columns.items() if role != "temperature"]
         return [(c, n) for c in unused + routed for n in spec.node_names
@@ -37,3 +40,8 @@ class HeatSource(AbstractEffect):
         w = np.zeros_like(ctx.T)
         w[..., ctx.node(node)] = ctx.column(col)
         return "heat", [w]
+
+
+def _heated(spec) -> set[tuple[str, str]]:
+    """`(column, node)` of every heat input of `spec`."""
+    return {(h.input, h.node) for h in spec.heat_inputs}
