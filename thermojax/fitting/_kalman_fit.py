@@ -76,8 +76,28 @@ def _minimise_jit(theta0, problem, solver, max_steps):
     return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
 
 
-@stored_jit
 def _value_grad_information(theta, problem):
+    """`_scoring(theta, problem)`, from a program compiled without LLVM's optimizations
+    where its calls are cheap (`_cheap_calls`), else from an optimized one."""
+    return (_scoring_cheap if _cheap_calls(problem) else _scoring_optimized)(theta, problem)
+
+
+# A linear model's scoring calls are cheap below this many samples × states²: compiled
+# without LLVM's optimizations (`stored_jit`'s `once`), its program compiles in half the
+# time and runs 30 % slower (PRBS1's three-state step-2 model, 1,691 samples: 0.36
+# against 0.77 s, 6.5 against 5.0 ms a call), a gain for a structure's few hundred calls
+# at most; the six-node IMU's (4,921 samples: 177,156, some 50 ms a call, 218 calls a
+# fit) would lose 3 s. PRBS1's loop: 61.4 s against 65.0 s, two alternating pairs.
+CHEAP_SCORING = 50_000
+
+
+def _cheap_calls(problem) -> bool:
+    model = problem.template.model
+    n = model.network.topology.n_nodes
+    return not model.is_nonlinear and np.size(problem.data.ts) * n * n <= CHEAP_SCORING
+
+
+def _scoring(theta, problem):
     """`-log L` (with the prior rows), its gradient and the Fisher information in `theta`
     (free, free), from forward sensitivities through the filter (the method of scoring,
     Gupta & Mehra 1974): `g` is the tangent of `-log L` itself, exact; from those of
@@ -109,6 +129,10 @@ def _value_grad_information(theta, problem):
     standardized = e / jnp.sqrt(jnp.diagonal(S, axis1=2, axis2=3))
     return (jnp.sum(nll) + 0.5 * jnp.sum(prior ** 2), jnp.sum(dnll, axis=0) + prior * w,
             info + jnp.diag(w ** 2), standardized)
+
+
+_scoring_optimized = stored_jit(_scoring)
+_scoring_cheap = stored_jit(_scoring, once=True)
 
 
 def _nll(theta, problem) -> float:
