@@ -342,6 +342,38 @@ def test_standardized_innovations_are_the_filters(kalman_fit, tmp_path):
 
 
 @pytest.mark.slow
+def test_cheap_and_optimized_scoring_programs_agree(kalman_fit):
+    """A linear model's scoring program compiled without LLVM's optimizations (cheap
+    calls: samples × states² at most `CHEAP_SCORING`) returns what the optimized one
+    does, to rounding; the dispatch takes it for this small two-run model and not for
+    the same model on runs too long, nor for a nonlinear model."""
+    from types import SimpleNamespace
+
+    import jax
+
+    from thermojax.fitting import _kalman_fit as kf
+
+    problem = kalman_fit["result"].problem
+    theta = jax.device_put(np.asarray(kalman_fit["result"].theta))
+    cheap, optimized = (kf._scoring_cheap(theta, problem),
+                        kf._scoring_optimized(theta, problem))
+    for a, b in zip(cheap, optimized):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-12)
+    model = problem.template.model
+    n = model.network.topology.n_nodes
+    assert not model.is_nonlinear and np.size(problem.data.ts) * n * n <= kf.CHEAP_SCORING
+    assert kf._cheap_calls(problem)
+
+    def like(samples, nonlinear=False):  # the problem's model on runs of `samples`
+        stand_in = SimpleNamespace(network=model.network, is_nonlinear=nonlinear)
+        return SimpleNamespace(template=SimpleNamespace(model=stand_in),
+                               data=SimpleNamespace(ts=np.zeros((1, samples))))
+    most = kf.CHEAP_SCORING // (n * n)
+    assert kf._cheap_calls(like(most)) and not kf._cheap_calls(like(most + 1))
+    assert not kf._cheap_calls(like(10, nonlinear=True))
+
+
+@pytest.mark.slow
 def test_scoring_gradient_and_information_from_their_definitions(kalman_fit):
     """The scoring program's gradient and Fisher information (`_value_grad_information`,
     forward derivatives and two matrix products) at a point off the optimum, against
