@@ -253,6 +253,45 @@ def test_a_kalman_fit_started_far_from_the_data_starts_coarse(monkeypatch):
     _assert_converged_at_truth(result, y, truth)
 
 
+@pytest.mark.slow
+def test_a_kalman_fit_polishes_only_in_the_substeps_it_returns(monkeypatch):
+    """A solve whose end (after its boundary check) needs more substeps than it was made
+    in is not polished there (`_Unpolished`): it is solved again in more, and the polish
+    runs in the count the solution is returned in. Started in one substep (the truth's
+    filter needs more), the fit still ends within `KALMAN_TOLERANCE` of the filter in
+    256 substeps, α recovered."""
+    from thermojax.fitting import _kalman_fit
+    from thermojax.fitting._integration import substep_memory
+
+    name = "conductance_temperature"
+    truth = _truth_spec(g.load_case(name))
+    _, data, reference = _case(name, noise=True)
+    start = FitState(ThermalModel.from_spec(truth), np.zeros((1, 0)), np.zeros(0))
+    assert fewest_kalman_substeps(start, data)[0] > 1
+    solved_in, polished_in = [], []
+    solve, polish = _kalman_fit._fit_kalman_from, _kalman_fit._polish
+
+    def solve_spy(prep, template, *args, **kwargs):
+        solved_in.append(template.model.etd2_substeps)
+        return solve(prep, template, *args, **kwargs)
+
+    def polish_spy(theta, problem, *args, **kwargs):
+        polished_in.append(problem.template.model.etd2_substeps)
+        return polish(theta, problem, *args, **kwargs)
+
+    monkeypatch.setattr(_kalman_fit, "START_SUBSTEPS", 1)
+    monkeypatch.setattr(_kalman_fit, "_fit_kalman_from", solve_spy)
+    monkeypatch.setattr(_kalman_fit, "_polish", polish_spy)
+    ts, cols = g.generate_case(name, seed=0, horizon_s=HORIZON_S, noise=True)[0]
+    u = np.stack([cols[c] for c in lower_effects(truth).spec.input_columns], 1)
+    y = np.stack([cols[c] for c in truth.sensor_columns], 1)
+    with substep_memory({}):
+        result = fit(truth, [Experiment(ts, u, y)], likelihood="kalman")
+    assert solved_in[0] == 1 and len(solved_in) > 1 and polished_in
+    assert set(polished_in) == {solved_in[-1]} == {result.state.model.etd2_substeps}
+    _assert_converged_at_truth(result, y, truth)
+
+
 def _assert_converged_at_truth(result, y, truth):
     """The Kalman fit `result` of readings `y` (T, sensors): its −log L within
     `KALMAN_TOLERANCE` of the filter's in 256 substeps at its solution, and the truth's α
