@@ -206,6 +206,34 @@ def test_kalman_fit_reaches_the_optimum_with_zero_process_noise(reference, direc
 
 
 @pytest.mark.slow
+def test_a_variance_that_starts_at_zero_is_held_there_without_a_trial(direct_fit,
+                                                                       monkeypatch):
+    """A fit started from a fit that held process noises at zero (a held-out fold's warm
+    start, a re-solve) holds them there as they start, with no trial solve, and ends at
+    the same optimum with the same ones at their bound."""
+    import warnings
+
+    from thermojax.fitting import _kalman_fit
+
+    result, _ = direct_fit
+    held = sorted(n for n, v in result.parameters.items() if v.get("at_bound"))
+    assert held
+    trials, nll = [], _kalman_fit._nll
+    monkeypatch.setattr(_kalman_fit, "_nll",
+                        lambda theta, problem: trials.append(1) or nll(theta, problem))
+    t, U, Y = make_data()
+    said = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # the record's length, as above
+        again = fit(result.spec, [Experiment(t, U, Y[:, None], "building")],
+                    likelihood="kalman", progress=said.append)
+    assert sorted(n for n, v in again.parameters.items() if v.get("at_bound")) == held
+    assert sum("held at zero, where it starts" in m for m in said) == len(held)
+    assert not trials
+    assert again.nll == pytest.approx(result.nll, abs=1e-6)
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("direct", ["diverges", "stops short"])
 def test_kalman_fit_falls_back_to_the_output_error_start(reference, monkeypatch, direct):
     """When the Kalman stage from the file's values runs away or does not converge, it
