@@ -272,7 +272,8 @@ def test_a_start_far_above_its_nested_model_is_not_polished(reference, direct_fi
     leave (on PRBS1, 1894 above: 215 s of polish gained 8.9). Such a start is not
     polished and the fit goes on from the output-error start; a nested model within reach
     (here: 1 below SciPy's optimum, as a nested model may be) changes nothing. The far
-    case stands in a nested model 1000 better than the optimum, so both starts are far."""
+    case stands in a nested model 1000 better than the optimum, so both starts are far:
+    neither is checked at its variances' boundary either."""
     from thermojax.fitting._kalman_fit import _BEYOND_POLISH
 
     plain, plain_said = direct_fit
@@ -282,8 +283,11 @@ def test_a_start_far_above_its_nested_model_is_not_polished(reference, direct_fi
         assert said == plain_said and result.nll == plain.nll and result.converged
         return
     assert any(m.startswith("polish") for m in plain_said)  # the plain fit polishes
+    assert any("held at zero" in m for m in plain_said)  # after its boundary check
     assert not any(m.startswith("polish") for m in said)
     assert sum("a local optimum, not polished" in m for m in said) == 2, said
+    # nor checked at its variances' boundary: it could not come back from there either
+    assert not any("held at zero" in m for m in said)
     assert any("did not converge; trying again from the output-error fit" in m
                for m in said)
     assert not result.converged  # unpolished: not confirmed

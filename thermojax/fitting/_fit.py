@@ -87,8 +87,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     - `nested_nll`: a −log L `spec` is known to reach: a nested model's (`spec` without an
       effect, which `spec` reaches with the effect at zero), or for a plateau restart the
       first fit's. A Kalman start whose scoring steps end far above it is in a local
-      optimum: it is not polished, and the fit goes on as from a start that did not
-      converge.
+      optimum: it is neither checked at its variances' boundary nor polished, and the
+      fit goes on as from a start that did not converge.
     - `restart_unconverged`: a Kalman fit with the default solver that does not converge
       from the file's values is fitted again from the output-error fit (the better of
       the two is kept). False returns the unconverged fit (a failure raises): one start
