@@ -224,7 +224,6 @@ def test_a_kalman_fit_started_far_from_the_data_starts_coarse(monkeypatch):
     import jax.numpy as jnp
 
     from thermojax.fitting import _kalman_fit
-    from thermojax.fitting._integration import substep_memory
 
     name = "conductance_temperature"
     truth = _truth_spec(g.load_case(name))
@@ -244,11 +243,7 @@ def test_a_kalman_fit_started_far_from_the_data_starts_coarse(monkeypatch):
         return solve(prep, template, *args, **kwargs)
 
     monkeypatch.setattr(_kalman_fit, "_fit_kalman_from", spy)
-    ts, cols = g.generate_case(name, seed=0, horizon_s=HORIZON_S, noise=True)[0]
-    u = np.stack([cols[c] for c in lower_effects(spec).spec.input_columns], 1)
-    y = np.stack([cols[c] for c in spec.sensor_columns], 1)
-    with substep_memory({}):
-        result = fit(spec, [Experiment(ts, u, y)], likelihood="kalman")
+    result, y = _kalman_fit_of_case(name, spec)
     assert solved_in[0] == _kalman_fit.START_SUBSTEPS
     _assert_converged_at_truth(result, y, truth)
 
@@ -261,7 +256,6 @@ def test_a_kalman_fit_polishes_only_in_the_substeps_it_returns(monkeypatch):
     filter needs more), the fit still ends within `KALMAN_TOLERANCE` of the filter in
     256 substeps, α recovered."""
     from thermojax.fitting import _kalman_fit
-    from thermojax.fitting._integration import substep_memory
 
     name = "conductance_temperature"
     truth = _truth_spec(g.load_case(name))
@@ -282,14 +276,22 @@ def test_a_kalman_fit_polishes_only_in_the_substeps_it_returns(monkeypatch):
     monkeypatch.setattr(_kalman_fit, "START_SUBSTEPS", 1)
     monkeypatch.setattr(_kalman_fit, "_fit_kalman_from", solve_spy)
     monkeypatch.setattr(_kalman_fit, "_polish", polish_spy)
-    ts, cols = g.generate_case(name, seed=0, horizon_s=HORIZON_S, noise=True)[0]
-    u = np.stack([cols[c] for c in lower_effects(truth).spec.input_columns], 1)
-    y = np.stack([cols[c] for c in truth.sensor_columns], 1)
-    with substep_memory({}):
-        result = fit(truth, [Experiment(ts, u, y)], likelihood="kalman")
+    result, y = _kalman_fit_of_case(name, truth)
     assert solved_in[0] == 1 and len(solved_in) > 1 and polished_in
     assert set(polished_in) == {solved_in[-1]} == {result.state.model.etd2_substeps}
     _assert_converged_at_truth(result, y, truth)
+
+
+def _kalman_fit_of_case(name: str, spec):
+    """`(Kalman fit of spec, readings (T, sensors))` on generated case `name`'s noisy run,
+    with no substeps remembered from earlier fits."""
+    from thermojax.fitting._integration import substep_memory
+
+    ts, cols = g.generate_case(name, seed=0, horizon_s=HORIZON_S, noise=True)[0]
+    u = np.stack([cols[c] for c in lower_effects(spec).spec.input_columns], 1)
+    y = np.stack([cols[c] for c in spec.sensor_columns], 1)
+    with substep_memory({}):
+        return fit(spec, [Experiment(ts, u, y)], likelihood="kalman"), y
 
 
 def _assert_converged_at_truth(result, y, truth):
