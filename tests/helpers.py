@@ -175,7 +175,7 @@ def model_matrices(path):
         noise=np.array([value(s.get("noise"), 0.01) for s in sensors]),
         q=np.array([value(node.get("process_noise"), 0.0) for node in doc["nodes"]]),
         initial={i: value(node["initial"]) for i, node in enumerate(doc["nodes"])
-                 if "initial" in node},
+                 if "initial" in node and node["initial"] != "steady"},
         initial_std=np.array([float(node.get("initial_std", 1.0)) for node in doc["nodes"]]))
     return net
 
@@ -304,12 +304,14 @@ def np_kalman(mm, U, Y, dt, m0, P0=None, *, mask=None, offset=None, van_loan="qu
 RTD2H_TEXT = """\
 # rtd2 (configs/rtd2.toml) with a measured heater on the sheath and a second sensor:
 # every capacitance and conductance is identifiable. The core's initial temperature is
-# estimated per run.
+# estimated per run; the sheath starts at the equilibrium of the first input sample, as
+# the generated runs do.
 name = "rtd2h"
 
 [[nodes]]
 name = "sheath"
 capacitance = 0.8
+initial = "steady"
 
 [[nodes]]
 name = "core"

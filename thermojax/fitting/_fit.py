@@ -30,6 +30,7 @@ from ..model._spec import ModelSpec
 from .._errors import InputError
 from ._kalman_fit import fit_kalman, standardized_innovations
 from ._output_error import fit_output_error, output_error_at
+from ._initial_states import start_mismatches
 from ._problem import (LIKELIHOODS, SHORT_RUN, Solution, integrated_for_output_error,
                        prepare)
 from ._size import check_fit_size
@@ -123,7 +124,17 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
                               restart_unconverged=restart_unconverged)
         result.wall_time_s = time.perf_counter() - t_start
     say(f"fit done: -log L = {result.nll:.2f}, {result.n_params} parameters, {result.message}")
+    _warn_start_mismatch(result, experiments)
     return result
+
+
+def _warn_start_mismatch(result: FitResult, experiments) -> None:
+    """Warn where a run's first readings are far from the fitted model's start."""
+    columns = result.lowered_spec.sensor_columns
+    noise = {c: result.parameters.get(f"sensors.{c}.noise", {}).get("value") for c in columns}
+    for message in start_mismatches(result.spec, columns, noise, result.predictions,
+                                    experiments):
+        warnings.warn(message, stacklevel=3)
 
 
 def _off_plateau(result: FitResult, experiments, say, **options) -> FitResult:

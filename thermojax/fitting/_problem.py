@@ -26,6 +26,7 @@ from ..model._parameters import FreeIndex, with_free_parameters
 from ..model._spec import EFFECT_KINDS, ModelSpec
 from ..model.effects import Lowered, lower_effects
 from ._bias_residuals import BiasColumns, bias_columns, spec_strains
+from ._initial_states import estimated_starts, run_initial_start, with_starts
 from ._integration import fewest_substeps, shared_substeps, start_tolerance, with_substeps
 
 LIKELIHOODS = ("output_error", "kalman")
@@ -167,10 +168,13 @@ def prepare(spec: ModelSpec, experiments: list[Experiment], likelihood: str,
         mask = np.array(data.mask)
         mask[holdout] = False
         data = dataclasses.replace(data, mask=jax.device_put(mask))
+    starts = estimated_starts(lowered, experiments, ThermalModel.from_spec)
+    if starts:
+        lowered = lower_effects(with_starts(lowered.original, starts))
+        spec = lowered.spec
     model = ThermalModel.from_spec(spec)
-    initial = np.asarray(model.initial)[np.array(model.initial_nodes, dtype=int)]
-    run_initial = np.broadcast_to(initial, (data.n_runs, len(model.initial_nodes)))
-    template = FitState(model, *jax.device_put((np.array(run_initial), _log_taus(spec))))
+    run_initial = run_initial_start(spec, model, starts, data.n_runs)
+    template = FitState(model, *jax.device_put((run_initial, _log_taus(spec))))
     index, names = _free_elements(spec, model, data.n_runs, "output_error")
     if not names and likelihood == "output_error":
         raise InputError("nothing to fit: every parameter is fixed. Make at least one "

@@ -28,7 +28,9 @@ class ThermalModel(eqx.Module):
     - `log_noise`: log of each sensor's measurement-noise std (°C).
     - `log_process_noise`: log of each node's diffusion std (°C/√s), Kalman only.
     - `initial`: initial temperature (°C) of the nodes in `initial_nodes`; the
-      other nodes start at the steady state of the first input sample.
+      other nodes start at the steady state of the first input sample. (A fit gives
+      every node of the file without `initial` a start from the data first:
+      `fitting._initial_states`.)
     - `initial_std`: std of the initial state (°C), per node.
     - `etd2_substeps`: integration steps per sample period of a nonlinear model.
     """

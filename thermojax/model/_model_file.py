@@ -135,11 +135,16 @@ class _Reader:
     def node(self, e: dict, i: int) -> Node:
         self.keys(e, "nodes", i, ("name", "capacitance"), ("process_noise", "initial", "initial_std"))
         std = e.get("initial_std")
+        steady = e.get("initial") == "steady"
+        if isinstance(e.get("initial"), str) and not steady:
+            self.fail(f"initial must be a temperature in °C, a table {{ value = ..., fixed = "
+                      f"true }} or \"steady\", got {e['initial']!r}.", "nodes", i, "initial")
         return Node(
             name=self.string(e["name"], "nodes", i, "name"),
             capacitance=self.param(e["capacitance"], "nodes", i, "capacitance"),
             process_noise=self.opt_param(e, "process_noise", "nodes", i),
-            initial=self.opt_param(e, "initial", "nodes", i),
+            initial=None if steady else self.opt_param(e, "initial", "nodes", i),
+            steady=steady,
             initial_std=None if std is None else self.known_number(std, "nodes", i,
                                                                    "initial_std"),
         )
@@ -247,7 +252,9 @@ def dump_model(spec: ModelSpec, header: str = "") -> str:
         out += ["", "[[nodes]]", f"name = {_str(n.name)}", f"capacitance = {_param(n.capacitance)}"]
         if n.process_noise is not None:
             out.append(f"process_noise = {_param(n.process_noise)}")
-        if n.initial is not None:
+        if n.steady:
+            out.append('initial = "steady"')
+        elif n.initial is not None and not n.initial_from_data:
             out.append(f"initial = {_param(n.initial)}")
         if n.initial_std is not None:
             out.append(f"initial_std = {_num(n.initial_std)}")

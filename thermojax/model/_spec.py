@@ -29,8 +29,15 @@ class Node:
     name: str
     capacitance: Parameter  # J/K
     process_noise: Parameter | None = None  # diffusion std, °C/√s
-    initial: Parameter | None = None  # °C; None: steady state at the first input sample
+    # °C. None: estimated per run from the data (`fitting._initial_states`), or where
+    # no data are given, the equilibrium at the first input sample given the other nodes.
+    initial: Parameter | None = None
     initial_std: float | None = None  # °C
+    # `initial = "steady"`: the node starts at the equilibrium of the first input sample.
+    steady: bool = False
+    # True where `initial` holds a start taken from the data (the first readings), not
+    # the file: such a start is written back as absent, to be estimated again.
+    initial_from_data: bool = False
 
 
 @dataclass(frozen=True)
