@@ -209,6 +209,9 @@ def parameter_rows(report: dict, initial: dict | None = None,
             flags.append("at bound")
         elif sd is None:
             flags.append("unidentifiable")
+        elif sd == 0:  # no certainty: a std of zero is never printed
+            sd = None
+            flags.append("std undetermined (no curvature along it)")
         log = _is_log_parameter(name)
         v0 = initial.get(name)
         if free and log and v is not None and v0 and v0 > 0 and v < _AT_BOUND * v0 \

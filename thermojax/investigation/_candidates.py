@@ -69,6 +69,9 @@ class Candidate:
     # exponent, a temperature rate) of its best score direction; None for a kind.
     learned: object = field(default=None, repr=False)
     shape: tuple | None = None
+    # False where the refitted parameters leave the kind's physical range
+    # (`_physical_range.reject_unphysical`); the note says why.
+    physical: bool = True
 
     def __post_init__(self):
         if self.score_test is None and self.method == "score":

@@ -48,6 +48,7 @@ from ..model._model_file import dump_model, save_model
 from ..model._parameters_by_name import spec_parameters, with_spec_parameters
 from .._residual_analysis import ljung_box, long_run_variance_ratio
 from ._diagnostics import davies_p_value, davies_variation
+from ._physical_range import data_span, prefer_physics, reject_unphysical
 from ._selection import (FoldVote, fold_vote, held_out_advice, holdout_verdict, judge,
                          prefer_vocabulary, significance_rule)
 from ..discovery import column_scales, learned_places
@@ -729,6 +730,8 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
                               -c.score if np.isfinite(c.score) else math.inf))
     judge(cands, fdr, separation_advice)
     prefer_vocabulary(cands)
+    reject_unphysical(cands, data_span(spec, runs))
+    prefer_physics(cands, separation_advice)
     return cands
 
 
@@ -840,6 +843,10 @@ def separation_advice(kinds) -> str:
     for pair, text in SEPARATION.items():
         if pair <= kinds or (len(kinds) == 1 and kinds <= pair):
             return text
+    if kinds & {"sensor_gain", "sensor_offset"}:
+        return ("a sensor's gain or offset changes its reading alone, a thermal effect the "
+                "temperatures themselves: a reference thermometer beside the sensor, read at "
+                "two steady temperatures (a soak at each end of the range), separates them")
     return ("the data cannot tell these apart: excite the system differently (a power step "
             "in the node concerned, a faster ramp, a wider temperature range) or add a sensor "
             "near the candidates' places")
@@ -1202,6 +1209,7 @@ def _network_step(current: Step, runs, mh, cands: list[Candidate], likelihood, f
     kept = [(c.supported, c.note, c.tied_with) for c in cands]
     judge(cands + [cand], fdr, separation_advice)
     prefer_vocabulary(cands + [cand])
+    reject_unphysical([cand], data_span(current.spec, runs))
     for c, (supported, note, tied) in zip(cands, kept):
         c.supported, c.note, c.tied_with = supported, note, tied
     cands.append(cand)

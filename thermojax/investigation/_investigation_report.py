@@ -135,9 +135,13 @@ def _evidence(i: int, step: dict, previous: dict, report: dict, columns, units) 
 
 
 def _pm(value, std) -> str:
-    """`value ± std` (the std to 2 significant digits), or the value alone."""
-    if isinstance(std, (int, float)) and math.isfinite(std):
+    """`value ± std` (the std to 2 significant digits), or the value alone. A std of zero
+    is no measure of certainty (a parameter held at its bound, or a direction the
+    curvature could not resolve): it is said in words, never printed as "± 0"."""
+    if isinstance(std, (int, float)) and math.isfinite(std) and std > 0:
         return f"{_num(value)} ± {_num(std, '.2g')}"
+    if isinstance(std, (int, float)) and std == 0:
+        return f"{_num(value)} (std undetermined: held at a bound or unresolved by the data)"
     return _num(value)
 
 

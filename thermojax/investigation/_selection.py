@@ -54,7 +54,12 @@ def significance_rule(fdr: float, n_blocks: int) -> str:
         "over half of it) is inconclusive and does not vote; the candidate is rejected when "
         "more conclusive folds predict worse with it than better, or their summed gain is "
         f"not positive; with fewer than {MIN_CONCLUSIVE} conclusive folds the check is "
-        "inconclusive and the likelihood-ratio test decides")
+        "inconclusive and the likelihood-ratio test decides. A candidate whose fitted "
+        "parameters leave their physical range (a sensor gain beyond ±20 %, an offset beyond "
+        "10 °C, a capacitance or conductance factor falling below a tenth of its reference "
+        "value within the data) is not supported, and a sensor artifact (gain, offset, lag) "
+        f"steps aside for a supported physical effect within {MIN_BIC_DROP:g} of its deflated "
+        "Δ BIC")
 
 
 def deflated_delta_bic(c: Candidate, deflation: float | None = None) -> float:

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from .._spec import Effect, ModelSpec, Parameter
-from ._base import AbstractEffect, ParameterLink, Term
+from ._base import AbstractEffect, DataSpan, ParameterLink, Term
 from .boundary import Boundary
 from .capacitance_temperature import CapacitanceTemperature
 from .conductance_input import ConductanceInput
@@ -27,7 +27,7 @@ KINDS: dict[str, AbstractEffect] = {k.kind: k for k in (
     ExtraNode(), Radiation(), ConductanceTemperature(), CapacitanceTemperature(), HeatSource(),
     Boundary(), ConductanceInput(), SensorLag(), SensorOffset(), SensorGain(), Viscoelastic(), Expression())}
 
-__all__ = ["KINDS", "AbstractEffect", "Lowered", "ParameterLink", "Term", "lower_effects",
+__all__ = ["KINDS", "AbstractEffect", "DataSpan", "Lowered", "ParameterLink", "Term", "lower_effects",
            "raise_effects", "effect_parameter_name"]
 
 

@@ -25,6 +25,39 @@ from .._spec import EFFECT_KINDS, Effect, ModelSpec, Parameter
 
 T_REF = 25.0  # °C, reference temperature of every temperature coefficient
 KELVIN = 273.15
+# A sensor's calibration slope error beyond this (20 %) is no calibration error: a sensor
+# that sees 1 − 0.99 of its node's swing is a model explaining physics away.
+MAX_SENSOR_GAIN = 0.2
+# A sensor offset beyond this (°C) is a broken sensor or a wrong column, not an offset.
+MAX_SENSOR_OFFSET = 10.0
+# A temperature- or input-dependent factor (1 + c (x − x0)) must stay above this
+# fraction of its value at the reference over the data: a capacitance or conductance
+# that falls to a tenth or crosses zero within the data's range is not a property of
+# matter.
+MIN_FACTOR = 0.1
+
+
+@dataclass(frozen=True)
+class DataSpan:
+    """The ranges a fitted effect must stay physical over: `temperatures` (°C, (min,
+    max)) of every measured and boundary temperature, and each data column's (min,
+    max) in its own unit."""
+
+    temperatures: tuple[float, float]
+    columns: dict
+
+
+def factor_leaves_range(coefficient: float, low: float, high: float, x0: float,
+                        what: str, unit: str) -> str | None:
+    """Why `1 + coefficient (x − x0)` falls below `MIN_FACTOR` for some x in [low, high],
+    or None."""
+    worst = min(1.0 + coefficient * (low - x0), 1.0 + coefficient * (high - x0))
+    if worst >= MIN_FACTOR:
+        return None
+    at = low if 1.0 + coefficient * (low - x0) < 1.0 + coefficient * (high - x0) else high
+    return (f"the {what} would fall to {worst:.0%} of its value at {x0:g} {unit} at "
+            f"{at:.3g} {unit}, within the data's range [{low:.3g}, {high:.3g}] {unit}"
+            + (" (it crosses zero there)" if worst <= 0 else ""))
 
 
 @dataclass(frozen=True)
@@ -97,6 +130,15 @@ class AbstractEffect:
 
     def heat(self, term: Term, values, T, u, network):
         """Extra heat flow into every node (W), (nodes,), for nonlinear kinds."""
+        return None
+
+    # -- physical range ----------------------------------------------------------------
+    def unphysical(self, where: tuple[str, ...], parameters: dict, span: DataSpan
+                   ) -> str | None:
+        """Why fitted `parameters` (name -> value in the file's units) at `where` are
+        outside the range where this kind is physical over the data (`span`), in words;
+        None where they are inside it. Kinds whose parameters are positive by
+        construction are always inside."""
         return None
 
     def output(self, term: Term, values):

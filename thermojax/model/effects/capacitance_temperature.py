@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._base import T_REF, AbstractEffect, Term
+from ._base import T_REF, AbstractEffect, Term, factor_leaves_range
 
 
 class CapacitanceTemperature(AbstractEffect):
@@ -37,3 +37,8 @@ class CapacitanceTemperature(AbstractEffect):
         w = np.zeros_like(ctx.T)
         w[..., a] = -ctx.capacitance[a] * (ctx.T[..., a] - T_REF) * ctx.dTdt[..., a]
         return "heat", [w]
+
+    def unphysical(self, where, parameters, span):
+        low, high = span.temperatures
+        return factor_leaves_range(parameters.get("beta", 0.0), low, high, T_REF,
+                                   f"capacitance of {where[0]}", "°C")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ._base import ScaledPathEffect
+from ._base import ScaledPathEffect, factor_leaves_range
 
 
 class ConductanceInput(ScaledPathEffect):
@@ -20,3 +20,10 @@ class ConductanceInput(ScaledPathEffect):
 
     def initial_parameters(self, spec, where):
         return {"coefficient": 0.0}
+
+    def unphysical(self, where, parameters, span):
+        if where[-1] not in span.columns:
+            return None
+        low, high = span.columns[where[-1]]
+        return factor_leaves_range(parameters.get("coefficient", 0.0), low, high, 0.0,
+                                   f"conductance {where[0]}–{where[1]}", f"({where[-1]})")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ._base import T_REF, ScaledPathEffect
+from ._base import T_REF, ScaledPathEffect, factor_leaves_range
 
 
 class ConductanceTemperature(ScaledPathEffect):
@@ -16,3 +16,8 @@ class ConductanceTemperature(ScaledPathEffect):
 
     def initial_parameters(self, spec, where):
         return {"alpha": 0.0}
+
+    def unphysical(self, where, parameters, span):
+        low, high = span.temperatures
+        return factor_leaves_range(parameters.get("alpha", 0.0), low, high, T_REF,
+                                   f"conductance {where[0]}–{where[1]}", "°C")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._base import T_REF, AbstractEffect, Term
+from ._base import MAX_SENSOR_GAIN, T_REF, AbstractEffect, Term
 
 
 class SensorGain(AbstractEffect):
@@ -32,3 +32,12 @@ class SensorGain(AbstractEffect):
         s = ctx.sensor(where[0])
         d[..., s] = ctx.T[..., ctx.sensor_node(s)] - T_REF
         return "output", [d]
+
+    def unphysical(self, where, parameters, span):
+        g = parameters.get("gain", 0.0)
+        if abs(g) <= MAX_SENSOR_GAIN:
+            return None
+        return (f"a gain of {g:+.3g} means {where[0]} would read {1 + g:.0%} of its node's "
+                f"temperature swing; a calibration slope error is a few percent (at most "
+                f"{MAX_SENSOR_GAIN:.0%} is accepted), so the fit is explaining a thermal "
+                "effect away")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._base import AbstractEffect, Term
+from ._base import MAX_SENSOR_OFFSET, AbstractEffect, Term
 
 
 class SensorOffset(AbstractEffect):
@@ -30,3 +30,11 @@ class SensorOffset(AbstractEffect):
         d = np.zeros_like(ctx.y)
         d[..., ctx.sensor(where[0])] = 1.0
         return "output", [d]
+
+    def unphysical(self, where, parameters, span):
+        o = parameters.get("offset", 0.0)
+        if abs(o) <= MAX_SENSOR_OFFSET:
+            return None
+        return (f"an offset of {o:+.3g} °C on {where[0]} is beyond any sensor's calibration "
+                f"error (at most {MAX_SENSOR_OFFSET:g} °C is accepted): a wrong column, a "
+                "wrong unit or a start the model does not match")
