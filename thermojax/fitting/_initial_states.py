@@ -124,9 +124,10 @@ def run_initial_start(spec: ModelSpec, model, starts: dict[str, np.ndarray], n_r
     return np.stack(cols, axis=1) if cols else np.zeros((n_runs, 0))
 
 
-#: Noise stds between a sensor's first readings and the fitted model's start above which
-#: `fit` warns that the run starts elsewhere than the model says.
-START_MISMATCH_STDS = 5.0
+#: Noise stds between the mean of a sensor's first three residuals and zero above which
+#: `fit` warns that the run starts elsewhere than the model says (5 stds of that mean:
+#: a fit that starts right never says it).
+START_MISMATCH_STDS = 3.0
 
 
 def start_mismatches(spec: ModelSpec, columns, noise: dict[str, float], predictions,
