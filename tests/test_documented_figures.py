@@ -84,3 +84,22 @@ def test_experiments_out_is_the_results_folder_itself(tmp_path):
     assert "PARENT" not in text
     for study in (ROOT / "experiments").glob("*.py"):
         assert "--out PARENT" not in study.read_text(), study.name
+
+
+def test_benchmarks_page_is_a_reference():
+    """benchmarks/README.md: under 600 lines, every script a section with its command and
+    one current table, dated (the diary it replaced is in the history)."""
+    text = (ROOT / "benchmarks" / "README.md").read_text()
+    assert len(text.splitlines()) < 600
+    sections = re.split(r"^## ", text, flags=re.M)[1:]
+    scripts = sorted(p.name for p in (ROOT / "benchmarks").glob("*.py")
+                     if not p.name.startswith("_"))
+    for script in scripts:
+        mine = [s for s in sections if f"`{script}`" in s.splitlines()[0]]
+        assert len(mine) == 1, f"{script}: no section of its own in benchmarks/README.md"
+        body = mine[0]
+        assert f"python benchmarks/{script}" in body, script
+        tables = re.findall(r"^\|[-:| ]+\|$", body, flags=re.M)
+        assert len(tables) == 1, f"{script}: {len(tables)} tables, expected one current one"
+        assert re.search(r"20\d\d-\d\d-\d\d", body), f"{script}: its table is not dated"
+        assert "Tried, not kept" in body, script
