@@ -13,9 +13,9 @@ is fitted with the same likelihood for its log L and AIC; `reference_logL.txt` h
 independent optimum (`kf_reference.py`, SciPy). Target (issue 31): at least three effects,
 each significant by that test, and an AIC within 10 of the paper's model.
 
-    python experiments/prbs1_forward_selection.py [--out PARENT] [--max-steps N]
+    python experiments/prbs1_forward_selection.py [--out DIR] [--max-steps N]
 
-writes a fresh folder with the investigation (`investigation/`: report, plots, final
+writes a fresh folder (`DIR` itself, default `results/prbs1_forward_selection-<UTC time>/`) with the investigation (`investigation/`: report, plots, final
 model), `selection.md` and `results.json`. About 3-5 minutes on two cores.
 """
 

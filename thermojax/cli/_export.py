@@ -68,7 +68,9 @@ def cmd_export(args) -> int:
                                      schedule=schedule_config(args),
                                      trim=trim_config(args),
                                      operating_point=args.operating_point,
-                                     c_float=args.c_float, c_layout=args.c_layout)
+                                     c_float=args.c_float, c_layout=args.c_layout,
+                                     speedup=args.speedup,
+                                     power_scale=args.power_scale)
             load_observer(tmp)  # what was written reads back
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
@@ -269,6 +271,12 @@ def add_export(sub):
                    "double buffer and interpolation of the bias corrections at this rate, a "
                    "whole multiple of --rate, e.g. 2000; with --fixed also "
                    "tj_multirate_<fmt>.c on the int32 bias codes)")
+    p.add_argument("--speedup", type=_positive_float, default=4.0, metavar="FACTOR",
+                   help="with --method poles: observer poles FACTOR times the open-loop "
+                   "poles (default 4, the seed's 3-5; at least 1; docs/observer.md §4)")
+    p.add_argument("--power-scale", type=_positive_float, default=1.0, metavar="W",
+                   help="with --fixed: watts per format unit of a power input (default 1: "
+                   "a Q16.16 power spans ±32768 W; docs/observer.md §6)")
     sg = p.add_argument_group("gain scheduling (docs/observer.md §12): a nonlinear model's "
                               "observer at several temperatures, interpolated at run time")
     sg.add_argument("--schedule", type=float, nargs=3, metavar=("LOW", "HIGH", "N"),

@@ -21,14 +21,15 @@ import optimistix as optx
 
 from ._integration import (SUBSTEP_LADDER, fewest_kalman_substeps, shared_substeps,
                            with_substeps)
-from ._likelihood import kalman_nll, kalman_runs, rts_smoother, simulate_dataset
+from ._likelihood import kalman_nll, kalman_runs, simulate_dataset
 from ._newton import TruncatedNewton, newton
 from ._problem import Prepared, Solution, _check_finite, _prior, _state, make_problem
+from ._smoothed import kalman_smoothed
 from .._traced_cache import stored_jit
 from ..model._parameters import free_parameters, with_free_parameters
 
 if TYPE_CHECKING:
-    from ._summary import FitResult
+    from ._fit_result import FitResult
 
 
 def _kalman_loss(theta, problem):
@@ -430,13 +431,6 @@ def _polish(theta, problem, names, pins, say, tol: float = 1e-3, last: bool = Tr
     say(f"polish ({'Newton' if sol.converged else 'Newton, then L-BFGS-B'}): -log L lower "
         f"by {gain:.4f}")
     return jax.device_put(theta), gain, bool(gain < tol or ok)
-
-
-@stored_jit(once=True)
-def kalman_smoothed(model, data, run_initial):
-    """RTS-smoothed node temperatures of every run: mean and std, each (runs, times,
-    states) °C."""
-    return kalman_runs(model, data, run_initial, lambda ts, kf: rts_smoother(model, ts, kf))
 
 
 def standardized_innovations(result: FitResult) -> list[np.ndarray]:

@@ -36,7 +36,7 @@ from ..model._parameters import free_parameters, with_free_parameters
 from ..measurements._data import Experiment
 
 if TYPE_CHECKING:
-    from ._summary import FitResult
+    from ._fit_result import FitResult
 
 
 def _by_output(x):

@@ -11,79 +11,20 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from ._metrics import fit_metrics, fit_percent, rmse
-from ..model._model import ThermalModel, model_to_spec
+from ..model._model import model_to_spec
 from ..model._spec import ModelSpec, Parameter
 from ..model.effects import Lowered, raise_effects
 from ._bias import BiasFit, bias_fit_at, bias_parameters, bias_to_spec, fit_bias
 from ._bias_residuals import node_temperatures, spec_strains
-from ._dominance import DominantSample, dominance_message, dominant_samples
+from ._dominance import dominance_message, dominant_samples
+from ._fit_result import FitResult
 from ._output_error import bias_coefficient_jacobian
 from ._identifiability import Identifiability, identifiability
-from ._kalman_fit import kalman_smoothed
-from ._problem import FitState, Prepared, Solution, _is_log, _Problem
-
-
-@dataclass
-class FitResult:
-    """A fitted model with its evidence. Values are physical (J/K, W/K, °C, °C/√s)."""
-
-    spec: ModelSpec  # the fitted model, as a file would hold it
-    lowered_spec: ModelSpec  # the same with structural effects as plain entries (`model`'s)
-    model: ThermalModel
-    state: FitState
-    likelihood: str
-    parameters: dict[str, dict]  # dotted name -> {"value", "std", "free"}
-    correlation: np.ndarray  # among the free parameters, in `free_names` order
-    free_names: list[str]
-    nll: float
-    aic: float
-    bic: float
-    n_params: int
-    n_samples: int
-    rmse: dict[str, float]
-    fit_percent: dict[str, float]
-    per_run: list[dict]
-    identifiability: Identifiability
-    n_steps: int
-    converged: bool
-    message: str
-    wall_time_s: float
-    predictions: list[np.ndarray] = field(repr=False, default_factory=list)  # (times, outputs)
-    # Kalman only: the one-step innovations over their std, (runs, times, outputs), 0 where
-    # unmeasured (`standardized_innovations`).
-    innovations: np.ndarray | None = field(repr=False, default=None)
-    theta: np.ndarray | None = field(repr=False, default=None)
-    problem: _Problem | None = field(repr=False, default=None)
-    # Output error with the default solver: residual evaluations at trial points (each
-    # of the `n_steps` iterations also evaluates residuals and Jacobian once).
-    n_evaluations: int | None = None
-    # Effect parameters fitted through a lowered entry: effect name -> (scale, power),
-    # value = scale * lowered value ** power (e.g. a sensor lag's tau = C / G).
-    lowered_as: dict[str, tuple[float, float]] = field(repr=False, default_factory=dict)
-    # Bias channels (docs/formats.md §4): column -> `BiasFit` on the fitted model's states.
-    biases: dict[str, BiasFit] = field(repr=False, default_factory=dict)
-    # Samples that alone carry a quarter or more of their sensor's squared error
-    # (`_dominance`); the fit is then not converged.
-    dominant: list[DominantSample] = field(default_factory=list)
-    _smoothed: list | None = field(repr=False, default=None)  # `smoothed`, once computed
-
-    @property
-    def smoothed(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Kalman only (else empty): RTS-smoothed node temperatures per run, (times, nodes)
-        mean and std (°C), computed when first read."""
-        if self._smoothed is None:
-            self._smoothed = []
-            if self.likelihood == "kalman":
-                data = self.problem.data
-                mean, std = kalman_smoothed(self.model, data, self.state.run_initial)
-                self._smoothed = [(np.asarray(mean[r, :n]), np.asarray(std[r, :n]))
-                                  for r, n in enumerate(data.lengths)]
-        return self._smoothed
+from ._problem import Prepared, Solution, _is_log
 
 
 def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) -> FitResult:

@@ -28,7 +28,7 @@ def scheduled_design(spec, rate_hz: float, points, by: str, where: str = "model"
     from ..dynamics._discretize import discretize
     from ..model._model import ThermalModel
     from ..reference._scheduled import ScheduledDesign
-    from ._export import _linearize
+    from ._linearize import linearize
     from ._kalman import discrete_process_covariance, steady_state_kalman
 
     model = ThermalModel.from_spec(spec)
@@ -53,7 +53,7 @@ def scheduled_design(spec, rate_hz: float, points, by: str, where: str = "model"
     r2 = np.asarray(model.noise, float) ** 2
     mats = {k: [] for k in ("Phi", "B0", "B1", "L")}
     for T in points:
-        A, B, _, _ = _linearize(model, system, power_inputs, float(T), where)
+        A, B, _, _ = linearize(model, system, power_inputs, float(T), where)
         d = discretize(eqx.tree_at(lambda s: (s.A, s.B), system, (A, B)), dt)
         L = steady_state_kalman(d, discrete_process_covariance(np.asarray(A), q, dt), r2).gain
         for k, v in (("Phi", d.Phi), ("B0", d.B0), ("B1", d.B1), ("L", L)):
