@@ -141,7 +141,7 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     - `out_dir`: the folder to write (created; existing files of the same names replaced).
     - `fixed`: `None`, `"q16.16"`, `"q8.24"`, `"q15"`, `"q31"` or a
       `thermojax.reference.FixedFormat`.
-    - `method`: `"kalman"` (steady-state Kalman gains) or `"poles"` (the seed's rule).
+    - `method`: `"kalman"` (steady-state Kalman gains) or `"poles"` (4× the open-loop poles).
     - `sensors`: sensor column names to use (default all).
     - `operating_point`: `T_op` (°C) of the linearization of a nonlinear model.
     - `speedup`: observer poles × open-loop poles for `method="poles"`.
