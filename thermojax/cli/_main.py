@@ -634,7 +634,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="File formats, the effect vocabulary, report keys and every command: docs/ in "
         "the repository (docs/formats.md, docs/cli.md, docs/reports.md).")
     parser.add_argument("--version", action="version", version=f"thermojax {_version()}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
+                                help="what to do (each command has its own --help)")
     _add_simulate(sub)
     _add_fit(sub)
     _add_diagnose(sub)

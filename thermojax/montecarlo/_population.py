@@ -232,7 +232,7 @@ def sample_units(spec, population: Population, indices, seed: int = 0) -> UnitPa
         indices = np.arange(int(indices))
     indices = np.asarray(indices, dtype=np.int64)
     if int(seed) < 0:
-        raise InputError(f"the seed must be 0 or more, got {seed}.", field="seed")
+        raise InputError(f"`seed` must be a whole number, 0 or more, got {seed}.", field="seed")
     known = spec_parameters(spec)
     names = varied_names(population)
     nominal = np.array([known[n].value for n in names], dtype=float)
