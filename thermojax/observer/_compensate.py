@@ -155,6 +155,7 @@ def _log_likelihood(kalman, discrete, noise, innovations) -> float:
 def compensate(spec, telemetry, column: str, input_noise: float | None = None,
                say=None) -> Compensation:
     """Reconstruct input `column` of the model `spec` over one log (`Telemetry`)."""
+    import equinox as eqx
     import jax.numpy as jnp
 
     from ..model._model import ThermalModel
@@ -208,10 +209,7 @@ def compensate(spec, telemetry, column: str, input_noise: float | None = None,
     u0 = np.insert(u[0], j, guess)
     x0 = jnp.concatenate([system.steady_state(jnp.asarray(u0)), jnp.asarray([guess])])
 
-    import equinox as eqx
-
     scan = eqx.filter_jit(run_observer)  # traced once for the whole grid of input noises
-
     designs = _Designs(model, system, j, dt)
 
     def run(q):
