@@ -122,3 +122,15 @@ def test_python_warnings_are_printed_as_the_tools_own(monkeypatch, capsys):
     assert rc == 0
     assert err.splitlines() == ["warning: the covariance is not positive definite",
                                 "warning: a NumPy-style warning"]
+
+
+def test_rate_takes_fractions_too(tmp_path, capsys):
+    model = tmp_path / "house.toml"
+    model.write_text(HOUSE.format(**DETERMINED))
+    rc, out, err = run(capsys, "rate", "--model", model, "--rates", "1/3600,1/1800,1/600",
+                       "--quiet")
+    assert rc == 0, err
+    rows = [line.split()[0] for line in out.splitlines()[2:5]]
+    assert [float(r) for r in rows] == pytest.approx([1 / 3600, 1 / 1800, 1 / 600], rel=1e-5)
+    rc, _, err = run(capsys, "rate", "--model", model, "--rates", "1/0,1")
+    assert rc == 2 and "--rates" in err and "1/1800" in err

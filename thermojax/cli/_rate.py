@@ -73,12 +73,16 @@ def cmd_rate(args) -> int:
 
 
 def _rates(text: str) -> list[float]:
+    """Comma-separated rates, each a number or a fraction (`1/1800,1/900,0.01`)."""
     import argparse
 
+    from ._main import rate_hz
+
     try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated Hz, got {text!r}")
+        values = [float(rate_hz(v)) for v in text.split(",")]
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated Hz (numbers or "
+                                         f"fractions such as 1/1800), got {text!r}") from None
     if not values or not all(v > 0 and v < 1e6 for v in values):
         raise argparse.ArgumentTypeError(f"rates must be positive Hz, got {text!r}")
     return values
@@ -100,7 +104,8 @@ def add_rate(sub) -> None:
     p.add_argument("--sensor", action="append", metavar="COLUMN",
                    help="use only this sensor column (repeatable; default all)")
     p.add_argument("--rates", type=_rates, default=None, metavar="HZ,HZ,...",
-                   help="candidate rates (default 0.01 to 5000 Hz in 1-2-5 steps)")
+                   help="candidate rates, numbers or fractions such as 1/1800 (default 0.01 to "
+                   "5000 Hz in 1-2-5 steps)")
     p.add_argument("--noise-rate", type=_positive_float, default=1.0, metavar="HZ",
                    help="the rate at which the model's sensor noise std holds per sample "
                    "(default 1 Hz: the rate of the data it was fitted to)")
