@@ -180,3 +180,31 @@ def sensor_module(n: int = 500, seed: int = 2):
 
 
 CASES = {"building": building, "heater": heater, "sensor_module": sensor_module}
+
+
+def building_one_node_truth(n: int = 400, seed: int = 4):
+    """The null case: the room alone is the truth (the user's one-node model is right),
+    with the same inputs as `building` and a start 8 K off equilibrium."""
+    rng = np.random.default_rng(seed)
+    net = Network(nodes={"room": 6.0e6},
+                  links=[],
+                  boundaries=[("room", "T_out", 120.0)],
+                  heats=[("room", "P_heat", 1.0), ("room", "solar", 3.0)],
+                  sensors=[("T_room", "room", 0.05)])
+    dt = 1800.0
+    ts = np.arange(n) * dt
+    day = ts / 86400.0
+    U = np.column_stack([
+        5.0 + 3.0 * np.sin(2 * np.pi * (day - 0.3)) + np.cumsum(rng.normal(0, 0.05, n)),
+        prbs(n, rng, 6, 0.0, 3000.0),
+        np.clip(400.0 * np.sin(2 * np.pi * (day - 0.25)), 0.0, None)])
+    X = simulate(net, U, dt, np.array([13.0]))
+    return net, ts, dict(zip(net.inputs, U.T)), readings(net, X, rng), X
+
+
+def one_node_guess(name: str = "room") -> Network:
+    """The model a user writes first for a building log: one node, the outdoor boundary,
+    the heater and the sun, at round guesses."""
+    return Network(nodes={name: 1.0e7}, links=[], boundaries=[(name, "T_out", 100.0)],
+                   heats=[(name, "P_heat", 1.0), (name, "solar", 1.0)],
+                   sensors=[("T_room", name, 0.05)])

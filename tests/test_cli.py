@@ -289,7 +289,7 @@ BAD_MODELS = [
     ("no-value", lambda t: t.replace("capacitance = 0.8", "capacitance = { fixed = true }"),
      ("[[nodes]]", 0), ["field 'nodes[0].capacitance'", "{ value = 0.8, fixed = true }"]),
     ("unknown-key", lambda t: t.replace('column = "T_core"', 'column = "T_core"\nunit = "C"'),
-     ("[[sensors]]", 0), ["field 'sensors[0].unit'", "unknown key(s) ['unit']"]),
+     ('unit = "C"', 0), ["field 'sensors[0].unit'", "unknown key 'unit'"]),
 ]
 
 

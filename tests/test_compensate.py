@@ -39,7 +39,7 @@ def test_compensate_recovers_the_fluid_far_faster_than_the_sensor(tmp_path, caps
                  "--input", "T_fluid", "--out", str(out), "--quiet"]) == 0
     assert "maximum likelihood" in capsys.readouterr().out
     got = tj.read_telemetry(out)
-    assert list(got.names) == ["T_fluid", "T_fluid_std"]
+    assert list(got.names) == ["T_fluid", "T_fluid_std", "T_fluid_settled"]
     np.testing.assert_array_equal(got.ts, ts)
     est, std = np.asarray(got.column("T_fluid")), np.asarray(got.column("T_fluid_std"))
     settled = ts > 5.0

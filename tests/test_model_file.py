@@ -22,8 +22,14 @@ def without_source(spec: ModelSpec) -> ModelSpec:
     return dataclasses.replace(spec, source=None)
 
 
-def header_line(text: str, table: str, index: int) -> int:
-    """1-based line of the `index`-th `[[table]]` header in `text` (counted independently)."""
+KEY = "<key line>"
+
+
+def header_line(text: str, table: str, index) -> int:
+    """1-based line of the `index`-th `[[table]]` header in `text` (counted independently),
+    or with `table` KEY, of the line that is `index` exactly."""
+    if table == KEY:
+        return text.splitlines().index(index) + 1
     hits = [k for k, line in enumerate(text.splitlines(), start=1)
             if line.strip() == f"[[{table}]]"]
     return hits[index]
@@ -460,14 +466,23 @@ BAD = [
      ("boundaries", 1), "boundaries[1].hold", r"column 'T_fluid' is used with holds"),
     ("unknown-hold", sub('input = "P_heater"', 'input = "P_heater"\nhold = "cubic"'),
      ("heat_inputs", 0), "heat_inputs[0].hold", r"hold must be one of \['foh', 'zoh'\]"),
+    # an unknown key is named at its own line (KEY: the line that writes it)
     ("unknown-key-node", sub("capacitance = 0.1", 'capacitance = 0.1\ncolour = "red"'),
-     ("nodes", 1), "nodes[1].colour",
-     r"unknown key\(s\) \['colour'\]; allowed are \['capacitance', 'initial', 'initial_std', "
-     r"'name', 'process_noise'\]"),
+     (KEY, 'colour = "red"'), "nodes[1].colour",
+     r"unknown key 'colour' in this \[\[nodes\]\] entry; allowed are \['capacitance', "
+     r"'initial', 'initial_std', 'name', 'process_noise'\]"),
     ("unknown-key-link", sub("conductance = 0.08", "conductance = 0.08\nlength = 3"),
-     ("links", 0), "links[0].length", r"unknown key\(s\) \['length'\]; allowed are"),
-    ("unknown-key-sensor", sub("noise = 0.01", "noise = 0.01\nnosie = 0.02"), ("sensors", 0),
-     "sensors[0].nosie", r"unknown key\(s\) \['nosie'\]; allowed are \['column', 'node', 'noise'\]"),
+     (KEY, "length = 3"), "links[0].length", r"unknown key 'length' in this \[\[links\]\] "
+     r"entry; allowed are"),
+    ("unknown-key-sensor", sub("noise = 0.01", "noise = 0.01\nnosie = 0.02"),
+     (KEY, "nosie = 0.02"), "sensors[0].nosie", r"unknown key 'nosie' in this \[\[sensors\]\] "
+     r"entry \(did you mean 'noise'\?\); allowed are \['column', 'node', 'noise'\]"),
+    # a misspelt required key: named as written, with the key it resembles, not reported
+    # as the required key missing at the entry's header
+    ("misspelt-required-key", sub("conductance = 0.08", "conductanse = 0.08"),
+     (KEY, "conductanse = 0.08"), "links[0].conductanse",
+     r"unknown key 'conductanse' in this \[\[links\]\] entry \(did you mean "
+     r"'conductance'\?\); allowed are \['between', 'conductance'\]"),
     ("unknown-effect-parameter",
      add('[[effects]]\nkind = "radiation"\nwhere = ["core", "T_fluid"]\nemissivity = 0.9'),
      ("effects", 0), "effects[0].emissivity",
@@ -544,7 +559,6 @@ def test_toml_syntax_error_reports_line(bad_line, fragment, below, tmp_path):
 
 
 @pytest.mark.parametrize("text,fld,fix", [
-    ("colour = 'red'\n" + BASE, "colour", r"unknown top-level key\(s\) \['colour'\]; allowed are"),
     (BASE.replace("[[sensors]]", "[sensors]"), "sensors",
      r"'sensors' must be an array of tables, written \[\[sensors\]\]"),
     ('name = "empty"\n', "nodes", r"the model has no \[\[nodes\]\]; add at least one node"),
@@ -553,6 +567,15 @@ def test_bad_model_without_line(text, fld, fix, tmp_path):
     path = tmp_path / "whole.toml"
     path.write_text(text)
     with pytest.raises(InputError, match=re.escape(f"{path}, field '{fld}': ") + fix):
+        load_model(path)
+
+
+def test_unknown_top_level_key_is_named_at_its_line(tmp_path):
+    path = tmp_path / "top.toml"
+    path.write_text("# a room\n\nnmae = 'room'\n" + BASE)
+    with pytest.raises(InputError, match=re.escape(f"{path}, line 3, field 'nmae': unknown "
+                                                   "top-level key 'nmae' (did you mean 'name'?)"
+                                                   "; allowed are")):
         load_model(path)
 
 

@@ -1,4 +1,4 @@
-"""The factory calibration pipeline as named stages (issue 13 item 3), each a function on
+"""The factory calibration pipeline as named stages, each a function on
 plain data, and `run_pipeline(config)` running those a config names, in order:
 
 1. `condition`: two logs per run onto one time base (Hampel outliers, the same low-pass

@@ -53,7 +53,7 @@ def cmd_export(args) -> int:
     model = _resolve_model(args.model)
     if not model.is_file():
         raise InputError("no such model file.", file=str(model), field="--model")
-    args.progress(f"designing the observer of {model} at {args.rate:g} Hz "
+    args.progress(f"designing the observer of {model} at {float(args.rate):g} Hz "
                   f"({args.method} gains for every sensor subset)")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -230,22 +230,27 @@ def supervision_line(faults: dict) -> str:
 
 
 def add_export(sub):
-    from ._main import _add_force, _add_quiet, _positive_float
+    from ._main import _add_force, _add_quiet, _positive_float, rate_hz
 
     p = sub.add_parser("export", help="export the reference observer (JSON, .npz, C99)",
+                       usage="thermojax export --model M --rate HZ --out DIR [options]\n"
+                       "       thermojax export --check DIR",
                        description="Design the observer of a model at a rate and write it as a "
                        "versioned artifact: DIR/observer.json (metadata, schema 1), "
                        "DIR/observer.npz (matrices, a gain for every sensor subset, offsets) "
                        "and C99 source and header (float64 build by default; with --fixed also the "
                        "fixed-point build). With --check DIR, check an existing artifact.")
-    p.add_argument("--model", help="model TOML file or built-in model name")
-    p.add_argument("--rate", type=_positive_float, help="observer rate, Hz (e.g. 20)")
-    p.add_argument("--out", help="output folder")
+    p.add_argument("--model", help="model TOML file or built-in model name (required "
+                   "unless --check)")
+    p.add_argument("--rate", type=rate_hz, metavar="HZ",
+                   help="observer rate, Hz: a number (20, 0.5) or a fraction (1/1800 for one "
+                   "sample every 1800 s); required unless --check")
+    p.add_argument("--out", help="output folder (required unless --check)")
     p.add_argument("--fixed", choices=FORMATS, default=None,
                    help="also write the fixed-point build in this format")
     p.add_argument("--method", choices=["kalman", "poles"], default="kalman",
                    help="gains: steady-state Kalman (default; q and R from the model, "
-                   "recorded in observer.json 'design') or pole placement by the seed's rule: "
+                   "recorded in observer.json 'design') or pole placement: "
                    "4x the open-loop poles, modes already faster than 5 sample periods kept, "
                    "faster poles capped at 1/(5 dt) (docs/observer.md §4)")
     p.add_argument("--sensor", action="append", metavar="COLUMN",

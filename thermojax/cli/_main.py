@@ -7,6 +7,7 @@ message naming the file, line or row, and field; never a traceback for those.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 from importlib import resources
@@ -33,11 +34,22 @@ def _builtin_model_path(name: str) -> Path:
     return Path(str(resources.files("thermojax") / "data" / f"{name}.toml"))
 
 
+def builtin_model_names() -> list[str]:
+    """The names `--model` takes besides a file path (`imu6`, `rtd2`, ...)."""
+    folder = resources.files("thermojax") / "data"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
 def _resolve_model(arg: str) -> Path:
     """A model file path, or the name of a built-in model (`imu6`, `rtd2`)."""
     path = Path(arg)
-    if not path.exists() and path.suffix == "" and _builtin_model_path(arg).exists():
-        return _builtin_model_path(arg)
+    if not path.exists() and path.suffix == "":
+        if _builtin_model_path(arg).exists():
+            return _builtin_model_path(arg)
+        raise InputError(f"model file not found, and no built-in model is called '{arg}'; "
+                         f"the built-in models are {', '.join(builtin_model_names())}. Give "
+                         "the path of a model TOML file or one of these names.",
+                         file=arg, field="--model")
     return path
 
 
@@ -149,7 +161,7 @@ def cmd_demo(args) -> int:
     check_output_folder(out, args.force, in_place=True)
     mark_own(out)
     model = _builtin_model_path("imu6")
-    print("thermojax demo: the six-node tactical-IMU model through the seed's calibration "
+    print("thermojax demo: the six-node tactical-IMU model through a factory calibration "
           "schedule (1, 5 and 10 °C/min ramps between -40 and +85 °C plateaus), 1 s samples, "
           "ASIC dissipating 0.05 W.")
     csv = out / "imu6_calibration.csv"
@@ -285,6 +297,45 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def rate_hz(text: str):
+    """An argparse type: a rate in Hz as a number (`20`, `0.5`) or a fraction (`1/1800`),
+    returned as an exact `fractions.Fraction` so that the period recorded is the one meant.
+
+    A decimal with more than six significant digits is read as a rounded inverse of a
+    period: when a period of at most six significant digits has a rate that rounds to
+    the digits given, that period is the one meant (`0.000555555555556` is 1/1800 Hz, a
+    period of 1800 s, not 1799.99999999856 s); otherwise the rate is the decimal as
+    given.
+    """
+    from decimal import Decimal, InvalidOperation, localcontext
+    from fractions import Fraction
+
+    def number(part: str) -> Decimal:
+        try:
+            value = Decimal(part.strip())
+        except InvalidOperation:
+            raise argparse.ArgumentTypeError(
+                f"expected a rate in Hz, a number (20) or a fraction (1/1800), got {text!r}"
+            ) from None
+        if not value.is_finite() or value <= 0:
+            raise argparse.ArgumentTypeError(f"must be a positive number of Hz, got {text}")
+        return value
+
+    if "/" in text:
+        top, _, bottom = text.partition("/")
+        return Fraction(number(top)) / Fraction(number(bottom))
+    value = number(text)
+    digits = value.as_tuple()
+    if len(digits.digits) > 6:
+        with localcontext() as ctx:
+            ctx.prec = 40
+            period = Decimal(1) / value
+            meant = Decimal(f"{period:.6g}")
+            if abs(Decimal(1) / meant - value) <= Decimal(5).scaleb(digits.exponent - 1):
+                return 1 / Fraction(meant)
+    return Fraction(value)
+
+
 def _finite_float(text: str) -> float:
     try:
         value = float(text)
@@ -309,19 +360,38 @@ def _add_force(p, what: str) -> None:
                    help=f"replace {what} even if thermojax did not write it")
 
 
-def _add_fit_arguments(p) -> None:
-    """--model, --data (repeatable), --out, --likelihood, --force: shared by fit, diagnose,
-    investigate."""
+LIKELIHOOD_HELP = (
+    "output_error (default): the model is run from its initial state on the measured inputs "
+    "alone and compared with every reading; use it when the model is close to complete and "
+    "the sensors are quiet, as for a chamber test. kalman: each reading corrects the model's "
+    "state before the next is predicted (a Kalman filter with the nodes' process noise); use "
+    "it when heat the model does not have (weather, occupants, an unlogged source) moves "
+    "the temperatures, as in a building or field log, or when output_error leaves slow "
+    "wandering residuals")
+
+_OUTLIERS_HELP = {
+    "fit": "drop it (a sensor cell becomes a dropped sample, an input cell is filled from its "
+           "neighbours as its hold says); fit then also drops a sensor sample that alone "
+           "decided the fit, and refits",
+    "diagnose": "drop it (a sensor cell becomes a dropped sample, an input cell is filled "
+                "from its neighbours as its hold says) before the model is fitted and the "
+                "candidates are ranked",
+    "investigate": "drop it (a sensor cell becomes a dropped sample, an input cell is filled "
+                   "from its neighbours as its hold says) before the first step",
+}
+
+
+def _add_fit_arguments(p, command: str) -> None:
+    """--model, --data (repeatable), --out, --likelihood, --outliers, --force: shared by
+    fit, diagnose, investigate (`command` words the --outliers help for each)."""
     p.add_argument("--model", required=True, help="model TOML file or built-in model name")
     p.add_argument("--data", required=True, action="append", help="telemetry CSV (repeatable)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error")
+    p.add_argument("--likelihood", choices=["output_error", "kalman"], default="output_error",
+                   help=LIKELIHOOD_HELP)
     p.add_argument("--outliers", choices=["stop", "drop"], default="stop",
                    help="a cell the model's units and the other samples rule out: stop (the "
-                   "default, naming each by line and column) or drop it (a sensor cell becomes "
-                   "a dropped sample, an input cell is filled from its neighbours as its hold "
-                   "says); fit also drops a sensor sample that alone decided the fit, and "
-                   "refits")
+                   "default, naming each by line and column) or " + _OUTLIERS_HELP[command])
     _add_force(p, "an existing --out folder")
     _add_quiet(p)
 
@@ -331,7 +401,7 @@ def _add_fit(sub):
                        description="Fit the free parameters of a model to one or more telemetry "
                        "CSV files (one chamber run each; parameters shared, each run with its "
                        "own initial state). Writes DIR/model.toml, DIR/report.json and plots.")
-    _add_fit_arguments(p)
+    _add_fit_arguments(p, "fit")
     p.add_argument("--starts", type=_positive_int, default=1,
                    help="number of starts (multi-start, at least 1)")
     p.add_argument("--profile", action="append", metavar="PARAM",
@@ -435,7 +505,7 @@ def _add_diagnose(sub):
                        "effect of the vocabulary (docs/formats.md §3) at every place the model allows, "
                        "data columns it does not use included, without changing the model. "
                        "Writes DIR/report.json, DIR/report.md and diagnostic plots.")
-    _add_fit_arguments(p)
+    _add_fit_arguments(p, "diagnose")
     p.set_defaults(func=cmd_diagnose)
 
 
@@ -446,7 +516,7 @@ def _add_investigate(sub):
                        "candidate is supported. Writes DIR/report.json, DIR/model_final.toml, "
                        "DIR/report.md and plots. An interrupted run resumes from its last "
                        "finished step when started again with the same inputs.")
-    _add_fit_arguments(p)
+    _add_fit_arguments(p, "investigate")
     p.add_argument("--max-steps", type=_nonnegative_int, default=4,
                    help="most effects to add (default 4)")
     p.add_argument("--restart", action="store_true",
@@ -564,7 +634,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="File formats, the effect vocabulary, report keys and every command: docs/ in "
         "the repository (docs/formats.md, docs/cli.md, docs/reports.md).")
     parser.add_argument("--version", action="version", version=f"thermojax {_version()}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
+                                help="what to do (each command has its own --help)")
     _add_simulate(sub)
     _add_fit(sub)
     _add_diagnose(sub)
@@ -610,6 +681,22 @@ def interrupted_message(command: str) -> str:
         command, "nothing more was written") + "."
 
 
+@contextlib.contextmanager
+def _own_warnings():
+    """Python warnings raised while a command runs (the library's, or NumPy's and JAX's)
+    printed as the tool's own `warning: ...` lines, without the source path and line
+    that Python's default display adds."""
+    import warnings
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = str(message).strip()
+        print(f"warning: {text}", file=sys.stderr if file is None else file)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        yield
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one command; returns its exit status (0, 2 for a user's mistake, 130 on Ctrl-C).
 
@@ -626,7 +713,7 @@ def main(argv: list[str] | None = None) -> int:
 
         enable_compilation_cache()
     try:
-        with args.progress.running(), output_session(args.command):
+        with args.progress.running(), output_session(args.command), _own_warnings():
             status = args.func(args)
             if args.progress.interrupted:  # swallowed where Python ignores exceptions
                 raise KeyboardInterrupt

@@ -1,5 +1,5 @@
 """`thermojax rate --model M [--anti-alias ORDER CUTOFF_HZ --rate HZ]`: which observer
-rate is enough (the second seed's 8–15× rule checked against the observer's own error),
+rate is enough (the 8–15×-bandwidth rule of thumb checked against the observer's own error),
 and what an anti-alias filter's delay costs. Edges only; the work is
 `observer._rate`."""
 
@@ -49,13 +49,14 @@ def cmd_rate(args) -> int:
         verdict = ("inside" if 8 <= ratio <= 15 else "below" if ratio < 8 else "above")
         print(f"enough: {adv.recommended_hz:g} Hz, the lowest rate that observes every "
               f"state and is within {adv.tolerance:.0%} of the continuous limit ({ratio:.3g}× the bandwidth, "
-              f"{verdict} the seed's 8–15× rule, which asks {lo:.3g}–{hi:.3g} Hz)")
+              f"{verdict} the rule of thumb of 8–15× the bandwidth, which asks "
+              f"{lo:.3g}–{hi:.3g} Hz)")
     if args.anti_alias is not None:
         order, cutoff = args.anti_alias
         if order != int(order) or not 1 <= order <= 8 or not cutoff > 0:
             raise InputError("--anti-alias takes ORDER (1..8) and CUTOFF_HZ (> 0).",
                              field="--anti-alias")
-        rate = args.rate if args.rate is not None else adv.recommended_hz
+        rate = float(args.rate) if args.rate is not None else adv.recommended_hz
         if rate is None:
             raise InputError("give --rate for the anti-alias evaluation.", field="--rate")
         cost = anti_alias_cost(model, rate, int(order), cutoff, sensors,
@@ -72,33 +73,39 @@ def cmd_rate(args) -> int:
 
 
 def _rates(text: str) -> list[float]:
+    """Comma-separated rates, each a number or a fraction (`1/1800,1/900,0.01`)."""
     import argparse
 
+    from ._main import rate_hz
+
     try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated Hz, got {text!r}")
+        values = [float(rate_hz(v)) for v in text.split(",")]
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated Hz (numbers or "
+                                         f"fractions such as 1/1800), got {text!r}") from None
     if not values or not all(v > 0 and v < 1e6 for v in values):
         raise argparse.ArgumentTypeError(f"rates must be positive Hz, got {text!r}")
     return values
 
 
 def add_rate(sub) -> None:
-    from ._main import _add_quiet, _positive_float
+    from ._main import _add_quiet, _positive_float, rate_hz
 
     p = sub.add_parser(
         "rate", help="which observer rate is enough, and an anti-alias filter's cost",
         description="The steady-state Kalman observer's worst-state error std at candidate "
         "rates against its continuous-time limit, with sensor noise of fixed density (the "
         "model's noise std per sample at --noise-rate); the lowest rate within --tolerance "
-        "of the limit, and the second seed's 8-15x-bandwidth rule beside it. With "
+        "of the limit, and beside it the rule of thumb of sampling at 8-15x the closed-loop "
+        "bandwidth. With "
         "--anti-alias ORDER CUTOFF_HZ: the filter's group delay and the steady error it "
         "adds during a ramp.")
     p.add_argument("--model", required=True, help="model TOML file or built-in model name")
     p.add_argument("--sensor", action="append", metavar="COLUMN",
                    help="use only this sensor column (repeatable; default all)")
     p.add_argument("--rates", type=_rates, default=None, metavar="HZ,HZ,...",
-                   help="candidate rates (default 0.01 to 5000 Hz in 1-2-5 steps)")
+                   help="candidate rates, numbers or fractions such as 1/1800 (default 0.01 to "
+                   "5000 Hz in 1-2-5 steps)")
     p.add_argument("--noise-rate", type=_positive_float, default=1.0, metavar="HZ",
                    help="the rate at which the model's sensor noise std holds per sample "
                    "(default 1 Hz: the rate of the data it was fitted to)")
@@ -106,8 +113,9 @@ def add_rate(sub) -> None:
                    help="how close to the continuous limit is enough (default 0.1: 10 %%)")
     p.add_argument("--anti-alias", type=float, nargs=2, metavar=("ORDER", "CUTOFF_HZ"),
                    default=None, help="evaluate a Butterworth anti-alias filter")
-    p.add_argument("--rate", type=_positive_float, default=None, metavar="HZ",
-                   help="the observer rate for --anti-alias (default: the rate found enough)")
+    p.add_argument("--rate", type=rate_hz, default=None, metavar="HZ",
+                   help="the observer rate for --anti-alias, a number or a fraction such as "
+                   "1/1800 (default: the rate found enough)")
     p.add_argument("--ramp", type=_positive_float, default=5.0, metavar="C_PER_MIN",
                    help="the ramp of the anti-alias evaluation, °C/min (default 5)")
     _add_quiet(p)

@@ -392,7 +392,7 @@ def step_shock(start_c: Real, end_c: Real, before_s: Real, after_s: Real, *,
 
 def viscoelastic_dwell(start_c: Real = 25.0, end_c: Real = 85.0, before_s: Real = 600.0,
                        soak_s: Real = 3 * 3600.0, *, dt: Real = 1.0) -> Profile:
-    """The seed's viscoelastic dwell: a rapid step to +85 °C, then a 3 h soak.
+    """The viscoelastic dwell: a rapid step to +85 °C, then a 3 h soak.
 
     Same shape as `step_shock(start_c, end_c, before_s, soak_s)`.
 
@@ -439,7 +439,7 @@ def power_step(level_w: Real, before_s: Real, on_s: Real, after_s: Real, *,
 def power_sweep(level_w: Real, periods_s=(300.0, 30.0), cycles=(2, 10), *,
                 temperature_c: Real = 25.0, dt: Real = 1.0) -> Profile:
     """A heater power swept at a few frequencies in turn, at constant chamber temperature:
-    the second seed's two-point frequency end-of-line test.
+    the two-point frequency end-of-line test.
 
     For each period `P` (s) in turn, `cycles` whole cycles of
     `level_w (1 − cos(2π t / P)) / 2` (0 at each start and end, `level_w` at the peak),
@@ -607,7 +607,7 @@ def calibration_schedule(dt: Real = 1.0, low_c: Real = -40.0, high_c: Real = 85.
                          rates_c_per_min: Sequence[Real] = (1.0, 5.0, 10.0),
                          dwell_s: Real = 1800.0, start_c: Real = 25.0,
                          soak_s: Real = 1800.0, end_c: Real | None = None) -> Profile:
-    """The seed's multi-phase thermal calibration profile.
+    """The multi-phase thermal calibration profile.
 
     A soak at `start_c` for `soak_s`; a ramp to `low_c` at the first rate and a dwell
     there; then, for each rate in order, a ramp `low_c → high_c`, a dwell at `high_c`, a

@@ -37,11 +37,13 @@ def parse_model(text: str, source: str = "<model>") -> ModelSpec:
         raise InputError(f"TOML syntax error: {err}. Fix the syntax at that line.", file=source,
                          line=int(m.group(1)) if m else None) from None
     lines = _entry_lines(text)
-    reader = _Reader(source, lines)
+    reader = _Reader(source, lines, text.splitlines())
     unknown = set(doc) - _TOP_KEYS
     if unknown:
-        raise InputError(f"unknown top-level key(s) {sorted(unknown)}; allowed are "
-                         f"{sorted(_TOP_KEYS)}.", file=source, field=sorted(unknown)[0])
+        key = sorted(unknown)[0]
+        raise InputError(f"unknown top-level key '{key}'{_closest(key, _TOP_KEYS)}; allowed "
+                         f"are {sorted(_TOP_KEYS)}.", file=source,
+                         line=_key_line(text.splitlines(), key, 0, top=True), field=key)
     for t in _TABLES:
         if t in doc and not (isinstance(doc[t], list) and all(isinstance(e, dict) for e in doc[t])):
             raise InputError(f"'{t}' must be an array of tables, written [[{t}]].", file=source,
@@ -73,25 +75,65 @@ def _entry_lines(text: str) -> dict[tuple[str, int], int]:
     return out
 
 
+def _closest(key: str, allowed) -> str:
+    """`; did you mean 'conductance'?` for a misspelt key, or nothing."""
+    import difflib
+
+    match = difflib.get_close_matches(key, sorted(allowed), n=1, cutoff=0.6)
+    return f" (did you mean '{match[0]}'?)" if match else ""
+
+
+def _key_line(text_lines: list[str], key: str, start: int, top: bool = False) -> int | None:
+    """1-based line where `key = ...` is written in the entry whose header is line
+    `start` (0: the top of the file), before the next table header; a top-level
+    `[key]` or `[[key]]` header counts too (`top`)."""
+    pattern = re.compile(rf"""\s*(["']?){re.escape(key)}\1\s*=""")
+    header = re.compile(rf"\s*\[\[?\s*{re.escape(key)}\s*\]") if top else None
+    for lineno in range(start + 1, len(text_lines) + 1):
+        line = text_lines[lineno - 1]
+        if header is not None and header.match(line):
+            return lineno
+        if line.lstrip().startswith("[") and not top:
+            break
+        if pattern.match(line) and not (top and _in_table(text_lines, lineno)):
+            return lineno
+    return None
+
+
+def _in_table(text_lines: list[str], lineno: int) -> bool:
+    """Whether line `lineno` lies below some table header (so is not a top-level key)."""
+    return any(line.lstrip().startswith("[") for line in text_lines[:lineno - 1])
+
+
 class _Reader:
     """Turns one TOML table entry into a spec object, with messages that point at it."""
 
-    def __init__(self, source: str, lines: dict[tuple[str, int], int]):
+    def __init__(self, source: str, lines: dict[tuple[str, int], int],
+                 text_lines: list[str] | None = None):
         self.source = source
         self.lines = lines
+        self.text_lines = text_lines or []
 
     def fail(self, msg: str, table: str, i: int, fld: str):
         raise InputError(msg, file=self.source, line=self.lines.get((table, i)),
                          field=f"{table}[{i}].{fld}")
 
     def keys(self, e: dict, table: str, i: int, required: tuple[str, ...], optional: tuple[str, ...]):
+        # an unknown key first: a misspelt required key is named as written, at its own
+        # line, not reported as a missing one at the table's header
+        allowed = (*required, *optional)
+        extra = sorted(set(e) - set(allowed))
+        if extra:
+            key = extra[0]
+            header = self.lines.get((table, i))
+            line = (_key_line(self.text_lines, key, header) if header is not None else None)
+            raise InputError(f"unknown key '{key}' in this [[{table}]] entry"
+                             f"{_closest(key, allowed)}; allowed are {sorted(allowed)}.",
+                             file=self.source, line=line or header,
+                             field=f"{table}[{i}].{key}")
         for k in required:
             if k not in e:
                 self.fail(f"missing required key '{k}'.", table, i, k)
-        extra = set(e) - set(required) - set(optional)
-        if extra:
-            self.fail(f"unknown key(s) {sorted(extra)}; allowed are "
-                      f"{sorted((*required, *optional))}.", table, i, sorted(extra)[0])
 
     def param(self, v: Any, table: str, i: int, fld: str) -> Parameter:
         if isinstance(v, dict):

@@ -1,6 +1,6 @@
 """Unit-variance Monte Carlo: populations of units, the study (nominal, batch-level,
 per-unit fitted and own models), and resumable chunked runs sharded over devices and
-processes (issue 14)."""
+processes."""
 
 from .. import _jax_settings  # noqa: F401  (float64 and XLA options before any array is made)
 from ._chunks import ChunkStore, atomic_write_bytes, config_hash

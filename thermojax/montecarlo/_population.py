@@ -27,7 +27,7 @@ import numpy as np
 
 from .._errors import InputError
 
-#: The second seed's sourcing table (unit-to-unit variance per sourcing modality),
+#: A sourcing table (unit-to-unit variance per sourcing modality),
 #: as relative spreads (one standard deviation; the table's "+/- x percent" read as
 #: one sigma). Every preset perturbs every `nodes.*.capacitance` (package, gel and
 #: potting masses) and every `links.*.conductance` (die attach, bond line, potting,
@@ -38,18 +38,18 @@ PRESETS: dict[str, dict] = {
     "asic_integrated": {
         "spread": 0.05, "title": "fully package-integrated ASIC sensor",
         "source": "internal gel mass and bond line thickness, +/- 5 percent; "
-                  "mitigation in the seed: batch-level default matrix loading"},
+                  "usual mitigation: batch-level default matrix loading"},
     "oem_module": {
         "spread": 0.12, "title": "high-volume OEM module",
-        "source": "diaphragm stiffening under pre-stress, +/- 12 percent; mitigation in "
-                  "the seed: automated runtime parameter gain scheduling"},
+        "source": "diaphragm stiffening under pre-stress, +/- 12 percent; usual "
+                  "mitigation: automated runtime parameter gain scheduling"},
     "bare_die_custom": {
         "spread": 0.18, "title": "bare MEMS die with custom packaging",
-        "source": "potting compound viscosity and fill volume, +/- 18 percent; mitigation "
-                  "in the seed: single-point dynamic end-of-line calibration"},
+        "source": "potting compound viscosity and fill volume, +/- 18 percent; usual "
+                  "mitigation: single-point dynamic end-of-line calibration"},
     "thermistor_custom_housing": {
         "spread": 0.32, "title": "discrete thermistor in a custom housing",
-        "source": "thermal grease cavity air gaps, +/- 32 percent; mitigation in the seed: "
+        "source": "thermal grease cavity air gaps, +/- 32 percent; usual mitigation: "
                   "two-point dynamic frequency sweep end-of-line test"},
 }
 
@@ -232,7 +232,7 @@ def sample_units(spec, population: Population, indices, seed: int = 0) -> UnitPa
         indices = np.arange(int(indices))
     indices = np.asarray(indices, dtype=np.int64)
     if int(seed) < 0:
-        raise InputError(f"the seed must be 0 or more, got {seed}.", field="seed")
+        raise InputError(f"`seed` must be a whole number, 0 or more, got {seed}.", field="seed")
     known = spec_parameters(spec)
     names = varied_names(population)
     nominal = np.array([known[n].value for n in names], dtype=float)

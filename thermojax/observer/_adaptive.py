@@ -1,9 +1,9 @@
 """An adaptive extended Kalman filter: node temperatures and slowly drifting conductances.
 
-The seed's answer to ageing (die-attach voiding, thermal-interface pump-out): the logs of
+The answer to ageing (die-attach voiding, thermal-interface pump-out): the logs of
 the conductances that may drift are states beside the node temperatures, each a random
 walk `d log g = σ_g dβ`, and an extended Kalman filter estimates both from the sensors.
-The covariance is float64 throughout (the seed: double-precision covariance).
+The covariance is float64 throughout (double-precision covariance, as firmware keeps it).
 
 Each step (sample period `dt`, inputs held as the model file says):
 

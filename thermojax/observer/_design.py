@@ -24,7 +24,7 @@ def design_observer(model, dt: float, sensors=None, method: str = "kalman",
     - `method="kalman"` (default): the steady-state Kalman gain, with `Qd` from each
       node's `process_noise` (°C/√s, default 1e-3) by Van Loan and `R` from each
       sensor's `noise` (°C, default 0.01) (`steady_state_kalman`);
-    - `method="poles"`: pole placement at the seed's `speedup` × the open-loop poles,
+    - `method="poles"`: pole placement at `speedup` × the open-loop poles,
       fast modes kept (`observer_poles`, `place_observer_gain`).
 
     Sensor offsets (`sensor_offset` effects) are not in `D`: subtract

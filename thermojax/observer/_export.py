@@ -28,6 +28,7 @@ import dataclasses
 import itertools
 import json
 import warnings
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -117,11 +118,12 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
 
     - `spec_or_model`: a model file path, a `ModelSpec` (bias channels exported) or a
       `ThermalModel`.
-    - `rate_hz`: the observer rate (Hz); the sample period is `1 / rate_hz`.
+    - `rate_hz`: the observer rate (Hz); the sample period is `1 / rate_hz` (exactly,
+      when `rate_hz` is a `fractions.Fraction`: `Fraction(1, 1800)` records 1800 s).
     - `out_dir`: the folder to write (created; existing files of the same names replaced).
     - `fixed`: `None`, `"q16.16"`, `"q8.24"`, `"q15"`, `"q31"` or a
       `thermojax.reference.FixedFormat`.
-    - `method`: `"kalman"` (steady-state Kalman gains) or `"poles"` (the seed's rule).
+    - `method`: `"kalman"` (steady-state Kalman gains) or `"poles"` (4× the open-loop poles).
     - `sensors`: sensor column names to use (default all).
     - `operating_point`: `T_op` (°C) of the linearization of a nonlinear model.
     - `speedup`: observer poles × open-loop poles for `method="poles"`.
@@ -169,6 +171,7 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; expected one of {list(METHODS)}.",
                          field="--method")
+    exact = rate_hz if isinstance(rate_hz, Fraction) else None
     try:
         rate_hz = float(rate_hz)
     except (TypeError, ValueError):
@@ -176,7 +179,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     if not np.isfinite(rate_hz) or rate_hz <= 0:
         raise InputError(f"the observer rate must be a positive number of Hz, got {rate_hz}.",
                          field="--rate")
-    dt = 1.0 / rate_hz
+    # an exact rate (1/1800 Hz) records its exact period (1800 s, not 1799.9999999999998)
+    dt = float(1 / exact) if exact is not None else 1.0 / rate_hz
     try:
         operating_point = float(operating_point)
     except (TypeError, ValueError):

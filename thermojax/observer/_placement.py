@@ -69,7 +69,7 @@ def sensor_placement(network, k: int, dt: float, candidates=None, required=(),
     leave a state unobservable rank last. The `criterion` among observable sets:
 
     - `"condition"` (default): smallest `cond(W_S) = μ_max/μ_min`, how evenly the
-      sensors see every direction (the seed's figure). Not monotone: adding a sensor
+      sensors see every direction. Not monotone: adding a sensor
       can worsen it by raising `μ_max`.
     - `"min_eigenvalue"`: largest `μ_min` (E-optimal): the worst direction's std
       `1/√μ_min` is smallest. Monotone in the set.

@@ -9,7 +9,7 @@ requested poles allow (no Ackermann formula: its companion form is hopeless at
 stiffness ratios of 10³). `(Phi, C Phi)` and `(Phi, C)` have the same observability
 because `Phi = e^{A dt}` is invertible.
 
-The seed's rule for the poles (`observer_poles`): each continuous open-loop thermal
+The rule for the poles (`observer_poles`): each continuous open-loop thermal
 pole `λ_i < 0` moves to `speedup·λ_i` with `speedup` 3…5, then maps to `z = e^{s dt}`.
 Two exceptions, both stated in the result:
 
@@ -38,7 +38,7 @@ from ._observability import observability_rank
 
 @dataclass(frozen=True)
 class ObserverPoles:
-    """Observer poles chosen by the seed's rule (`observer_poles`).
+    """Observer poles chosen by the pole rule (`observer_poles`).
 
     - `open_loop`: continuous open-loop poles `λ_i` (1/s), ascending in speed.
     - `continuous`: the chosen continuous poles (1/s).
@@ -69,7 +69,7 @@ def observer_poles(system, dt: float, speedup: float = 4.0,
 
     - `system`: the continuous `LinearSystem` (its `A`, 1/s).
     - `dt`: observer sample period (s).
-    - `speedup`: the factor, the seed's 3…5 (default 4). Must be ≥ 1.
+    - `speedup`: the factor, usually 3…5 (default 4). Must be ≥ 1.
     - `min_time_constant`: the fastest observer time constant (s); default `5 dt`.
 
     **Returns:** an `ObserverPoles`.

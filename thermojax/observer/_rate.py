@@ -1,6 +1,6 @@
 """Which observer rate is enough, and what an anti-alias filter costs.
 
-The second seed's rule: sample at 8–15 times the highest closed-loop bandwidth. Here the
+The rule of thumb: sample at 8–15 times the highest closed-loop bandwidth. Here the
 rule is checked against the observer itself. The sensor noise is taken as white with a
 fixed density: `noise` (°C) is the std of one sample at `noise_rate_hz`, so a sample at
 rate `f` has std `noise · sqrt(f / noise_rate_hz)` (an ADC averaging over its own
@@ -48,7 +48,7 @@ class RateAdvice:
     std; `bandwidth_hz` the continuous observer's highest closed-loop bandwidth;
     `recommended_hz` the lowest observable candidate within `tolerance` of the limit
     (None if none);
-    `rule_hz` the seed's 8–15× range; `states` the names; `worst_state` the state the
+    `rule_hz` the rule of thumb's 8–15× range; `states` the names; `worst_state` the state the
     error std is of."""
 
     rows: tuple
