@@ -64,8 +64,8 @@ class NetworkHeat(eqx.Module):
         rate = self.base.nonlinear_rate(system, x, u)
         return rate.at[self.node].add(self.heat(x, u) / system.capacitance[self.node])
 
-    def initial_state(self, system, u0, run_initial=None, steady_state=None):
-        return self.base.initial_state(system, u0, run_initial, steady_state)
+    def initial_state(self, system, u0, run_initial=None, steady_state=None, solve=None):
+        return self.base.initial_state(system, u0, run_initial, steady_state, solve)
 
 
 @dataclass(frozen=True)

@@ -82,6 +82,11 @@ def _steady_state_small(system, u0):
     return _solve_small(-c * system.A, (c * system.B) @ u0[:, None])[:, 0]
 
 
+def _solve_vector_small(M, b):
+    """`M⁻¹ b` for a vector `b` by `_solve_small`."""
+    return _solve_small(M, b[:, None])[:, 0]
+
+
 def dataset_maps(model, data, run_initial, L: int = _BLOCK):
     """Per-run `((DL, N, O), z0)` of a `ThermalModel` on a `Dataset`, stacked over runs:
     the `block_maps` of the run's outputs and its initial `z0 = x0 - B1 u[0]` (n,).
@@ -95,7 +100,8 @@ def dataset_maps(model, data, run_initial, L: int = _BLOCK):
     discs = jax.lax.map(lambda dt: discretize(system, dt), dts)
 
     def one(disc, u0, r0):
-        x0 = model.initial_state(system, u0, r0, steady_state=_steady_state_small)
+        x0 = model.initial_state(system, u0, r0, steady_state=_steady_state_small,
+                                 solve=_solve_vector_small)
         DL, N, (O,) = block_maps(disc.Phi, disc.B0, disc.B1, ((disc.C, disc.D),), L)
         return (DL, N, O), x0.astype(disc.Phi.dtype) - disc.B1 @ u0
 

@@ -132,8 +132,12 @@ def _warn_start_mismatch(result: FitResult, experiments) -> None:
     """Warn where a run's first readings are far from the fitted model's start."""
     columns = result.lowered_spec.sensor_columns
     noise = {c: result.parameters.get(f"sensors.{c}.noise", {}).get("value") for c in columns}
+    # a run with an estimated start moved it where the data say: nothing to warn of
+    fixed = [e if not any(n.startswith(f"runs.{r}.") and n.endswith(".initial")
+                          for n in result.free_names) else None
+             for r, e in enumerate(experiments)]
     for message in start_mismatches(result.spec, columns, noise, result.predictions,
-                                    experiments):
+                                    fixed):
         warnings.warn(message, stacklevel=3)
 
 

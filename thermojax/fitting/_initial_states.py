@@ -137,9 +137,12 @@ def start_mismatches(spec: ModelSpec, columns, noise: dict[str, float], predicti
     where the model's initial state (written in the file, or `"steady"`) does not.
 
     `columns`: the sensor columns, in the order of `predictions`' outputs;
-    `noise`: column -> fitted noise std."""
+    `noise`: column -> fitted noise std; an experiment given as None is not checked (its
+    start was estimated)."""
     out = []
     for r, (pred, e) in enumerate(zip(predictions, experiments)):
+        if e is None:
+            continue
         for j, col in enumerate(columns):
             res = e.outputs[:, j] - np.asarray(pred)[:, j]
             first = res[np.isfinite(res)][:n_first]

@@ -283,7 +283,8 @@ def _masks(spec: ModelSpec, model: ThermalModel, n_runs: int, likelihood: str):
                         model.network, tuple(arrays[:4])),
             arrays[4], arrays[5], arrays[6], arrays[7], model.initial_nodes, arrays[8],
             model.effect_terms, jax.tree.map(lambda x: np.zeros(x.shape, bool),
-                                             model.effect_sensors)),
+                                             model.effect_sensors),
+            added_nodes=model.added_nodes),
         run_mask, tau_mask)
     names = ([nm for _, nms in net_masks for nm in nms] + [nm for row in run_names for nm in row]
              + tau_names)

@@ -2,7 +2,7 @@
 
 Every effect kind declares where its parameters stay physical over the data
 (`AbstractEffect.unphysical`): a sensor gain far from a calibration error, an offset
-beyond any sensor's, a capacitance or conductance factor that falls to a tenth or
+beyond any sensor's, a capacitance or conductance factor that falls below 2 % of its reference value or
 crosses zero within the data's temperatures. A refitted candidate outside its range is
 not supported, whatever its likelihood. A sensor artifact (gain, offset, lag) is not
 chosen over a supported physical effect that the data support nearly as well (deflated

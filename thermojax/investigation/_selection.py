@@ -56,8 +56,8 @@ def significance_rule(fdr: float, n_blocks: int) -> str:
         f"not positive; with fewer than {MIN_CONCLUSIVE} conclusive folds the check is "
         "inconclusive and the likelihood-ratio test decides. A candidate whose fitted "
         "parameters leave their physical range (a sensor gain beyond ±20 %, an offset beyond "
-        "10 °C, a capacitance or conductance factor falling below a tenth of its reference "
-        "value within the data) is not supported, and a sensor artifact (gain, offset, lag) "
+        "10 °C, a capacitance or conductance factor falling below 2 % of its reference value "
+        "or crossing zero within the data's temperatures) is not supported, and a sensor artifact (gain, offset, lag) "
         f"steps aside for a supported physical effect within {MIN_BIC_DROP:g} of its deflated "
         "Δ BIC")
 

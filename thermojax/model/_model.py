@@ -53,6 +53,8 @@ class ThermalModel(eqx.Module):
     read_states: bool = eqx.field(static=True, default=False)
     # ETD2 steps per sample period when the model has nonlinear effects (`_nonlinear`).
     etd2_substeps: int = eqx.field(static=True, default=DEFAULT_ETD2_SUBSTEPS)
+    # Nodes an effect added: they start at rest given every other node's start.
+    added_nodes: tuple[int, ...] = eqx.field(static=True, default=())
 
     @classmethod
     def from_spec(cls, spec: ModelSpec) -> "ThermalModel":
@@ -85,7 +87,8 @@ class ThermalModel(eqx.Module):
                                     np.asarray(init, float), np.asarray(std, float))),
                    tuple(i for i, n in enumerate(spec.nodes) if n.initial is not None),
                    jax.device_put(np.asarray(values, float).reshape(-1)), tuple(terms),
-                   tuple(sensors))
+                   tuple(sensors),
+                   added_nodes=tuple(i for i, n in enumerate(spec.nodes) if n.added_by_effect))
 
     @property
     def is_nonlinear(self) -> bool:
@@ -168,10 +171,16 @@ class ThermalModel(eqx.Module):
     def process_noise(self) -> Float[Array, " nodes"]:
         return jnp.exp(self.log_process_noise)
 
-    def initial_state(self, system, u0, run_initial=None, steady_state=None
+    def initial_state(self, system, u0, run_initial=None, steady_state=None, solve=None
                       ) -> Float[Array, " nodes"]:
-        """The initial state x0 (°C) of a run: the equilibrium at its first input sample,
-        with `initial_nodes` set to `initial` (or to this run's estimate).
+        """The initial state x0 (°C) of a run.
+
+        The nodes in `initial_nodes` start at `initial` (or this run's estimate), the
+        nodes an effect added (`added_nodes`) where the linear part is at rest given every
+        other node's start, and the rest at the equilibrium `x_ss` of the first input
+        sample. With `f` the added nodes and `o` the others, `x_f = x_ss,f + δ_f` solving
+        `A_ff δ_f = −A_fo (x_o − x_ss,o)`: an unmodelled mass between a room that starts
+        warm and the outdoors starts between them, not at the outdoors' equilibrium.
 
         **Arguments:**
 
@@ -182,15 +191,26 @@ class ThermalModel(eqx.Module):
         - `steady_state`: `(system, u0) -> x`, the equilibrium solve; default
           `system.steady_state`. The fit's sensitivities pass a small Gauss-Jordan solve,
           a nonlinear model its Newton iteration (`dynamics._nonlinear`).
+        - `solve`: `(M, b) -> x` for the added nodes' small system; default
+          `jnp.linalg.solve`.
 
         **Returns:** x0, shape (nodes,).
         """
         x0 = system.steady_state(u0) if steady_state is None else steady_state(system, u0)
-        if self.initial_nodes:
-            idx = np.array(self.initial_nodes)
-            values = self.initial[idx] if run_initial is None else run_initial
-            x0 = x0.at[idx].set(values)
-        return x0
+        if not self.initial_nodes:
+            return x0
+        idx = np.array(self.initial_nodes)
+        values = self.initial[idx] if run_initial is None else run_initial
+        delta = jnp.zeros_like(x0).at[idx].set(values - x0[idx])
+        if self.added_nodes:
+            f = np.array(self.added_nodes)
+            # rows scaled by the capacitances: the conductance matrix, symmetric
+            c = (system.capacitance[f] if system.capacitance is not None
+                 else jnp.ones(f.size, x0.dtype))[:, None]
+            M, rhs = -c * system.A[np.ix_(f, f)], (c * system.A[f]) @ delta
+            delta = delta.at[f].set(jnp.linalg.solve(M, rhs) if solve is None
+                                    else solve(M, rhs))
+        return x0 + delta
 
 
 def model_to_spec(model: ThermalModel, spec: ModelSpec, process_noise: bool = False) -> ModelSpec:

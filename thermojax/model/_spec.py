@@ -38,6 +38,9 @@ class Node:
     # True where `initial` holds a start taken from the data (the first readings), not
     # the file: such a start is written back as absent, to be estimated again.
     initial_from_data: bool = False
+    # True for a node an effect adds (an unmodelled mass, a sensor's own element): it
+    # starts where it is at rest given the other nodes' starts (`ThermalModel.initial_state`).
+    added_by_effect: bool = False
 
 
 @dataclass(frozen=True)

@@ -31,10 +31,12 @@ MAX_SENSOR_GAIN = 0.2
 # A sensor offset beyond this (°C) is a broken sensor or a wrong column, not an offset.
 MAX_SENSOR_OFFSET = 10.0
 # A temperature- or input-dependent factor (1 + c (x − x0)) must stay above this
-# fraction of its value at the reference over the data: a capacitance or conductance
-# that falls to a tenth or crosses zero within the data's range is not a property of
-# matter.
-MIN_FACTOR = 0.1
+# fraction of its value at the reference over the data's whole range: a capacitance or
+# conductance that vanishes or crosses zero within the data is not a property of matter.
+# (The range is the hull of every measured and boundary temperature, wider than any one
+# node sees: on a building log a link's conductance with α = 0.037/K, well supported,
+# falls to 7 % at the coldest outdoor sample, which its mean temperature never reaches.)
+MIN_FACTOR = 0.02
 
 
 @dataclass(frozen=True)

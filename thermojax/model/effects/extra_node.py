@@ -23,7 +23,7 @@ class ExtraNode(AbstractEffect):
         # The mass's own diffusion (°C/√s, Kalman likelihood): fixed at zero unless given,
         # as CTSM-R gives every state of a building model its own.
         q = effect.parameters.get("process_noise", Parameter(0.0, True))
-        nodes = spec.nodes + (Node(new, c, process_noise=q),)
+        nodes = spec.nodes + (Node(new, c, process_noise=q, added_by_effect=True),)
         links = list(spec.links)
         bounds = list(spec.boundaries)
         heats = list(spec.heat_inputs)

@@ -32,7 +32,8 @@ class SensorLag(AbstractEffect):
         sensors[i] = dataclasses.replace(sensor, node=node)
         lowered = spec.replace(
             nodes=spec.nodes + (Node(node, Parameter(c, True),
-                                     process_noise=Parameter(0.0, True)),),
+                                     process_noise=Parameter(0.0, True),
+                                     added_by_effect=True),),
             links=spec.links + (Link((sensor.node, node), Parameter(c / tau.value, tau.fixed)),),
             sensors=tuple(sensors))
         return lowered, [ParameterLink("time_constant", f"links.{sensor.node}-{node}.conductance",
