@@ -66,8 +66,10 @@ class ChamberModel:
     #                   [(state, node, k)], noise
 
 
-def read_chamber_model(path) -> ChamberModel:
-    doc = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+def read_chamber_model(model) -> ChamberModel:
+    """The system of a model file (path) or of its `tomllib` dict."""
+    doc = model if isinstance(model, dict) else tomllib.loads(
+        Path(model).read_text(encoding="utf-8"))
     known = {"name", "description", "nodes", "links", "boundaries", "heat_inputs", "sensors",
              "biases", "effects"}
     if set(doc) - known:
