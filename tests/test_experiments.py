@@ -4,9 +4,11 @@ Most studies simulate their own data with thermojax (`tj.simulate`, `thermojax r
 `[synthetic]`, `dynamics._lag.first_order_lag`) and fit them with thermojax: what such a
 test checks against "the truth that made the data" is a consistency check (a round trip
 through one code base, where an error shared by the simulation and the fit cancels),
-and the comments say so. The viscoelastic study is run on data made outside thermojax
-(the tests' `chamber_truth`: `scipy.linalg.expm` with the strain as an exact state), so
-its recovery of τ and k is checked against an independent truth.
+and the comments say so. Two studies run here on data made outside thermojax by the
+tests' `chamber_truth` (`scipy.linalg.expm`; the strain an exact state), swapped in for
+the study's own simulation: the three-ramp identification of the six-node IMU and the
+viscoelastic study's τ and k, so their recovery is checked against an independent
+truth.
 """
 
 import importlib.util
@@ -29,8 +31,44 @@ def load_study(name):
     return module
 
 
+def scipy_synthetic_runs(spec, syn: dict, folder: Path) -> list[str]:
+    """`thermojax run`'s `[synthetic]` runs with the response simulated outside thermojax:
+    the same input samples (the built-in chamber profiles, the baseline power and the
+    power step between 30 and 60 min, built by thermojax's profile functions: plain
+    sampled inputs, written to the CSV), the truth model file read with `tomllib` and
+    simulated by `chamber_truth` (exact for the chamber temperature linear and the power
+    held between samples), NumPy noise of each sensor's std drawn as `[synthetic]` draws
+    it."""
+    from thermojax import io
+
+    truth = io.load_model(syn["truth"])
+    model = read_chamber_model(syn["truth"])
+    assert model.inputs == list(truth.input_columns)
+    rng = np.random.default_rng(int(syn.get("seed", 0)))
+    paths = []
+    for i, name in enumerate(syn["profiles"]):
+        prof = io.load_profile(name, dt=float(syn.get("dt", 1.0)))
+        u = io.profile_inputs(truth, prof, float(syn.get("power", 0.0)))
+        heat = [j for j, c in enumerate(model.inputs) if c in truth.heat_columns]
+        u[:, heat] += float(syn.get("power_step", 0.0)) * (
+            (prof.ts >= 1800) & (prof.ts < 3600))[:, None]
+        clean = observe(model, simulate(model, np.asarray(prof.ts), u), u)
+        y = np.column_stack([clean[c] for c in model.sensors])
+        stds = np.array([std for _, std in model.sensors.values()])
+        y = y + rng.standard_normal(y.shape) * stds
+        columns = {c: u[:, j] for j, c in enumerate(model.inputs)}
+        columns.update({c: y[:, j] for j, c in enumerate(model.sensors)})
+        p = folder / f"synthetic_{i}_{name}.csv"
+        io.write_telemetry(p, prof.ts, columns, comments=[f"chamber_truth: profile {name}"])
+        paths.append(str(p))
+    return paths
+
+
 @pytest.mark.slow
-def test_imu6_three_ramps_study(tmp_path):
+def test_imu6_three_ramps_study(tmp_path, monkeypatch):
+    import thermojax.cli._runner as runner
+
+    monkeypatch.setattr(runner, "synthetic_runs", scipy_synthetic_runs)
     study = load_study("imu6_three_ramps")
     # the recovery table reads the Wald stds: the profile check of 8 of them (~40 s)
     # is tested in tests/test_interval_check.py
@@ -39,12 +77,12 @@ def test_imu6_three_ramps_study(tmp_path):
     for name in ("model.toml", "report.json", "recovery.md", "parameter_recovery.png"):
         assert (folder / name).is_file(), name
     report = json.loads((folder / "report.json").read_text())
-    simulated_from = study.TRUTH  # configs/imu6.toml
+    simulated_from = study.TRUTH  # configs/imu6.toml, simulated by chamber_truth
     rows = study.recovery_rows(report, __import__("thermojax").load_model(simulated_from))
     identifiable = [r for r in rows if r["std"] is not None]
-    # Consistency check (the data are `thermojax run`'s own [synthetic] simulation of
-    # configs/imu6.toml with 0.01 °C noise): every identifiable parameter within 4
-    # reported std of the values it was simulated with (a chance of ~1e-3 each if honest).
+    # Independent truth: the study's three runs simulated from configs/imu6.toml by
+    # chamber_truth (SciPy) with 0.01 °C noise: every identifiable parameter within 4
+    # reported std of the truth (a chance of ~1e-3 each if honest).
     assert len(identifiable) >= 12
     assert all(abs(r["error_in_std"]) < 4 for r in identifiable)
     # The proof mass (time constant ~0.06 s against 1 s samples) cannot be determined.
