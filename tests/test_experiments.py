@@ -4,11 +4,11 @@ Most studies simulate their own data with thermojax (`tj.simulate`, `thermojax r
 `[synthetic]`, `dynamics._lag.first_order_lag`) and fit them with thermojax: what such a
 test checks against "the truth that made the data" is a consistency check (a round trip
 through one code base, where an error shared by the simulation and the fit cancels),
-and the comments say so. Two studies run here on data made outside thermojax by the
+and the comments say so. Three studies run here on data made outside thermojax by the
 tests' `chamber_truth` (`scipy.linalg.expm`; the strain an exact state), swapped in for
-the study's own simulation: the three-ramp identification of the six-node IMU and the
-viscoelastic study's τ and k, so their recovery is checked against an independent
-truth.
+the study's own simulation: the three-ramp identification of the six-node IMU, the
+headline study's bias recovery, and the viscoelastic study's τ and k, so their
+recovery is checked against an independent truth.
 """
 
 import importlib.util
@@ -90,8 +90,32 @@ def test_imu6_three_ramps_study(tmp_path, monkeypatch):
     assert "nodes.proof_mass.capacitance" in unidentifiable
 
 
-def test_imu_bias_headline_study(tmp_path):
+def scipy_headline_truth(study, monkeypatch):
+    """Replace the headline study's own simulation of the true unit (`tj.simulate` of
+    configs/imu6.toml with the proof-mass link at `G_PROOF_MASS`) by `chamber_truth`'s;
+    its bias (`true_bias`, plain NumPy from the node temperatures) is kept. Returns the
+    number of runs simulated."""
+    doc = tomllib.loads(study.IMU.read_text())
+    (link,) = [k for k in doc["links"] if k["between"] == ["mems", "proof_mass"]]
+    link["conductance"] = study.G_PROOF_MASS
+    model = read_chamber_model(doc)
+    assert model.inputs == ["T_chamber", "P_asic"]  # the study's input columns
+    made = []
+
+    def _simulate(_model, inputs, ts):
+        U = np.asarray(inputs)
+        z = simulate(model, np.asarray(ts), U)
+        out = observe(model, z, U)
+        made.append(len(ts))
+        return z, np.column_stack([out[c] for c in model.sensors])
+
+    monkeypatch.setattr(study, "_simulate", _simulate)
+    return made
+
+
+def test_imu_bias_headline_study(tmp_path, monkeypatch):
     study = load_study("imu_bias_headline")
+    made = scipy_headline_truth(study, monkeypatch)
     out = tmp_path / "headline"
     folder = study.main(["--out", str(out), "--quick"])
     assert folder == out
@@ -107,21 +131,22 @@ def test_imu_bias_headline_study(tmp_path):
     # The static cubic cannot see the gradient term, which grows with the ramp rate.
     assert all(a < b for a, b in zip(static, static[1:])), static
     for r in rows:
-        # Static misses most of the gradient term (K_GRAD x the peak gradient of the
-        # study's own simulation: a consistency check).
+        # Static misses most of the gradient term (K_GRAD x the peak gradient of
+        # chamber_truth's states).
         assert r["static"]["peak"] > 0.5 * r["peak_gradient_bias_dph"]
         # Exact model, 0.01 °C sensors: the observer leaves < 0.1 °/h (measured ~0.01).
         assert r["observer"]["peak"] < 0.1
 
-    # Consistency check (round trip, not an independent truth): with no noise, the data
-    # come from `tj.simulate` through the discretization the observer uses, so its
-    # innovations are zero by construction and the bias model comes back to roundoff.
+    # Independent truth: with no noise, the true unit simulated by chamber_truth (SciPy
+    # expm) and an observer of the true model, the observer's innovations are the two
+    # simulators' difference (~1e-12 K), so the bias model comes back to roundoff.
     clean = study.study(quick=True, sensor_noise=0.0, bias_noise=0.0, rates=(1.0, 10.0),
                         observers=("observer",))
-    put_in = list(study.POLY) + [study.K_GRAD]
-    assert clean["coefficients"]["observer"] == pytest.approx(put_in, rel=1e-6)  # roundoff
+    truth = list(study.POLY) + [study.K_GRAD]
+    assert clean["coefficients"]["observer"] == pytest.approx(truth, rel=1e-6)  # roundoff
     assert clean["calibration"]["observer"]["rms"] < 1e-6  # °/h; roundoff only
     assert clean["rows"][1]["static"]["rms"] > clean["rows"][0]["static"]["rms"]
+    assert len(made) >= 7  # every run of both studies came from chamber_truth
 
 
 def scipy_viscoelastic_truth(study, monkeypatch):
