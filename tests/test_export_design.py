@@ -82,8 +82,8 @@ def test_error_bound_tightness_and_its_reason(tmp_path):
     what the playback can be held to. Measured reason for the fraction it reaches:
 
     - a common-mode offset costs nothing: on a steady state at the envelope's edge (a
-      level the format represents exactly) the fixed build's error is ~1e-11 of the bound (the quantized coefficients keep the
-      steady state), so only the state's distance from the steady state of its input,
+      level the format represents exactly) the fixed build's error is ~1e-11 of the
+      bound (the quantized coefficients keep the steady state), so only the state's distance from the steady state of its input,
       `d = |x − (I − Φ)⁻¹ (B0 + B1) u|`, drives the error;
     - on the wandering-fluid playbacks `d` reaches 6-15 % of the envelope, and the
       observed worst error 14-27 % of that share of the bound (signs mixed, the

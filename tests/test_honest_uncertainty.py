@@ -52,7 +52,8 @@ def null_directions(values: dict, names: list[str]) -> np.ndarray:
     capacitances, G the sheath-core and g the boundary conductance), over the log of each
     parameter in `names` (the others held)."""
     Cs, Cc = values["nodes.sheath.capacitance"], values["nodes.core.capacitance"]
-    G, g = values["links.sheath-core.conductance"], values["boundaries.sheath-T_fluid.conductance"]
+    G = values["links.sheath-core.conductance"]
+    g = values["boundaries.sheath-T_fluid.conductance"]
     b = (Cs + Cc) / g + Cc / G
     # d log a / d log p and d log b / d log p, by hand
     rows = {"nodes.sheath.capacitance": (1.0, Cs / g / b),
@@ -105,8 +106,9 @@ def test_rtd2_core_fixed_null_direction_matches_profile():
         assert name in d["message"]
         assert result.parameters[name]["std"] is None, name
     check_against_null_space(d, result, NAMES)
-    # Consistency with thermojax's profile likelihood: the conductance's 95 % interval spans far more than a few
-    # percent (measured [0.021, 0.097] around 0.083), so no small std is honest.
+    # Consistency with thermojax's profile likelihood: the conductance's 95 % interval
+    # spans far more than a few percent (measured [0.021, 0.097] around 0.083), so no
+    # small std is honest.
     lo, hi = profile_interval(result, "links.sheath-core.conductance")
     value = result.parameters["links.sheath-core.conductance"]["value"]
     assert lo is not None and hi is not None
