@@ -1,10 +1,25 @@
-"""The studies in experiments/ run end to end and recover the truth that made their data."""
+"""The studies in experiments/ run end to end.
+
+Most studies simulate their own data with thermojax (`tj.simulate`, `thermojax run`'s
+`[synthetic]`, `dynamics._lag.first_order_lag`) and fit them with thermojax: what such a
+test checks against "the truth that made the data" is a consistency check (a round trip
+through one code base, where an error shared by the simulation and the fit cancels),
+and the comments say so. Four studies run here on data made outside thermojax by the
+tests' `chamber_truth` (`scipy.linalg.expm`; the strain an exact state), swapped in for
+the study's own simulation: the three-ramp identification of the six-node IMU, the
+headline study's bias recovery, and the viscoelastic study's τ and k, so their
+recovery is checked against an independent truth.
+"""
 
 import importlib.util
 import json
+import tomllib
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from chamber_truth import observe, read_chamber_model, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -16,8 +31,44 @@ def load_study(name):
     return module
 
 
+def scipy_synthetic_runs(spec, syn: dict, folder: Path) -> list[str]:
+    """`thermojax run`'s `[synthetic]` runs with the response simulated outside thermojax:
+    the same input samples (the built-in chamber profiles, the baseline power and the
+    power step between 30 and 60 min, built by thermojax's profile functions: plain
+    sampled inputs, written to the CSV), the truth model file read with `tomllib` and
+    simulated by `chamber_truth` (exact for the chamber temperature linear and the power
+    held between samples), NumPy noise of each sensor's std drawn as `[synthetic]` draws
+    it."""
+    from thermojax import io
+
+    truth = io.load_model(syn["truth"])
+    model = read_chamber_model(syn["truth"])
+    assert model.inputs == list(truth.input_columns)
+    rng = np.random.default_rng(int(syn.get("seed", 0)))
+    paths = []
+    for i, name in enumerate(syn["profiles"]):
+        prof = io.load_profile(name, dt=float(syn.get("dt", 1.0)))
+        u = io.profile_inputs(truth, prof, float(syn.get("power", 0.0)))
+        heat = [j for j, c in enumerate(model.inputs) if c in truth.heat_columns]
+        u[:, heat] += float(syn.get("power_step", 0.0)) * (
+            (prof.ts >= 1800) & (prof.ts < 3600))[:, None]
+        clean = observe(model, simulate(model, np.asarray(prof.ts), u), u)
+        y = np.column_stack([clean[c] for c in model.sensors])
+        stds = np.array([std for _, std in model.sensors.values()])
+        y = y + rng.standard_normal(y.shape) * stds
+        columns = {c: u[:, j] for j, c in enumerate(model.inputs)}
+        columns.update({c: y[:, j] for j, c in enumerate(model.sensors)})
+        p = folder / f"synthetic_{i}_{name}.csv"
+        io.write_telemetry(p, prof.ts, columns, comments=[f"chamber_truth: profile {name}"])
+        paths.append(str(p))
+    return paths
+
+
 @pytest.mark.slow
-def test_imu6_three_ramps_study(tmp_path):
+def test_imu6_three_ramps_study(tmp_path, monkeypatch):
+    import thermojax.cli._runner as runner
+
+    monkeypatch.setattr(runner, "synthetic_runs", scipy_synthetic_runs)
     study = load_study("imu6_three_ramps")
     # the recovery table reads the Wald stds: the profile check of 8 of them (~40 s)
     # is tested in tests/test_interval_check.py
@@ -26,11 +77,12 @@ def test_imu6_three_ramps_study(tmp_path):
     for name in ("model.toml", "report.json", "recovery.md", "parameter_recovery.png"):
         assert (folder / name).is_file(), name
     report = json.loads((folder / "report.json").read_text())
-    truth = study.TRUTH
-    rows = study.recovery_rows(report, __import__("thermojax").load_model(truth))
+    simulated_from = study.TRUTH  # configs/imu6.toml, simulated by chamber_truth
+    rows = study.recovery_rows(report, __import__("thermojax").load_model(simulated_from))
     identifiable = [r for r in rows if r["std"] is not None]
-    # The data were made from configs/imu6.toml with 0.01 °C noise: every identifiable
-    # parameter within 4 reported std of the truth (a chance of ~1e-3 each if honest).
+    # Independent truth: the study's three runs simulated from configs/imu6.toml by
+    # chamber_truth (SciPy) with 0.01 °C noise: every identifiable parameter within 4
+    # reported std of the truth (a chance of ~1e-3 each if honest).
     assert len(identifiable) >= 12
     assert all(abs(r["error_in_std"]) < 4 for r in identifiable)
     # The proof mass (time constant ~0.06 s against 1 s samples) cannot be determined.
@@ -38,8 +90,32 @@ def test_imu6_three_ramps_study(tmp_path):
     assert "nodes.proof_mass.capacitance" in unidentifiable
 
 
-def test_imu_bias_headline_study(tmp_path):
+def scipy_headline_truth(study, monkeypatch):
+    """Replace the headline study's own simulation of the true unit (`tj.simulate` of
+    configs/imu6.toml with the proof-mass link at `G_PROOF_MASS`) by `chamber_truth`'s;
+    its bias (`true_bias`, plain NumPy from the node temperatures) is kept. Returns the
+    number of runs simulated."""
+    doc = tomllib.loads(study.IMU.read_text())
+    (link,) = [k for k in doc["links"] if k["between"] == ["mems", "proof_mass"]]
+    link["conductance"] = study.G_PROOF_MASS
+    model = read_chamber_model(doc)
+    assert model.inputs == ["T_chamber", "P_asic"]  # the study's input columns
+    made = []
+
+    def _simulate(_model, inputs, ts):
+        U = np.asarray(inputs)
+        z = simulate(model, np.asarray(ts), U)
+        out = observe(model, z, U)
+        made.append(len(ts))
+        return z, np.column_stack([out[c] for c in model.sensors])
+
+    monkeypatch.setattr(study, "_simulate", _simulate)
+    return made
+
+
+def test_imu_bias_headline_study(tmp_path, monkeypatch):
     study = load_study("imu_bias_headline")
+    made = scipy_headline_truth(study, monkeypatch)
     out = tmp_path / "headline"
     folder = study.main(["--out", str(out), "--quick"])
     assert folder == out
@@ -55,23 +131,59 @@ def test_imu_bias_headline_study(tmp_path):
     # The static cubic cannot see the gradient term, which grows with the ramp rate.
     assert all(a < b for a, b in zip(static, static[1:])), static
     for r in rows:
-        # Static misses most of the gradient term (K_GRAD x peak gradient, known truth).
+        # Static misses most of the gradient term (K_GRAD x the peak gradient of
+        # chamber_truth's states).
         assert r["static"]["peak"] > 0.5 * r["peak_gradient_bias_dph"]
         # Exact model, 0.01 °C sensors: the observer leaves < 0.1 °/h (measured ~0.01).
         assert r["observer"]["peak"] < 0.1
 
-    # Independent truth: with no noise and the true model, the observer reproduces the
-    # states exactly (zero innovations), so the bias model is recovered to roundoff.
+    # Independent truth: with no noise, the true unit simulated by chamber_truth (SciPy
+    # expm) and an observer of the true model, the observer's innovations are the two
+    # simulators' difference (~1e-12 K), so the bias model comes back to roundoff.
     clean = study.study(quick=True, sensor_noise=0.0, bias_noise=0.0, rates=(1.0, 10.0),
                         observers=("observer",))
     truth = list(study.POLY) + [study.K_GRAD]
     assert clean["coefficients"]["observer"] == pytest.approx(truth, rel=1e-6)  # roundoff
     assert clean["calibration"]["observer"]["rms"] < 1e-6  # °/h; roundoff only
     assert clean["rows"][1]["static"]["rms"] > clean["rows"][0]["static"]["rms"]
+    assert len(made) >= 7  # every run of both studies came from chamber_truth
 
 
-def test_viscoelastic_hysteresis_study(tmp_path):
+def scipy_viscoelastic_truth(study, monkeypatch):
+    """Replace the study's own simulation (`tj.simulate`, and the strain by
+    `first_order_lag` of the sampled T_mems) by `chamber_truth`: configs/imu6.toml plus
+    the study's accelerometer channel and strain, the strain integrated as an exact
+    state."""
+    doc = tomllib.loads(study.IMU.read_text())
+    doc["biases"] = [dict(column=study.COLUMN, temperature=study.NODE,
+                          order=len(study.POLY) - 1, coefficients=list(study.POLY),
+                          noise=study.BIAS_NOISE)]
+    doc["effects"] = [dict(kind="viscoelastic", where=[study.NODE, study.COLUMN],
+                           time_constant=study.TAU, k=study.K)]
+    model = read_chamber_model(doc)
+    assert model.inputs == ["T_chamber", "P_asic"]  # the study's input columns
+    n, made = len(model.nodes), {}
+
+    def _simulate(_model, inputs, ts):
+        U = np.asarray(inputs)
+        z = simulate(model, np.asarray(ts), U)
+        out = observe(model, z, U)
+        made.update(T=z[:, model.nodes.index(study.NODE)], eps=z[:, n],
+                    bias=out[study.COLUMN])
+        return z[:, :n], np.column_stack([out[c] for c in model.sensors])
+
+    def true_bias(T_mems, ts):
+        np.testing.assert_array_equal(T_mems, made["T"])
+        return made["bias"], made["eps"]
+
+    monkeypatch.setattr(study, "_simulate", _simulate)
+    monkeypatch.setattr(study, "true_bias", true_bias)
+    return made
+
+
+def test_viscoelastic_hysteresis_study(tmp_path, monkeypatch):
     study = load_study("viscoelastic_hysteresis")
+    made = scipy_viscoelastic_truth(study, monkeypatch)
     out = tmp_path / "hysteresis"
     folder = study.main(["--out", str(out), "--quick"])
     assert folder == out
@@ -81,8 +193,10 @@ def test_viscoelastic_hysteresis_study(tmp_path):
         study.main(["--out", str(out), "--quick"])
     assert refused.value.code == 2
     res = json.loads((folder / "results.json").read_text())
+    assert made  # the data came from chamber_truth
     params = {p["name"]: p for p in res["parameters"]}
-    # Known truth: τ = 1500 s and k = 0.6 µg/K, each within 3 reported std.
+    # Independent truth (chamber_truth's data): τ = 1500 s and k = 0.6 µg/K, each within 3
+    # reported std.
     for name, truth in (("tau_s", study.TAU), ("k_ug_per_K", study.K)):
         assert params[name]["truth"] == truth
         assert abs(params[name]["value"] - truth) < 3 * params[name]["std"], params[name]
@@ -94,8 +208,44 @@ def test_viscoelastic_hysteresis_study(tmp_path):
     assert areas["augmented_residual"] < 0.1 * areas["static_residual"]
 
 
-def test_seed_calibration_phases_study(tmp_path):
+def scipy_phases_truth(study, monkeypatch):
+    """Replace the phases study's record (`simulate_record`: `tj.simulate` of
+    configs/imu6.toml, the gyro's strain by `first_order_lag` of the sampled T_mems and
+    its rate term from thermojax's `A x + B u`) by `chamber_truth`'s: the gyro channel
+    (polynomial in the proof mass, the mems-asic gradient, the mems rate, the strain as an
+    exact state) evaluated in NumPy; the noise drawn in the study's order. Returns the
+    number of records simulated."""
+    doc = tomllib.loads(study.IMU.read_text())
+    doc["biases"] = [dict(column="gyro", temperature="proof_mass", order=len(study.POLY) - 1,
+                          gradients=[["mems", "asic"]], rates=["mems"],
+                          coefficients=[*study.POLY, study.K_GRAD, study.K_RATE])]
+    doc["effects"] = [dict(kind="viscoelastic", where=["mems", "gyro"],
+                           time_constant=study.TAU, k=study.K_STRAIN)]
+    model = read_chamber_model(doc)
+    assert model.inputs == ["T_chamber", "P_asic"]
+    n, made = len(model.nodes), []
+
+    def simulate_record(_model, temperature, ts, rng, sensor_noise=study.SENSOR_NOISE,
+                        bias_noise=study.BIAS_NOISE):
+        inputs = np.column_stack([temperature, np.full(ts.size, study.P_ASIC)])
+        z = simulate(model, np.asarray(ts), inputs)
+        out = observe(model, z, inputs)
+        clean = np.column_stack([out[c] for c in model.sensors])
+        readings = clean + sensor_noise * rng.standard_normal(clean.shape)
+        bias = out["gyro"]
+        made.append(ts.size)
+        return {"ts": ts, "chamber": temperature, "inputs": inputs, "states": z[:, :n],
+                "readings": readings, "bias": bias,
+                "measured": bias + bias_noise * rng.standard_normal(ts.size),
+                "names": list(model.nodes), "sensors": list(model.sensors)}
+
+    monkeypatch.setattr(study, "simulate_record", simulate_record)
+    return made
+
+
+def test_seed_calibration_phases_study(tmp_path, monkeypatch):
     study = load_study("seed_calibration_phases")
+    made = scipy_phases_truth(study, monkeypatch)
     out = tmp_path / "phases"
     folder = study.main(["--out", str(out), "--quick"])
     for name in ("phases.md", "results.json", "phase_residuals.png"):
@@ -107,6 +257,8 @@ def test_seed_calibration_phases_study(tmp_path):
     rows = {r["phase"]: r for r in res["rows"]}
     assert list(rows) == ["static_soak", "slow_ramp", "fast_shock", "viscoelastic_dwell"]
     (g,) = rows["slow_ramp"]["identified"]
+    # Independent truth from here on: the record comes from chamber_truth (SciPy)
+    assert made
     assert abs(g["value"] - 0.5) < 3 * g["std"]  # housing-bulkhead W/K, truth 0.5
     (c,) = rows["fast_shock"]["identified"]
     assert c["value"] == pytest.approx(0.05, rel=0.05)  # MEMS J/K; quick run: 5 %
@@ -142,8 +294,10 @@ def test_allan_compensation_study(tmp_path):
 
 @pytest.mark.slow
 def test_unit_variance_procurement_study(tmp_path):
-    """The procurement study (--quick: 16 units per preset, a short profile). Truths it
-    can be held to: a unit's own true model bounds every method; the nominal observer's
+    """The procurement study (--quick: 16 units per preset, a short profile). Consistency
+    checks (each unit is simulated by thermojax, as in tests/test_montecarlo.py, whose
+    `test_fit_recovers_units_simulated_by_scipy` checks the fit on SciPy-made units):
+    a unit's own model bounds every method; the nominal observer's
     median error and secondary-state offset grow with the preset's spread (its only error
     is the unit's deviation, 5 → 32 % on every capacitance and conductance); a unit's own
     fit gets close to its own model's bound, far below the nominal's; the own observer
@@ -179,8 +333,9 @@ def test_unit_variance_procurement_study(tmp_path):
 @pytest.mark.slow
 def test_ten_year_ageing_study(tmp_path):
     """One unit (--quick ages 0, 5, 10 y): the factory observer's error grows as the
-    conductances age, the adaptive filter ends within 2 % of the aged conductances (known:
-    the study made them) and keeps the bias within the tactical 0.5 °/h."""
+    conductances age, the adaptive filter ends within 2 % of the aged conductances (the
+    values the study simulated with thermojax: a consistency check) and keeps the bias
+    within the tactical 0.5 °/h."""
     study = load_study("ten_year_ageing")
     folder = study.main(["--out", str(tmp_path / "ageing"), "--quick", "--units", "1"])
     for name in ("ageing.md", "results.json", "ageing.png"):

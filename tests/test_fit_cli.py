@@ -285,7 +285,8 @@ perturb = 0.2
         report = strict_json((d / "report.json").read_text())
         assert report["schema"] == 1
         tj.load_model(d / "model.toml")
-        # Same seed, same synthetic data, same fit: the noise std is the truth's 0.01 °C.
+        # Same seed, same synthetic data, same fit: the noise std is the 0.01 °C that
+        # `[synthetic]` (thermojax's own simulation) put in: a consistency check.
         assert report["parameters"]["sensors.T_core.noise"]["value"] == pytest.approx(0.01,
                                                                                       rel=0.15)
     # The first folder was not touched by the second run.

@@ -1,7 +1,11 @@
 """A heat network trained inside the model and distilled into the library
 (`thermojax.discovery.learn_network_heat`, issue 33 item 2), on generated data whose
 law is known: a fan dissipating c · air_speed^p · exp(k (T_pcb − 25)) W in the
-unmeasured pcb of chain3 (c = 0.03, p = 2, k = 0.015)."""
+unmeasured pcb of chain3 (c = 0.03, p = 2, k = 0.015). That form is one of the function
+library's templates (`discovery.LIBRARY`), so the distillation matches a known form and
+the refit recovers its parameters: a test of finding and refitting a form the library
+holds, not of discovering one it lacks (a network whose heat matches no library term is
+refused, `test_the_network_account_proposes_only_a_matched_law_that_explains_the_misfit`)."""
 
 from __future__ import annotations
 

@@ -4,12 +4,18 @@ for a Cortex-M4 (Thumb-2, FPv4-SP hard float), whose step is counted instruction
 instruction (benchmarks/observer_arm.py prints the table). The toolchains are Debian's
 `gcc-arm-linux-gnueabihf`, `libc6-dev-armhf-cross`, `qemu-user`, `gcc-arm-none-eabi`
 and `libnewlib-arm-none-eabi`
-(`.ci/run` installs them); a test is skipped, naming the missing tool, without them."""
+(`.ci/run` installs them, and fails if it cannot). Without them a test is skipped, naming
+the missing tool, on a developer's machine; in CI (environment `CI=true`, which `.ci/run`
+sets) it fails instead, so that a broken toolchain install cannot pass as a green run.
+The armhf executable's target is read from its ELF header here (no `file` tool needed)."""
 
 from __future__ import annotations
 
+import os
 import shutil
+import struct
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,13 +31,44 @@ STEPS = 6000
 WARN = ["-std=c99", "-O2", "-Wall", "-Wextra", "-pedantic", "-Werror", "-ffp-contract=off"]
 
 
+def _in_ci() -> bool:
+    return os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")
+
+
 def _need(*tools):
+    """Skip (fail in CI) when a toolchain program is missing."""
     missing = [t for t in tools if shutil.which(t) is None]
     if missing:
-        pytest.skip(f"{', '.join(missing)} not installed (Debian: gcc-arm-linux-gnueabihf, "
-                    "libc6-dev-armhf-cross, qemu-user, gcc-arm-none-eabi, libnewlib-arm-none-eabi; "
-                    ".ci/run installs "
-                    "them)")
+        why = (f"{', '.join(missing)} not installed (Debian: gcc-arm-linux-gnueabihf, "
+               "libc6-dev-armhf-cross, qemu-user, gcc-arm-none-eabi, libnewlib-arm-none-eabi; "
+               ".ci/run installs them)")
+        if _in_ci():
+            pytest.fail(f"CI=true: {why}", pytrace=False)
+        pytest.skip(why)
+
+
+def _elf_machine(path) -> tuple[int, int]:
+    """`(EI_CLASS, e_machine)` of an ELF file, read from its header (ELF spec: magic
+    `\x7fELF`, class at byte 4 (1: 32-bit), data at byte 5 (1: little-endian), e_machine
+    the half-word at byte 18; 40 is EM_ARM)."""
+    head = Path(path).read_bytes()[:20]
+    assert head[:4] == b"\x7fELF", head[:4]
+    endian = "<" if head[5] == 1 else ">"
+    return head[4], struct.unpack(endian + "H", head[18:20])[0]
+
+
+def test_need_fails_in_ci_and_skips_elsewhere(monkeypatch, tmp_path):
+    """The switch itself: a missing tool is a failure under CI=true, a skip otherwise; and
+    the ELF reader on a hand-made 32-bit little-endian ARM header."""
+    fake = tmp_path / "fake.elf"
+    fake.write_bytes(b"\x7fELF" + bytes([1, 1, 1]) + bytes(9) + struct.pack("<HH", 2, 40))
+    assert _elf_machine(fake) == (1, 40)
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(pytest.fail.Exception, match="no-such-compiler-xyz"):
+        _need("no-such-compiler-xyz")
+    monkeypatch.setenv("CI", "")
+    with pytest.raises(pytest.skip.Exception, match="no-such-compiler-xyz"):
+        _need("no-such-compiler-xyz")
 
 
 def _observers():
@@ -59,8 +96,7 @@ def test_armhf_build_under_qemu_is_bit_exact(build, tmp_path):
                     "-mfpu=vfpv3-d16", "-mfloat-abi=hard", "-o", str(exe),
                     str(paths["source"]), str(paths["harness"]), "-lm"], check=True,
                    capture_output=True, text=True)
-    assert b"ARM" in subprocess.run(["file", str(exe)], capture_output=True).stdout \
-        if shutil.which("file") else True
+    assert _elf_machine(exe) == (1, 40)  # ELFCLASS32, EM_ARM
     (tmp_path / "in.bin").write_bytes(src.pack_playback(x0, u, y, oc))
     subprocess.run([QEMU, str(exe), str(tmp_path / "in.bin"), str(tmp_path / "out.bin")],
                    check=True, timeout=300)

@@ -1,7 +1,6 @@
 """Telemetry CSV (spec §1): reading, every refusal, input/sensor checks, exact round trip."""
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -270,18 +269,20 @@ def test_write_refuses_mismatched_shapes(tmp_path):
         write_telemetry(tmp_path / "x.csv", [[0.0, 1.0]], {})
 
 
-def test_reads_a_four_hour_run_quickly(tmp_path):
+def test_reads_a_four_hour_run(tmp_path):
+    """A four-hour run reads back bit for bit (its reading time is measured by
+    benchmarks/wallclock.py, not asserted here: a shared CI machine's clock says nothing
+    about the code)."""
     n = 14_400  # 4 h at 1 Hz, time plus 5 channels
     rng = np.random.default_rng(1)
     channels = {f"c{i}": rng.standard_normal(n) for i in range(5)}
     channels["c2"][::13] = np.nan
     path = write_telemetry(tmp_path / "big.csv", np.arange(n, dtype=np.float64), channels)
-    start = time.perf_counter()
     tel = read_telemetry(path)
-    elapsed = time.perf_counter() - start
     assert len(tel) == n
-    np.testing.assert_array_equal(tel.channels["c2"], channels["c2"])
-    assert elapsed < 1.0, f"reading {n} rows took {elapsed:.2f} s"  # typically ~0.05 s
+    np.testing.assert_array_equal(tel.ts, np.arange(n, dtype=np.float64))
+    for name, values in channels.items():
+        np.testing.assert_array_equal(tel.channels[name], values)
 
 
 def test_quote_spanning_lines_is_refused(tmp_path):

@@ -677,18 +677,16 @@ def test_hidden_effect_shows_over_the_whole_case(name):
 
 
 @pytest.mark.slow
-def test_generator_speed():
-    """3.5 h at 1 Hz of a 3-node model with nonlinear effects in well under a minute."""
-    import time
-
+def test_generator_long_run():
+    """3.5 h at 1 Hz of a 3-node model with nonlinear effects integrates to the end (its
+    time, well under a minute, is measured by benchmarks/wallclock.py, not asserted
+    here)."""
     ts = np.arange(3.5 * 3600 + 1)
     raw = _inputs(ts, "ramp5")
     doc = _chain3([dict(kind="radiation", where=["housing", "T_chamber"], coefficient=3e-10),
                    dict(kind="sensor_lag", where=["T_housing"], time_constant=5.0)])
-    t0 = time.perf_counter()
     y = g.simulate_truth(doc, ts, raw, np.random.default_rng(0))
-    assert time.perf_counter() - t0 < 60.0
-    assert all(np.all(np.isfinite(v)) for v in y.values())
+    assert all(v.shape == ts.shape and np.all(np.isfinite(v)) for v in y.values())
 
 
 def test_lag_vs_mass_tie_is_exact():
