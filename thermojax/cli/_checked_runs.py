@@ -11,8 +11,30 @@ MAX_DROP_ROUNDS = 3  # refits after leaving out samples that alone decided the f
 
 
 def read_runs(paths: list[str]):
+    """The telemetry of each `--data` file; the same file (or the same bytes) given twice
+    is refused: counted twice, it would make every std √2 too small."""
+    import hashlib
+    import os
+
+    from .._errors import InputError
     from ..measurements._telemetry import read_telemetry
 
+    seen: dict[tuple, str] = {}
+    for p in paths:
+        try:
+            with open(p, "rb") as f:
+                digest = hashlib.sha256(f.read(1 << 26)).hexdigest()  # the first 64 MiB
+            key = (digest, os.path.getsize(p))
+        except OSError:
+            continue  # read_telemetry names the problem
+        if key in seen:
+            same = os.path.realpath(p) == os.path.realpath(seen[key])
+            raise InputError(
+                f"--data {p} is {'the same file as' if same else 'a copy of'} --data "
+                f"{seen[key]}: every run must be a different measurement (counted twice, a "
+                "run would make every std √2 too small). Give each file once.",
+                file=p, field="--data")
+        seen[key] = p
     return [read_telemetry(p) for p in paths]
 
 

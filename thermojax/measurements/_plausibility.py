@@ -178,8 +178,23 @@ def _check_kelvin(telemetry: Telemetry, columns: dict[str, np.ndarray]) -> None:
         if good.size:
             lo, hi = np.percentile(good, [5, 95])  # robust to a few glitches
             stats[c] = (float(np.median(good)), float(lo), float(hi))
+    def kelvin_like(med, lo, hi):
+        return med > 150.0 and lo > 173.15 and hi < 473.15
+
+    if stats and all(kelvin_like(*s) for s in stats.values()):
+        # every temperature in kelvin: nothing in °C to compare with, but no chamber,
+        # building or sensor module runs above 150 °C on every column at once
+        c = next(iter(stats))
+        row = int(np.flatnonzero(np.isfinite(columns[c]))[0])
+        line, _ = _where(telemetry, row)
+        raise InputError(
+            f"every temperature column ({', '.join(stats)}) lies between 173 and 473 with "
+            f"medians from {min(s[0] for s in stats.values()):.5g} to "
+            f"{max(s[0] for s in stats.values()):.5g}: the file looks like kelvin. "
+            "Temperatures are in °C (docs/formats.md §1): subtract 273.15 from each.",
+            file=telemetry.path, line=line, field=c)
     for c, (med, lo, hi) in stats.items():
-        if not (med > 150.0 and lo > 173.15 and hi < 473.15):
+        if not kelvin_like(med, lo, hi):
             continue
         for r, (med_r, lo_r, hi_r) in stats.items():
             if r == c or med_r >= 150.0:
