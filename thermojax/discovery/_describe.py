@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 SHARE = 0.1  # a carrying node is listed when its RMS heat is this share of the largest
+MIN_CYCLES = 3  # a period is named only when this many of its cycles fit in the record
 
 
 def describe(ts: list[np.ndarray], q: list[np.ndarray]) -> str:
@@ -30,7 +31,9 @@ def describe(ts: list[np.ndarray], q: list[np.ndarray]) -> str:
     if len(q[r]) > 8:
         power = np.abs(np.fft.rfft(q[r] - q[r].mean())) ** 2
         k = int(np.argmax(power[1:]) + 1)
-        if power[k] > 0.3 * power[1:].sum():
+        # k cycles of the strongest Fourier component fit in the record: with fewer than
+        # MIN_CYCLES it is the record's own length (one slow swing), not a period
+        if k >= MIN_CYCLES and power[k] > 0.3 * power[1:].sum():
             period = len(q[r]) * float(np.median(np.diff(ts[r]))) / k
             return f"a periodic component of period {period:.0f} s"
     return "a heat that varies with no recorded signal"

@@ -1337,8 +1337,12 @@ def _report(records: list[dict], stopped: str, likelihood: str, fdr: float,
         "unexplained": (None if stopped == "residuals_white"
                         else _unexplained(records[-1], white_p)),
         "significance_rule": significance_rule(fdr, N_BLOCKS),
-        "whiteness_test": (f"Ljung-Box, lags min(20, N/5), runs pooled by summing per-run "
+        "whiteness_test": (f"Ljung-Box of the "
+                           + ("one-step innovations" if likelihood == "kalman"
+                              else "free-run residuals")
+                           + ", lags min(20, N/5), runs pooled by summing per-run "
                            f"autocovariances; white when p > {white_p} for every column"),
+        "white_p": white_p,  # the threshold of `residuals_white`, for the report's verdicts
         "wall_time_s": wall_time_s,
     }
 

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from ._diagnostic_plots import diagnostic_plots, error_chart, settling_time
 from ._diagnostics import diagnose_traces
+from ._whiteness_verdict import stopping_sentence, white_threshold, whiteness_verdict
 from .._plots import column_units
 
 _TOP = 8  # candidates shown per step
@@ -109,9 +110,8 @@ def _evidence(i: int, step: dict, previous: dict, report: dict, columns, units) 
         ev.append("supported" if c["supported"] else "not supported")
     if ev:
         parts.append(": " + ", ".join(ev))
-    rule = report.get("significance_rule")
-    if rule and c.get("supported"):
-        parts.append(f" under the rule “{rule}”")
+    if report.get("significance_rule") and c.get("supported"):
+        parts.append(" under the significance rule (stated at the top of this report)")
     parts.append(".")
     ties = c.get("tied_with") or []
     if ties:
@@ -183,7 +183,8 @@ def step_plot_options(i: int, step: dict, prefix: str | None = None) -> dict:
 
 
 def _diagnose_steps(out: Path, steps, step_traces, columns, input_names, boundary_inputs,
-                    prefix: str | None = None, units: dict | None = None, plots_ahead=None):
+                    prefix: str | None = None, units: dict | None = None, plots_ahead=None,
+                    white_p: float | None = None):
     """Per step: `diagnose_traces` and `diagnostic_plots` of its traces (None for both
     when the step has none). Plots are named `step<i>_*.png`, or `<prefix>_*.png` for a
     single step with `prefix`; with `plots_ahead` (a `PlotsAhead`) they come from it."""
@@ -193,8 +194,10 @@ def _diagnose_steps(out: Path, steps, step_traces, columns, input_names, boundar
         traces = step_traces[i] if i < len(step_traces) else None
         if traces:
             options = step_plot_options(i, steps[i], prefix)
+            extra = {} if white_p is None else {"white_p": white_p}
             diagnoses.append(diagnose_traces(columns, traces, input_names, boundary_inputs,
-                                             units=units, time_scale=options["time_scale"]))
+                                             units=units, time_scale=options["time_scale"],
+                                             **extra))
             plots.append(draw(out, prefix or f"step{i}", columns, traces, input_names,
                               boundary_inputs, units=units, **options))
         else:
@@ -223,7 +226,7 @@ def noise_sources(steps: list[dict], columns) -> dict[str, str]:
 
 
 def _summary(report: dict, steps: list[dict], columns, noise: dict, units: dict,
-             diagnosis: bool = False) -> list[str]:
+             diagnosis: bool = False, verdict: dict | None = None) -> list[str]:
     """The `## Summary` section: what was added, why the loop stopped, RMSE against noise."""
     first, last = (steps[0] if steps else {}), (steps[-1] if steps else {})
     added = [(i, s["added"]) for i, s in enumerate(steps) if s.get("added")]
@@ -239,26 +242,34 @@ def _summary(report: dict, steps: list[dict], columns, noise: dict, units: dict,
         md.append("The investigation added no effect to the given model.")
     stopped = report.get("stopped_because")
     if stopped and not diagnosis:
-        md.append(f"It stopped because {_STOPPED.get(stopped, stopped)} (`{stopped}`).")
+        md.append(stopping_sentence(stopped, verdict, _STOPPED))
     if report.get("likelihood"):
         md.append(f"Likelihood: `{report['likelihood']}`.")
-    if report.get("significance_rule"):
-        md.append(f"A candidate counts as supported when: {report['significance_rule']}.")
     md.append("")
+    if report.get("significance_rule"):  # stated here once; the steps refer to it
+        md += [f"**Significance rule.** A candidate counts as supported when: "
+               f"{_sentence(report['significance_rule'])} Every step below judges its "
+               "candidates by this rule.", ""]
     sources = noise_sources(steps, columns)
-    md += ["| column | start RMSE | final RMSE | noise std | noise is | final / noise "
-           "(given noise only) | final whiteness p | unit |",
-           "|---|---:|---:|---:|---|---:|---:|---|"]
+    kalman = bool(verdict and verdict["kalman"])
+    free = {r["column"]: r["free_run_p"] for r in (verdict or {}).get("rows", [])}
+    head = ("| column | start RMSE | final RMSE | noise std | noise is | final / noise "
+            "(given noise only) | " + ("final innovations whiteness p | final free-run "
+                                       "whiteness p" if kalman else
+                                       "final free-run whiteness p") + " | unit |")
+    md += [head, "|---|---:|---:|---:|---|---:|---:|" + ("---:|" if kalman else "") + "---|"]
     for c in columns:
         r0, r1 = (first.get("rmse") or {}).get(c), (last.get("rmse") or {}).get(c)
         sd = noise.get(c)
         ratio = (r1 / sd) if isinstance(r1, (int, float)) and isinstance(sd, (int, float)) \
             and sd > 0 and sources[c] == "given" else None
+        ps = [_num((last.get("whiteness_p") or {}).get(c), "p")]
+        if kalman:
+            ps.append(_num(free.get(c), "p"))
         md.append("| " + " | ".join(_cell(v) for v in (
             c, _num(r0), _num(r1), _num(sd),
             "given in the model" if sources[c] == "given" else "estimated",
-            _num(ratio, ".3g"), _num((last.get("whiteness_p") or {}).get(c), "p"),
-            units[c])) + " |")
+            _num(ratio, ".3g"), *ps, units[c])) + " |")
     md.append("")
     if any(v == "estimated" for v in sources.values()):
         md.append("An estimated noise std is the fit's own residual scale, so RMSE ≈ noise "
@@ -312,23 +323,40 @@ def _steps_table(steps: list[dict], columns, units: dict) -> list[str]:
     return md
 
 
-def _whiteness_table(s: dict, dg: dict | None, columns) -> list[str]:
-    """`### Residual whiteness` of one step: the report's p against the traces' test."""
+def _whiteness_table(verdict: dict) -> list[str]:
+    """`### Residual whiteness` of one step: Ljung-Box p per column of the sequence the
+    loop's rule reads (under the Kalman likelihood the innovations, and the free run
+    beside them, each named), each judged at the loop's threshold, and the one verdict
+    (`_whiteness_verdict`) built from these very numbers."""
     md = ["### Residual whiteness", ""]
-    wp = s.get("whiteness_p") or {}
-    md += ["| column | whiteness p (report) | Ljung-Box p (traces) | lags | white |",
-           "|---|---:|---:|---:|---|"]
-    for c in columns:
-        lb = ((dg or {}).get("columns", {}).get(c) or {}).get("ljung_box") or {}
-        md.append("| " + " | ".join(_cell(v) for v in (
-            c, _num(wp.get(c), "p"), _num(lb.get("p"), "p"), _num(lb.get("lags"), ".0f"),
-            _yes_no(lb.get("white")))) + " |")
-    md.append("")
+    t = f"p > {verdict['white_p']:g}"
+    if verdict["kalman"]:
+        md += [f"| column | innovations p | innovations white ({t}) | free-run p | "
+               f"free run white ({t}) | lags |", "|---|---:|---|---:|---|---:|"]
+        for r in verdict["rows"]:
+            md.append("| " + " | ".join(_cell(v) for v in (
+                r["column"], _num(r["rule_p"], "p"), _yes_no(r["rule_white"]),
+                _num(r["free_run_p"], "p"), _yes_no(r["free_run_white"]),
+                _num(r["lags"], ".0f"))) + " |")
+    else:
+        md += [f"| column | free-run p | white ({t}) | lags |", "|---|---:|---|---:|"]
+        for r in verdict["rows"]:
+            md.append("| " + " | ".join(_cell(v) for v in (
+                r["column"], _num(r["rule_p"], "p"), _yes_no(r["rule_white"]),
+                _num(r["lags"], ".0f"))) + " |")
+    md += ["", verdict["sentence"], ""]
     return md
 
 
+def _whiteness_finding(f: str, columns) -> bool:
+    """A `diagnose_traces` finding that only restates a column's Ljung-Box verdict (the
+    step's whiteness table and verdict say it once)."""
+    return any(f.startswith((f"{c}: residuals white", f"{c}: residuals not white"))
+               for c in columns)
+
+
 def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagnoses,
-                  units: dict) -> list[str]:
+                  units: dict, verdict: dict | None = None) -> list[str]:
     """`## Step i`: the evidence for its effect, its fit, residual and candidates."""
     s = steps[i]
     title = "the given model" if i == 0 and not s.get("added") \
@@ -345,13 +373,15 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
                    f"![after: step {i}]({pl['fit']})", ""]
         else:
             md += ["Measured against model:", "", f"![step {i}]({pl['fit']})", ""]
-    md += _whiteness_table(s, dg, columns)
+    if verdict is not None:
+        md += _whiteness_table(verdict)
+    md.append("Lags as stated; runs pooled by summing per-run autocovariances, each run "
+              "about its own mean (a lag never straddles two runs).")
+    md.append("")
     if dg:
-        md.append("Lags as stated; runs pooled by summing per-run autocovariances, each run "
-                  "about its own mean (a lag never straddles two runs).")
-        md.append("")
-        if dg["findings"]:
-            md += ["What the residual shows:", ""] + [f"- {f}" for f in dg["findings"]] + [""]
+        shown = [f for f in dg["findings"] if not _whiteness_finding(f, columns)]
+        if shown:
+            md += ["What the free-run residual shows:", ""] + [f"- {f}" for f in shown] + [""]
     if pl:
         md += [f"![residual autocorrelation]({pl['acf']})", "",
                f"![residual against inputs and their rates]({pl['xcorr']})", "",
@@ -406,9 +436,12 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
     steps = list(report.get("steps") or [])
     units = {**_default_units(steps, columns), **(units or {})}
     noise = {k: v for k, v in (report.get("noise") or {}).items() if v is not None}
+    white_p = white_threshold(report)
     diagnoses, plots = _diagnose_steps(out, steps, step_traces, columns, input_names,
                                        boundary_inputs, "diagnose" if diagnosis else None,
-                                       units, plots_ahead)
+                                       units, plots_ahead, white_p)
+    verdicts = [whiteness_verdict(s, d, report.get("likelihood"), white_p, columns, units)
+                for s, d in zip(steps, diagnoses)]
     (out / "diagnostics.json").write_text(json.dumps(
         {"steps": diagnoses}, indent=1, allow_nan=False, ensure_ascii=False))
     sources = noise_sources(steps, columns)
@@ -417,11 +450,12 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
                     {c: v for c, v in noise.items() if sources.get(c) == "given"}, units)
 
     md = ["# Diagnosis report" if diagnosis else "# Investigation report", ""]
-    md += _summary(report, steps, columns, noise, units, diagnosis)
+    md += _summary(report, steps, columns, noise, units, diagnosis,
+                   verdicts[-1] if verdicts else None)
     if not diagnosis:
         md += _steps_table(steps, columns, units)
     for i in range(len(steps)):
-        md += _step_section(i, steps, report, columns, plots, diagnoses, units)
+        md += _step_section(i, steps, report, columns, plots, diagnoses, units, verdicts[i])
     path = out / "report.md"
     path.write_text("\n".join(md) + "\n", encoding="utf-8")
     return path
