@@ -15,6 +15,8 @@ from pathlib import Path
 
 from ._diagnostic_plots import diagnostic_plots, error_chart, settling_time
 from ._diagnostics import diagnose_traces
+from ._evidence import MIN_BIC_DROP, evidence_figure, evidence_rows, votes
+from ._missing_heat_plots import missing_heat_section
 from ._whiteness_verdict import stopping_sentence, white_threshold, whiteness_verdict
 from .._plots import column_units
 
@@ -155,19 +157,28 @@ def _effect_std(parameters: dict, added: dict, name: str):
     return None
 
 
-def _candidate_table(cands: list[dict]) -> list[str]:
-    lines = ["| # | candidate | score test | likelihood ratio | Δ BIC | p-value | supported | "
-             "tied with | method | note |",
-             "|---|---|---:|---:|---:|---:|---|---|---|---|"]
-    for k, c in enumerate(cands[:_TOP], 1):
+def _candidate_table(step: dict, next_step: dict | None = None) -> list[str]:
+    """The step's candidates (`_evidence.evidence_rows`: the best `_TOP`, the added one
+    always among them): both statistics, Δ BIC against the rule's threshold, whether
+    refitted, the held-out folds' votes, and the outcome that tells the added one from
+    the supported ones not added."""
+    cands = step.get("candidates") or []
+    lines = ["| # | candidate | score test | likelihood ratio | Δ BIC (rule: ≤ "
+             f"−{MIN_BIC_DROP:g}) | p-value | supported | held-out folds for / against / "
+             "inconclusive | outcome | tied with | method | note |",
+             "|---|---|---:|---:|---:|---:|---|---|---|---|---|---|"]
+    for c in evidence_rows(step, next_step):
         ties = ", ".join(_effect(t) for t in (c.get("tied_with") or [])) or "–"
         st, lr = c.get("score_test"), c.get("likelihood_ratio")
         if st is None and lr is None:  # a report from before the two were told apart
             st, lr = (None, c.get("score")) if c.get("method") == "refit" else (c.get("score"),
                                                                                 None)
+        f, a, n = votes(c)
+        out = f"**{c['outcome']}**" if c["outcome"] == "added" else c["outcome"]
         lines.append("| " + " | ".join(_cell(v) for v in (
-            k, _effect(c), _num(st), _num(lr), _num(c.get("delta_bic"), "+.4g"),
-            _num(c.get("p_value"), "p"), _yes_no(c.get("supported")), ties,
+            c["rank"], _effect(c), _num(st), _num(lr), _num(c.get("delta_bic"), "+.4g"),
+            _num(c.get("p_value"), "p"), _yes_no(c.get("supported")),
+            f"{f} / {a} / {n}" if f + a + n else "not checked", out, ties,
             c.get("method") or "–", c.get("note") or "")) + " |")
     if len(cands) > _TOP:
         lines.append(f"\n({len(cands) - _TOP} more candidates not shown; all are in report.json.)")
@@ -356,7 +367,8 @@ def _whiteness_finding(f: str, columns) -> bool:
 
 
 def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagnoses,
-                  units: dict, verdict: dict | None = None) -> list[str]:
+                  units: dict, verdict: dict | None = None, heat: list[str] = (),
+                  evidence: str | None = None) -> list[str]:
     """`## Step i`: the evidence for its effect, its fit, residual and candidates."""
     s = steps[i]
     title = "the given model" if i == 0 and not s.get("added") \
@@ -382,6 +394,7 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
         shown = [f for f in dg["findings"] if not _whiteness_finding(f, columns)]
         if shown:
             md += ["What the free-run residual shows:", ""] + [f"- {f}" for f in shown] + [""]
+    md += list(heat)
     if pl:
         md += [f"![residual autocorrelation]({pl['acf']})", "",
                f"![residual against inputs and their rates]({pl['xcorr']})", "",
@@ -395,9 +408,14 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
         md.append("Ranked by evidence (larger is stronger): the likelihood-ratio statistic "
                   "2 (−log L before − after) for refitted candidates, else the score-test "
                   "statistic (no refit), each in its own column; Δ BIC = BIC after − BIC "
-                  "before; the first, if supported, is added at the next step.")
+                  "before. Supported means: passes the significance rule stated at the "
+                  "top; the first supported candidate that the held-out folds do not "
+                  "reject is added at the next step, and the outcome column says what "
+                  "became of each.")
         md.append("")
-        md += _candidate_table(cands) + [""]
+        if evidence:
+            md += [f"![evidence per candidate at step {i}]({evidence})", ""]
+        md += _candidate_table(s, steps[i + 1] if i + 1 < len(steps) else None) + [""]
         if s.get("separation"):
             md += [f"What would separate the tied candidates: {_sentence(s['separation'])}", ""]
     else:
@@ -408,7 +426,9 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
 def write_investigation_report(out_dir, report: dict, step_traces: list, columns: list[str],
                                input_names: list[str], boundary_inputs=(),
                                diagnosis: bool = False, units: dict | None = None,
-                               plots_ahead=None) -> Path:
+                               plots_ahead=None, missing_heat: list | None = None,
+                               nearest: dict | None = None,
+                               input_units: dict | None = None) -> Path:
     """Write `report.md` (and its PNGs, plus `diagnostics.json`) into `out_dir`.
 
     **Arguments:**
@@ -428,6 +448,11 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
       for `*_ug`).
     - `plots_ahead`: a `PlotsAhead` that may already have drawn the steps' figures
       (the investigation's, while it went on); the figures are drawn by it.
+    - `missing_heat`: per step, its `discovery.MissingHeat` where at hand (else the
+      step's `step<i>_missing_heat.csv` in `out_dir` is drawn, without an added law).
+    - `nearest`: node -> the sensor columns nearest it
+      (`_missing_heat_plots.nearest_sensors`), drawn under its missing heat.
+    - `input_units`: input column -> unit for the missing-heat figure.
 
     **Returns:** the path of `report.md`.
     """
@@ -446,8 +471,8 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
         {"steps": diagnoses}, indent=1, allow_nan=False, ensure_ascii=False))
     sources = noise_sources(steps, columns)
     if not diagnosis:
-        error_chart(out / "error_by_step.png", steps or [{}], columns,
-                    {c: v for c, v in noise.items() if sources.get(c) == "given"}, units)
+        error_chart(out / "error_by_step.png", steps or [{}], columns, noise, units,
+                    {c: sources.get(c) == "given" for c in noise})
 
     md = ["# Diagnosis report" if diagnosis else "# Investigation report", ""]
     md += _summary(report, steps, columns, noise, units, diagnosis,
@@ -455,7 +480,19 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
     if not diagnosis:
         md += _steps_table(steps, columns, units)
     for i in range(len(steps)):
-        md += _step_section(i, steps, report, columns, plots, diagnoses, units, verdicts[i])
+        traces = step_traces[i] if i < len(step_traces) else None
+        heat = missing_heat_section(
+            out, i, steps, traces, columns, input_names, boundary_inputs,
+            (missing_heat or [])[i] if i < len(missing_heat or []) else None, nearest,
+            units, input_units, "diagnose" if diagnosis else None)
+        evidence = None
+        if not diagnosis and steps[i].get("candidates"):
+            evidence = f"step{i}_evidence.png"
+            if evidence_figure(out / evidence, steps[i], steps[i + 1] if i + 1 < len(steps)
+                               else None, title=f"Step {i}") is None:
+                evidence = None
+        md += _step_section(i, steps, report, columns, plots, diagnoses, units, verdicts[i],
+                            heat, evidence)
     path = out / "report.md"
     path.write_text("\n".join(md) + "\n", encoding="utf-8")
     return path
