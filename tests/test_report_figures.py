@@ -85,7 +85,9 @@ def _case(tmp_path, law=True):
          "whiteness_p": {"T_housing": 1e-40, "T_die": 0.3},
          "whiteness_lags": {"T_housing": 20, "T_die": 20}, "candidates": cands,
          "parameters": {"sensors.T_housing.noise": {"value": 0.01, "free": False},
-                        "sensors.T_die.noise": {"value": 0.01, "free": False}},
+                        "sensors.T_die.noise": {"value": 0.01, "free": False},
+                        "nodes.pcb.capacitance": {"value": 4.0},
+                        "links.housing-pcb.conductance": {"value": 0.4}},
          "missing_heat": {"file": name, "nodes_carrying": ["pcb"],
                           "per_node": {"pcb": {"rms_W": 0.14, "peak_W": 0.31,
                                                "median_std_W": 0.02}}},
@@ -94,7 +96,9 @@ def _case(tmp_path, law=True):
         {"added": added, "n_params": 7, "rmse": {"T_housing": 0.0104, "T_die": 0.0098},
          "nll": -300.0, "aic": -586.0, "bic": -560.0,
          "whiteness_p": {"T_housing": 0.4, "T_die": 0.5},
-         "whiteness_lags": {"T_housing": 20, "T_die": 20}, "candidates": []},
+         "whiteness_lags": {"T_housing": 20, "T_die": 20}, "candidates": [],
+         "parameters": {"nodes.pcb.capacitance": {"value": 4.0},
+                        "links.housing-pcb.conductance": {"value": 0.4}}},
     ]
     report = {"schema": 1, "likelihood": "output_error", "steps": steps,
               "stopped_because": "residuals_white", "final_model": "model_final.toml",
@@ -122,7 +126,7 @@ def test_each_figure_type_is_rendered_linked_and_the_rule_stated_once(tmp_path):
     assert "![missing heat at step 0](step0_missing_heat.png)" in md
     assert "](step0_missing_heat.csv)" in md
     assert "![evidence per candidate at step 0](step0_evidence.png)" in md
-    assert "The law added at step 1 at pcb is drawn" in md
+    assert "Over the reconstruction at pcb: the heat the model of step 1" in md
     assert md.count(RULE) == 1  # stated once, at the top ...
     assert md.index(RULE) < md.index("## Step 0")
     assert "significance rule (stated at the top" in md  # ... and referred to by the step
@@ -145,6 +149,32 @@ def test_law_heat_is_the_expression_at_its_fitted_values():
     np.testing.assert_allclose(got, 0.7 * p ** 2)
     assert law_heat({"expression": "c * unknown", "parameters": {"c": 1.0}}, NODES,
                     np.zeros((3, 3)), INPUTS, np.zeros((3, 2))) is None
+
+
+def test_the_law_is_drawn_with_the_terms_refitted_beside_it():
+    """Step 1 adds a law c ΔT^2 at the housing and its refit lowers the boundary
+    conductance 0.2 -> 0.1 W/K and the capacitance 25 -> 20 J/K: what step 1 accounts for
+    beyond step 0 is c ΔT² − 0.1 ΔT − (20 − 25) dT/dt, written out here."""
+    from thermojax.investigation._missing_heat_plots import added_heat
+
+    ts = np.arange(0.0, 600.0, 10.0)
+    housing = 25.0 + 0.05 * ts
+    chamber = 40.0 + 0 * ts
+    temps = np.column_stack([housing, housing + 1.0])
+    inputs = np.column_stack([chamber, 0 * ts])
+    before = {"parameters": {"nodes.housing.capacitance": {"value": 25.0},
+                             "boundaries.housing-T_chamber.conductance": {"value": 0.2},
+                             "links.housing-pcb.conductance": {"value": 0.4}}}
+    after = {"added": {"kind": "expression", "where": ["housing", "T_chamber"],
+                       "expression": "c * (T_chamber - housing)^2",
+                       "parameters": {"c": 0.003}},
+             "parameters": {"nodes.housing.capacitance": {"value": 20.0},
+                            "boundaries.housing-T_chamber.conductance": {"value": 0.1},
+                            "links.housing-pcb.conductance": {"value": 0.4}}}
+    got = added_heat(before, after, "housing", ["housing", "pcb"], ts, temps, INPUTS,
+                     inputs)
+    dT = chamber - housing
+    np.testing.assert_allclose(got, 0.003 * dT ** 2 - 0.1 * dT + 5.0 * 0.05, rtol=1e-9)
 
 
 def test_log_ticks_never_crowd():
