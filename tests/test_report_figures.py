@@ -75,6 +75,11 @@ def _case(tmp_path, law=True):
          "score_test": 30.0, "likelihood_ratio": 30.0, "delta_bic": -20.0, "p_value": 1e-6,
          "supported": True, "method": "refit", "tied_with": [],
          "holdout_folds": folds("against", "against", "for"), "note": ""},
+        {"kind": "heat_source", "where": ["P_die", "pcb"], "score": 20.0, "score_test": 20.0,
+         "likelihood_ratio": 20.0, "delta_bic": -12.0, "p_value": 1e-4, "supported": False,
+         "method": "refit", "tied_with": [], "holdout_folds": folds("for", "against"),
+         "note": "held-out check against it (leave one run out): summed gain -3 is not "
+                 "positive"},
         {"kind": "sensor_offset", "where": ["T_housing"], "score": 4.0, "score_test": 4.0,
          "likelihood_ratio": None, "delta_bic": 3.0, "p_value": 0.04, "supported": False,
          "method": "score", "tied_with": [], "holdout_folds": [], "note": ""},
@@ -137,6 +142,7 @@ def test_each_figure_type_is_rendered_linked_and_the_rule_stated_once(tmp_path):
     assert "2 / 1 / 0" in rows["expression (pcb–P_die)"]
     assert "supported; not added" in rows["sensor_gain (T_die)"]
     assert "rejected by the held-out folds" in rows["radiation (housing–T_chamber)"]
+    assert "rejected by the held-out folds" in rows["heat_source (P_die–pcb)"]
     assert "not supported" in rows["sensor_offset (T_housing)"]
 
 

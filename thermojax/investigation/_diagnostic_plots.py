@@ -253,19 +253,27 @@ def diagnostic_plots(out_dir, prefix: str, columns, runs, input_names, boundary_
 
 def log_ticks(lo: float, hi: float, most: int = 7) -> list[float]:
     """Tick values for a logarithmic axis from `lo` to `hi` (> 0) that never crowd: the
-    finest of the 1-2-3-5, 1-2-5, 1-3 and 1 sequences with at most `most` ticks
-    in range, and at least the two ends when none falls inside."""
+    finest of the mantissa sequences (steps of 0.1, of 0.5, of 1 within a decade, then
+    1-2-3-5, 1-2-5, 1-3 and 1) with at most `most` ticks in range, none closer to the
+    next than a `2 most`-th of the axis; at least the two ends when fewer than two
+    fall inside."""
     lo, hi = float(min(lo, hi)), float(max(lo, hi))
     k0, k1 = math.floor(math.log10(lo)), math.ceil(math.log10(hi))
-    for mantissas in ((1, 2, 3, 5), (1, 2, 5), (1, 3), (1,)):
-        ticks = [m * 10.0 ** k for k in range(k0, k1 + 1) for m in mantissas
-                 if lo * (1 - 1e-9) <= m * 10.0 ** k <= hi * (1 + 1e-9)]
-        if len(ticks) <= most:
+    span = math.log10(hi / lo) if hi > lo else 1.0
+    fine = [tuple(np.round(np.arange(1.0, 10.0, step), 1)) for step in (0.1, 0.5, 1.0)]
+    ticks: list[float] = []
+    for mantissas in (*fine, (1, 2, 3, 5), (1, 2, 5), (1, 3), (1,)):
+        ticks = sorted({float(f"{m * 10.0 ** k:.3g}") for k in range(k0, k1 + 1)
+                        for m in mantissas if lo * (1 - 1e-9) <= m * 10.0 ** k <= hi * (1 + 1e-9)})
+        gaps = np.diff(np.log10(ticks)) if len(ticks) > 1 else np.array([span])
+        if len(ticks) <= most and gaps.min() >= span / (2 * most):
             break
     if len(ticks) > most:  # decades only, thinned
         ticks = ticks[::math.ceil(len(ticks) / most)]
-    if len(ticks) < 2:
-        ticks = sorted(set(ticks) | {float(f"{lo:.2g}"), float(f"{hi:.2g}")})
+    if len(ticks) < 2:  # the ends, unless one sits on a tick
+        ends = [float(f"{lo:.2g}"), float(f"{hi:.2g}")]
+        ticks = sorted(set(ticks) | {e for e in ends if all(
+            abs(math.log10(e / t)) >= span / (2 * most) for t in ticks)})
     return ticks
 
 
@@ -279,7 +287,8 @@ def _step_label(i: int, step: dict, width: int = 22) -> str:
     where = added.get("where") or []
     text = f"{i}: + {added.get('kind', '?')}" + (f" ({'–'.join(map(str, where))})"
                                                   if where else "")
-    return "\n".join(textwrap.wrap(text, width))
+    return "\n".join(textwrap.wrap(text, width, break_long_words=False,
+                                   break_on_hyphens=False))
 
 
 def error_chart(path: Path, steps: list[dict], columns, noise: dict,
@@ -310,8 +319,10 @@ def error_chart(path: Path, steps: list[dict], columns, noise: dict,
             y = np.array([float(s.get("rmse", {}).get(c)) if isinstance(s.get("rmse", {}).get(c),
                           (int, float)) else np.nan for s in steps])
             y[~(y > 0)] = np.nan
-            if np.isfinite(y).any():
-                ax.plot(x, y, "o-", color=color, label=f"{c} RMSE")
+            if np.isfinite(y).any():  # markers shrink column by column: equal values
+                k = cols.index(c)       # stay visible one inside the other
+                ax.plot(x, y, "-", marker="osD^v"[k % 5], ms=max(9 - 2 * k, 4),
+                        lw=max(2.4 - 0.6 * k, 1.0), color=color, label=f"{c} RMSE")
                 values += list(y[np.isfinite(y)])
             sd = noise.get(c)
             if isinstance(sd, (int, float)) and sd > 0:
@@ -341,7 +352,7 @@ def error_chart(path: Path, steps: list[dict], columns, noise: dict,
             ax.legend(loc="best", fontsize=9, framealpha=0.85)
         ax.grid(alpha=0.3, which="major")
     how = {True: "dashed: noise std given in the model",
-           False: "dotted: noise std estimated by the fit (equal to the RMSE by construction)"}
+           False: "dotted: noise std estimated by the fit, equal to its RMSE by construction"}
     fig.suptitle("Error per step of the investigation against the measurement noise"
                  + (f"\n({'; '.join(how[k] for k in sorted(kinds, reverse=True))})"
                     if kinds else ""))

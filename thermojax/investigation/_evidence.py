@@ -57,10 +57,12 @@ def outcome(c: dict, added: dict | None, added_rank: int | None, rank: int) -> s
     candidate ranked `added_rank` (None: nothing added)."""
     if _same(c, added):
         return "added"
+    # the loop marks a candidate the held-out folds reject as not supported, and says
+    # so in its note: told apart from one the test itself did not support
+    if "held-out check against it" in str(c.get("note") or "") or _held_out_rejects(c):
+        return "passed the test; rejected by the held-out folds"
     if not c.get("supported"):
         return "not supported"
-    if _held_out_rejects(c):
-        return "supported by the test; rejected by the held-out folds"
     if added is not None and added_rank is not None and rank > added_rank:
         return "supported; not added (one effect per step: the added one ranks first)"
     if added is not None:
@@ -113,6 +115,13 @@ def evidence_table(step: dict, next_step: dict | None) -> list[str]:
     return md
 
 
+def _folds(c: dict) -> str:
+    f, a, n = votes(c)
+    if not f + a + n:
+        return "(no held-out check)"
+    return f"(held-out folds: {f} for, {a} against" + (f", {n} inconclusive)" if n else ")")
+
+
 _COLOURS = {"added": "tab:green", "not supported": "0.6"}
 
 
@@ -124,13 +133,13 @@ def evidence_figure(path, step: dict, next_step: dict | None, title: str = "") -
             if isinstance(r.get("delta_bic"), (int, float)) and math.isfinite(r["delta_bic"])]
     if not rows:
         return None
-    fig = new_figure(figsize=(WIDTH_IN, 2.2 + 0.5 * max(len(rows), 3)))
+    fig = new_figure(figsize=(WIDTH_IN, 2.2 + 0.6 * max(len(rows), 3)))
     ax = fig.subplots()
     y = np.arange(len(rows))[::-1]
     seen = set()
     for yi, r in zip(y, rows):
         key = r["outcome"] if r["outcome"] in _COLOURS else (
-            "supported, rejected by held-out folds" if "held-out" in r["outcome"]
+            "rejected by the held-out folds" if "held-out" in r["outcome"]
             else "supported, not added")
         colour = _COLOURS.get(r["outcome"], "tab:red" if "held-out" in r["outcome"]
                               else "tab:orange")
@@ -138,20 +147,15 @@ def evidence_figure(path, step: dict, next_step: dict | None, title: str = "") -
                 hatch=None if r.get("method") == "refit" else "//",
                 label=key if key not in seen else None)
         seen.add(key)
-        f, a, n = votes(r)
-        note = f"folds {f} for, {a} against" + (f", {n} inconclusive" if n else "") \
-            if f + a + n else "no held-out check"
-        ax.text(0.99, yi, note, transform=ax.get_yaxis_transform(), ha="right",
-                va="center", fontsize=9, color="0.25")
     ax.axvline(-MIN_BIC_DROP, color="k", ls="--", lw=1.0,
                label=f"threshold: Δ BIC ≤ −{MIN_BIC_DROP:g}")
     ax.axvline(0, color="k", lw=0.5)
     ax.set_xscale("symlog", linthresh=MIN_BIC_DROP)
     lo = min(r["delta_bic"] for r in rows)
     hi = max(r["delta_bic"] for r in rows)
-    ax.set_xlim(min(lo * 1.5, -10 * MIN_BIC_DROP), max(hi * 3, 10 * MIN_BIC_DROP))
+    ax.set_xlim(min(lo * 1.5, -10 * MIN_BIC_DROP), max(hi * 3, MIN_BIC_DROP))
     ax.set_yticks(y)
-    ax.set_yticklabels([f"{r['rank']}. {label(r)}" for r in rows])
+    ax.set_yticklabels([f"{r['rank']}. {label(r)}\n{_folds(r)}" for r in rows])
     ax.set_xlabel("Δ BIC = BIC after − BIC before (symmetric log scale; left is stronger)")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=9)
     fig.suptitle((f"{title}\n" if title else "") + "evidence per candidate (hatched: "
