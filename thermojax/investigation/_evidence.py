@@ -62,7 +62,8 @@ def outcome(c: dict, added: dict | None, added_rank: int | None, rank: int) -> s
     if "held-out check against it" in str(c.get("note") or "") or _held_out_rejects(c):
         return "passed the test; rejected by the held-out folds"
     if not c.get("supported"):
-        return "not supported"
+        return ("not supported (score test only: not refitted)"
+                if c.get("method") == "score" else "not supported")
     if added is not None and added_rank is not None and rank > added_rank:
         return "supported; not added (one effect per step: the added one ranks first)"
     if added is not None:
@@ -127,8 +128,8 @@ _COLOURS = {"added": "tab:green", "not supported": "0.6"}
 
 def evidence_figure(path, step: dict, next_step: dict | None, title: str = "") -> Path | None:
     """A bar per shown candidate: its Δ BIC (symmetric-log axis) against the rule's
-    threshold −`MIN_BIC_DROP`, coloured by outcome, its held-out votes written beside
-    it. None (nothing written) when no candidate has a Δ BIC."""
+    threshold −`MIN_BIC_DROP`, coloured by outcome, its held-out votes under its
+    name. None (nothing written) when no candidate has a Δ BIC."""
     rows = [r for r in evidence_rows(step, next_step)
             if isinstance(r.get("delta_bic"), (int, float)) and math.isfinite(r["delta_bic"])]
     if not rows:
@@ -138,11 +139,11 @@ def evidence_figure(path, step: dict, next_step: dict | None, title: str = "") -
     y = np.arange(len(rows))[::-1]
     seen = set()
     for yi, r in zip(y, rows):
-        key = r["outcome"] if r["outcome"] in _COLOURS else (
+        key = "not supported" if r["outcome"].startswith("not supported") else (
+            r["outcome"] if r["outcome"] in _COLOURS else
             "rejected by the held-out folds" if "held-out" in r["outcome"]
             else "supported, not added")
-        colour = _COLOURS.get(r["outcome"], "tab:red" if "held-out" in r["outcome"]
-                              else "tab:orange")
+        colour = _COLOURS.get(key, "tab:red" if "held-out" in r["outcome"] else "tab:orange")
         ax.barh(yi, r["delta_bic"], color=colour, height=0.6,
                 hatch=None if r.get("method") == "refit" else "//",
                 label=key if key not in seen else None)
@@ -158,6 +159,7 @@ def evidence_figure(path, step: dict, next_step: dict | None, title: str = "") -
     ax.set_yticklabels([f"{r['rank']}. {label(r)}\n{_folds(r)}" for r in rows])
     ax.set_xlabel("Δ BIC = BIC after − BIC before (symmetric log scale; left is stronger)")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=9)
-    fig.suptitle((f"{title}\n" if title else "") + "evidence per candidate (hatched: "
-                 "score test only, not refitted)")
+    hatched = any(r.get("method") != "refit" for r in rows)
+    fig.suptitle((f"{title}\n" if title else "") + "evidence per candidate"
+                 + (" (hatched: score test only, not refitted)" if hatched else ""))
     return save_figure(fig, path)
