@@ -89,6 +89,9 @@ def test_kalman_stop_names_white_innovations_and_the_free_run_that_is_not():
     assert "innovations became white" in stop and "free run is not white" in stop
     # nowhere does the report call the residuals white without naming which ones
     assert "residuals became white" not in md
+    # nor say the free-run RMSE equals an estimated noise "by construction": under the
+    # Kalman likelihood the free run (here a random walk) is not bound to the noise
+    assert "by construction" not in md
 
 
 def test_output_error_verdict_uses_the_loops_threshold():

@@ -292,14 +292,17 @@ def _step_label(i: int, step: dict, width: int = 22) -> str:
 
 
 def error_chart(path: Path, steps: list[dict], columns, noise: dict,
-                units: dict | None = None, noise_given: dict | None = None) -> None:
+                units: dict | None = None, noise_given: dict | None = None,
+                kalman: bool = False) -> None:
     """Free-run RMSE per step (log scale), one line per column, each column's noise std
     as a horizontal line of its colour, one panel per unit (`units`: column -> unit,
     default °C); `steps` are `report.json` step entries (each labelled on the step axis
     with what it added), `noise` column -> std. `noise_given`: column -> True where the
     std was given in the model (a solid line: the floor the error should reach), False
     where it was estimated with the fit (dotted: the fit's own residual scale, which the
-    RMSE equals by construction); default all given. Ticks are `log_ticks`, which never
+    RMSE equals by construction under output error; under the Kalman likelihood,
+    `kalman`, the noise the filter assumes, which the free run need not reach); default
+    all given. Ticks are `log_ticks`, which never
     overlap."""
     from matplotlib.ticker import FixedLocator, NullFormatter, NullLocator
 
@@ -352,7 +355,8 @@ def error_chart(path: Path, steps: list[dict], columns, noise: dict,
             ax.legend(loc="best", fontsize=9, framealpha=0.85)
         ax.grid(alpha=0.3, which="major")
     how = {True: "dashed: noise std given in the model",
-           False: "dotted: noise std estimated by the fit, equal to its RMSE by construction"}
+           False: ("dotted: measurement noise std the Kalman fit estimated" if kalman else
+                   "dotted: noise std estimated by the fit, equal to its RMSE by construction")}
     fig.suptitle("Error per step of the investigation against the measurement noise"
                  + (f"\n({'; '.join(how[k] for k in sorted(kinds, reverse=True))})"
                     if kinds else ""))

@@ -282,7 +282,11 @@ def _summary(report: dict, steps: list[dict], columns, noise: dict, units: dict,
             "given in the model" if sources[c] == "given" else "estimated",
             _num(ratio, ".3g"), *ps, units[c])) + " |")
     md.append("")
-    if any(v == "estimated" for v in sources.values()):
+    if any(v == "estimated" for v in sources.values()) and kalman:
+        md.append("An estimated noise std is the measurement noise the Kalman filter "
+                  "assumes, not a floor the free run must reach; the free-run RMSE shows "
+                  "what the model alone, driven by its inputs, leaves.")
+    elif any(v == "estimated" for v in sources.values()):
         md.append("An estimated noise std is the fit's own residual scale, so RMSE ≈ noise "
                   "holds by construction: it is no yardstick of success; the whiteness p "
                   "is.")
@@ -472,7 +476,8 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
     sources = noise_sources(steps, columns)
     if not diagnosis:
         error_chart(out / "error_by_step.png", steps or [{}], columns, noise, units,
-                    {c: sources.get(c) == "given" for c in noise})
+                    {c: sources.get(c) == "given" for c in noise},
+                    kalman=report.get("likelihood") == "kalman")
 
     md = ["# Diagnosis report" if diagnosis else "# Investigation report", ""]
     md += _summary(report, steps, columns, noise, units, diagnosis,
