@@ -96,7 +96,8 @@ def _acf_figure(columns, res, dt: float, shortest: int, lag: int, title: str):
         ax.set_ylabel("autocorrelation")
         _, p_lb, lb_lags = ljung_box(res[j])
         # the p alone: the verdict, at the loop's threshold, is the report's
-        ax.set_title(f"{c}: Ljung–Box p = {p_lb:.2g} over {lb_lags} lags")
+        p_text = "p < 1e-300" if p_lb < 1e-300 else f"p = {p_lb:.2g}"  # as the report
+        ax.set_title(f"{c}: Ljung–Box {p_text} over {lb_lags} lags")
     axes[-1, 0].set_xlabel("lag, s")
     fig.suptitle(f"{title}\nresidual autocorrelation, runs pooled "
                  "(grey: ±1.96/√N, where white noise stays)")
