@@ -1339,7 +1339,7 @@ def _report(records: list[dict], stopped: str, likelihood: str, fdr: float,
         "unexplained": (None if stopped == "residuals_white"
                         else _unexplained(records[-1], white_p)),
         "significance_rule": significance_rule(fdr, N_BLOCKS),
-        "whiteness_test": (f"Ljung-Box of the "
+        "whiteness_test": ("Ljung-Box of the "
                            + ("one-step innovations" if likelihood == "kalman"
                               else "free-run residuals")
                            + ", lags min(20, N/5), runs pooled by summing per-run "
