@@ -66,4 +66,8 @@ def run_demo(out: Path, progress=print) -> dict:
     progress(f"wrote {', '.join(str(p) for p in paths)}")
     spec = io.load_model(_data_path("chain3.toml"))
     runs = [read_telemetry(p) for p in paths]
-    return investigate(spec, runs, out=out / "investigation", progress=progress, resume=False)
+    report = investigate(spec, runs, out=out / "investigation", progress=progress,
+                         resume=False)
+    progress(f"the error per step against the noise: "
+             f"{out / 'investigation' / 'error_by_step.png'}")
+    return report

@@ -75,8 +75,14 @@ def diagnose(spec: ModelSpec, runs, *, likelihood: str = "output_error", out: Pa
                  "noise": report["noise"], "significance_rule": report["significance_rule"],
                  **({"advice": advice} if advice else {})}
         # report.md and every plot, each written once (`diagnose_<key>.png`)
+        from ._missing_heat_plots import nearest_sensors
+
         write_investigation_report(out, json_safe(story), [step.traces], columns, inputs,
-                                   boundary, diagnosis=True, units=units)
+                                   boundary, diagnosis=True, units=units,
+                                   missing_heat=[missing], nearest=nearest_sensors(spec),
+                                   input_units={h.input: "W" for h in spec.heat_inputs})
         report["plots"] = {k: f"diagnose_{k}.png" for k in PLOT_KEYS}
+        if (out / "diagnose_missing_heat.png").is_file():
+            report["plots"]["missing_heat"] = "diagnose_missing_heat.png"
         (out / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
     return report

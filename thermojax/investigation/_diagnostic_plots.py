@@ -95,8 +95,9 @@ def _acf_figure(columns, res, dt: float, shortest: int, lag: int, title: str):
         ax.set_ylim(-top, top)
         ax.set_ylabel("autocorrelation")
         _, p_lb, lb_lags = ljung_box(res[j])
-        ax.set_title(f"{c}: Ljung–Box p = {p_lb:.2g} over {lb_lags} lags"
-                     + (" (not white)" if p_lb < 0.05 else ""))
+        # the p alone: the verdict, at the loop's threshold, is the report's
+        p_text = "p < 1e-300" if p_lb < 1e-300 else f"p = {p_lb:.2g}"  # as the report
+        ax.set_title(f"{c}: Ljung–Box {p_text} over {lb_lags} lags")
     axes[-1, 0].set_xlabel("lag, s")
     fig.suptitle(f"{title}\nresidual autocorrelation, runs pooled "
                  "(grey: ±1.96/√N, where white noise stays)")
@@ -251,43 +252,113 @@ def diagnostic_plots(out_dir, prefix: str, columns, runs, input_names, boundary_
     return names
 
 
-def error_chart(path: Path, steps: list[dict], columns, noise: dict,
-                units: dict | None = None) -> None:
-    """Free-run RMSE per step (log scale), one line per column, each column's noise std
-    dashed, one panel per unit (`units`: column -> unit, default °C); `steps` are
-    `report.json` step entries, `noise` column -> std (pass only a noise given in the
-    model: an estimated one equals the RMSE by construction)."""
-    from matplotlib.ticker import FuncFormatter
+def log_ticks(lo: float, hi: float, most: int = 7) -> list[float]:
+    """Tick values for a logarithmic axis from `lo` to `hi` (> 0) that never crowd: the
+    finest of the mantissa sequences (steps of 0.1, of 0.5, of 1 within a decade, then
+    1-2-3-5, 1-2-5, 1-3 and 1) with at most `most` ticks in range, none closer to the
+    next than a `2 most`-th of the axis; at least the two ends when fewer than two
+    fall inside."""
+    lo, hi = float(min(lo, hi)), float(max(lo, hi))
+    k0, k1 = math.floor(math.log10(lo)), math.ceil(math.log10(hi))
+    span = math.log10(hi / lo) if hi > lo else 1.0
+    fine = [tuple(np.round(np.arange(1.0, 10.0, step), 1)) for step in (0.1, 0.5, 1.0)]
+    ticks: list[float] = []
+    for mantissas in (*fine, (1, 2, 3, 5), (1, 2, 5), (1, 3), (1,)):
+        ticks = sorted({float(f"{m * 10.0 ** k:.3g}") for k in range(k0, k1 + 1)
+                        for m in mantissas if lo * (1 - 1e-9) <= m * 10.0 ** k <= hi * (1 + 1e-9)})
+        gaps = np.diff(np.log10(ticks)) if len(ticks) > 1 else np.array([span])
+        if len(ticks) <= most and gaps.min() >= span / (2 * most):
+            break
+    if len(ticks) > most:  # decades only, thinned
+        ticks = ticks[::math.ceil(len(ticks) / most)]
+    if len(ticks) < 2:  # the ends, unless one sits on a tick
+        ends = [float(f"{lo:.2g}"), float(f"{hi:.2g}")]
+        ticks = sorted(set(ticks) | {e for e in ends if all(
+            abs(math.log10(e / t)) >= span / (2 * most) for t in ticks)})
+    return ticks
 
+
+def _step_label(i: int, step: dict, width: int = 22) -> str:
+    """`i: start` or `i: + kind (where)`, wrapped to `width` characters a line."""
+    import textwrap
+
+    added = step.get("added")
+    if not added:
+        return f"{i}: start"
+    where = added.get("where") or []
+    text = f"{i}: + {added.get('kind', '?')}" + (f" ({'–'.join(map(str, where))})"
+                                                  if where else "")
+    return "\n".join(textwrap.wrap(text, width, break_long_words=False,
+                                   break_on_hyphens=False))
+
+
+def error_chart(path: Path, steps: list[dict], columns, noise: dict,
+                units: dict | None = None, noise_given: dict | None = None,
+                kalman: bool = False) -> None:
+    """Free-run RMSE per step (log scale), one line per column, each column's noise std
+    as a horizontal line of its colour, one panel per unit (`units`: column -> unit,
+    default °C); `steps` are `report.json` step entries (each labelled on the step axis
+    with what it added), `noise` column -> std. `noise_given`: column -> True where the
+    std was given in the model (a solid line: the floor the error should reach), False
+    where it was estimated with the fit (dotted: the fit's own residual scale, which the
+    RMSE equals by construction under output error; under the Kalman likelihood,
+    `kalman`, the noise the filter assumes, which the free run need not reach); default
+    all given. Ticks are `log_ticks`, which never
+    overlap."""
+    from matplotlib.ticker import FixedLocator, NullFormatter, NullLocator
+
+    noise_given = noise_given if noise_given is not None else {c: True for c in noise}
     groups = _by_unit(columns, units or {})
-    fig = new_figure(figsize=(WIDTH_IN, 5.5))
+    labels = [_step_label(i, s) for i, s in enumerate(steps)]
+    lines_per_label = max(lab.count("\n") + 1 for lab in labels) if labels else 1
+    fig = new_figure(figsize=(WIDTH_IN, 5.0 + 0.25 * lines_per_label))
     axes = np.atleast_1d(fig.subplots(1, len(groups), squeeze=False)[0])
     x = np.arange(len(steps))
     colors = _colors()
+    kinds = set()
     for ax, (unit, cols) in zip(axes, groups):
+        values = []
         for c in cols:
             color = colors[columns.index(c) % len(colors)]
             y = np.array([float(s.get("rmse", {}).get(c)) if isinstance(s.get("rmse", {}).get(c),
                           (int, float)) else np.nan for s in steps])
             y[~(y > 0)] = np.nan
-            if np.isfinite(y).any():
-                ax.plot(x, y, "o-", color=color, label=c)
+            if np.isfinite(y).any():  # markers shrink column by column: equal values
+                k = cols.index(c)       # stay visible one inside the other
+                ax.plot(x, y, "-", marker="osD^v"[k % 5], ms=max(9 - 2 * k, 4),
+                        lw=max(2.4 - 0.6 * k, 1.0), color=color, label=f"{c} RMSE")
+                values += list(y[np.isfinite(y)])
             sd = noise.get(c)
             if isinstance(sd, (int, float)) and sd > 0:
-                ax.axhline(sd, color=color, ls="--", lw=0.8)
+                given = bool(noise_given.get(c, True))
+                kinds.add(given)
+                ax.axhline(sd, color=color, ls="--" if given else ":", lw=1.2,
+                           label=f"{c} noise {sd:.2g} {unit} "
+                                 + ("(given)" if given else "(estimated)"))
+                values.append(sd)
         ax.set_yscale("log")
-        plain = FuncFormatter(lambda v, _pos: f"{v:.3g}")  # 0.0098, not 9.8×10⁻³
-        ax.yaxis.set_major_formatter(plain)
-        ax.yaxis.set_minor_formatter(plain)
+        if values:
+            lo, hi = min(values), max(values)
+            pad = (hi / lo) ** 0.08 if hi > lo else 1.3
+            ax.set_ylim(lo / pad, hi * pad)
+            ticks = log_ticks(lo / pad, hi * pad)
+            ax.yaxis.set_major_locator(FixedLocator(ticks))
+            ax.set_yticklabels([f"{t:g}" for t in ticks])
+            ax.yaxis.set_minor_locator(NullLocator())
+            ax.yaxis.set_minor_formatter(NullFormatter())
         ax.set_xticks(x)
-        ax.set_xticklabels([f"{i}: start" if not s.get("added") else
-                            f"{i}: + {s['added'].get('kind', '?')}"
-                            for i, s in enumerate(steps)], rotation=20, ha="right")
+        ax.set_xticklabels(labels, rotation=0 if len(steps) <= 4 else 30,
+                           ha="center" if len(steps) <= 4 else "right")
+        ax.set_xlim(-0.4, len(steps) - 0.6)
         ax.set_xlabel("step (effect added)")
         ax.set_ylabel(f"free-run RMSE, {unit}")
         if ax.get_legend_handles_labels()[0]:
-            ax.legend()
-        ax.grid(alpha=0.3, which="both")
-    fig.suptitle("Error per step of the investigation"
-                 + (" (dashed: noise std given in the model)" if noise else ""))
+            ax.legend(loc="best", fontsize=9, framealpha=0.85)
+        ax.grid(alpha=0.3, which="major")
+    how = {True: "dashed: noise std given in the model",
+           False: ("dotted: measurement noise std the Kalman fit estimated" if kalman else
+                   "dotted: noise std estimated by the fit, equal to its RMSE by construction")}
+    fig.suptitle("Error per step of the investigation against the measurement noise"
+                 + (f"\n({'; '.join(how[k] for k in sorted(kinds, reverse=True))})"
+                    if kinds else ""))
     save_figure(fig, path)

@@ -257,10 +257,11 @@ def _fit_figures(runs, j: int) -> tuple[dict, list[np.ndarray]]:
     return col, res
 
 
-def _whiteness(c: str, res) -> tuple[dict, tuple[float, str]]:
-    """Ljung-Box over the pooled runs: its entry and its finding."""
+def _whiteness(c: str, res, white_p: float = WHITE_P) -> tuple[dict, tuple[float, str]]:
+    """Ljung-Box over the pooled runs: its entry and its finding (white when p is at
+    least `white_p`)."""
     q, p_lb, lags = ljung_box(res)
-    white = p_lb >= WHITE_P
+    white = p_lb >= white_p
     entry = {"q": q, "p": p_lb, "lags": lags, "white": white}
     if white:
         return entry, (0.0, f"{c}: residuals white (Ljung-Box p {_p(p_lb)}, {lags} lags)")
@@ -358,14 +359,14 @@ def _periodogram(c: str, res, dt: float) -> tuple[dict | None, list]:
 
 
 def _tests(lb_lags, lag: int, dt: float, n_inputs: int, chamber, powers,
-           time_scale: float | None = None) -> dict:
+           time_scale: float | None = None, white_p: float = WHITE_P) -> dict:
     """How every number was computed, for the report."""
     return {
         "residuals": "measured minus predicted (as given in the run traces)",
         "pooling": "lagged products summed over runs, each run about its own mean; "
                    "a lag never straddles two runs",
         "ljung_box": {"lags": lb_lags, "lags_rule": "min(20, N/5) with N the pooled sample count",
-                      "white_if_p_at_least": WHITE_P},
+                      "white_if_p_at_least": white_p},
         "cross_correlation": {
             "lags_samples": lag, "lags_s": lag * dt, "sample_interval_s": dt,
             "slowest_time_constant_s": time_scale,
@@ -390,7 +391,8 @@ def _tests(lb_lags, lag: int, dt: float, n_inputs: int, chamber, powers,
 
 def diagnose_traces(columns: list[str], runs: list[RunTrace], input_names: list[str],
                     boundary_inputs=(), max_lag: int | None = None,
-                    units: dict | None = None, time_scale: float | None = None) -> dict:
+                    units: dict | None = None, time_scale: float | None = None,
+                    white_p: float = WHITE_P) -> dict:
     """Describe how a model fails on its run traces, as a JSON-ready dict (no NaN).
 
     Per column: `rmse` and `fit_percent` (`100 (1 - ‖y - ŷ‖/‖y - mean y‖)`) pooled over
@@ -418,6 +420,8 @@ def diagnose_traces(columns: list[str], runs: list[RunTrace], input_names: list[
     - `time_scale`: the model's slowest time constant, s (`slowest_time_constant`):
       the lags then span two of it, so a slow residual is seen to rise and decay;
       without it, `min(30, shortest run / 5)` samples.
+    - `white_p`: the Ljung-Box p at or above which a column is called white (the
+      investigation's report passes its loop's threshold, so that both agree).
 
     **Returns:** `{"columns": {column: {...}}, "findings": [str], "tests": {...}}`.
     """
@@ -440,7 +444,7 @@ def diagnose_traces(columns: list[str], runs: list[RunTrace], input_names: list[
             findings.append(f"{c}: too few measured samples ({col['n_samples']}) to test the "
                             "residual")
             continue
-        col["ljung_box"], white = _whiteness(c, res)
+        col["ljung_box"], white = _whiteness(c, res, white_p)
         lb_lags = col["ljung_box"]["lags"]
         col["phases"], by_phase = _phase_evidence(c, units.get(c, "°C"), res, phases,
                                                   col["rmse"])
@@ -450,7 +454,7 @@ def diagnose_traces(columns: list[str], runs: list[RunTrace], input_names: list[
         ranked = [white, *by_phase, *by_input, *by_frequency]
         findings += [s for _, s in sorted(ranked, key=lambda t: -t[0])]
 
-    tests = _tests(lb_lags, lag, dt, len(input_names), chamber, powers, time_scale)
+    tests = _tests(lb_lags, lag, dt, len(input_names), chamber, powers, time_scale, white_p)
     return json_safe({"columns": out_cols, "findings": findings, "tests": tests,
                       "runs": [r["name"] for r in runs]})
 

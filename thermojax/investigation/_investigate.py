@@ -1270,6 +1270,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
     else:
         records.append(current.record)
     steps_traces = [None] * (len(records) - 1) + [current.traces]
+    heat_series = [None] * len(records)  # per step its MissingHeat, for the report's figure
     held_out = HeldOutFits()
     plots = PlotsAhead() if out is not None else None
     stopped, advice = "max_steps", None
@@ -1302,7 +1303,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
 
             chosen = _choose(cands, current, runs, likelihood, holdout_check, say, held_out,
                              checking)
-            missing = missing()
+            missing = heat_series[-1] = missing()
             if chosen is None and network and missing is not None and missing.carriers:
                 chosen = _network_step(current, runs, missing, cands, likelihood, fdr,
                                        white_p, spec, holdout_check, say, held_out)
@@ -1320,6 +1321,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
             say(f"added {chosen.kind} {list(chosen.where)}")
             records.append(current.record)
             steps_traces.append(current.traces)
+            heat_series.append(None)
             if out is not None:
                 _save_checkpoint(out, inputs, records, current.spec)
             release_compiled_if_crowded()  # rejected candidates' programs are not reused
@@ -1329,7 +1331,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
         if advice:
             report["advice"] = advice
         if out is not None:
-            _write_outputs(out, report, current, steps_traces, runs, plots)
+            _write_outputs(out, report, current, steps_traces, runs, plots, heat_series)
         return json_safe(report)
     finally:
         if plots is not None:
@@ -1345,8 +1347,12 @@ def _report(records: list[dict], stopped: str, likelihood: str, fdr: float,
         "unexplained": (None if stopped == "residuals_white"
                         else _unexplained(records[-1], white_p)),
         "significance_rule": significance_rule(fdr, N_BLOCKS),
-        "whiteness_test": (f"Ljung-Box, lags min(20, N/5), runs pooled by summing per-run "
+        "whiteness_test": ("Ljung-Box of the "
+                           + ("one-step innovations" if likelihood == "kalman"
+                              else "free-run residuals")
+                           + ", lags min(20, N/5), runs pooled by summing per-run "
                            f"autocovariances; white when p > {white_p} for every column"),
+        "white_p": white_p,  # the threshold of `residuals_white`, for the report's verdicts
         "wall_time_s": wall_time_s,
     }
 
@@ -1487,8 +1493,9 @@ def _plot_ahead(plots: PlotsAhead | None, out: Path, i: int, step: Step,
 
 
 def _write_outputs(out: Path, report: dict, final: Step, traces, runs,
-                   plots: PlotsAhead | None = None) -> None:
+                   plots: PlotsAhead | None = None, heat_series=None) -> None:
     from ._investigation_report import write_investigation_report
+    from ._missing_heat_plots import nearest_sensors
 
     out.mkdir(parents=True, exist_ok=True)
     save_model(final.spec, out / "model_final.toml",
@@ -1501,5 +1508,8 @@ def _write_outputs(out: Path, report: dict, final: Step, traces, runs,
         for r, tr in enumerate(step_traces or []):
             tr["inputs"] = np.stack([runs[r].column(c) for c in inputs], 1) if inputs \
                 else np.zeros((len(tr["ts"]), 0))
+    watts = {h.input: "W" for h in final.spec.heat_inputs}
     write_investigation_report(out, json_safe(report), [t or [] for t in traces], cols,
-                               inputs, boundary, units=units, plots_ahead=plots)
+                               inputs, boundary, units=units, plots_ahead=plots,
+                               missing_heat=heat_series, nearest=nearest_sensors(final.spec),
+                               input_units=watts)

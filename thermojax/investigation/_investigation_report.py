@@ -15,6 +15,9 @@ from pathlib import Path
 
 from ._diagnostic_plots import diagnostic_plots, error_chart, settling_time
 from ._diagnostics import diagnose_traces
+from ._evidence import MIN_BIC_DROP, evidence_figure, evidence_rows, votes
+from ._missing_heat_plots import missing_heat_section
+from ._whiteness_verdict import stopping_sentence, white_threshold, whiteness_verdict
 from .._plots import column_units
 
 _TOP = 8  # candidates shown per step
@@ -109,9 +112,8 @@ def _evidence(i: int, step: dict, previous: dict, report: dict, columns, units) 
         ev.append("supported" if c["supported"] else "not supported")
     if ev:
         parts.append(": " + ", ".join(ev))
-    rule = report.get("significance_rule")
-    if rule and c.get("supported"):
-        parts.append(f" under the rule “{rule}”")
+    if report.get("significance_rule") and c.get("supported"):
+        parts.append(" under the significance rule (stated at the top of this report)")
     parts.append(".")
     ties = c.get("tied_with") or []
     if ties:
@@ -159,19 +161,28 @@ def _effect_std(parameters: dict, added: dict, name: str):
     return None
 
 
-def _candidate_table(cands: list[dict]) -> list[str]:
-    lines = ["| # | candidate | score test | likelihood ratio | Δ BIC | p-value | supported | "
-             "tied with | method | note |",
-             "|---|---|---:|---:|---:|---:|---|---|---|---|"]
-    for k, c in enumerate(cands[:_TOP], 1):
+def _candidate_table(step: dict, next_step: dict | None = None) -> list[str]:
+    """The step's candidates (`_evidence.evidence_rows`: the best `_TOP`, the added one
+    always among them): both statistics, Δ BIC against the rule's threshold, whether
+    refitted, the held-out folds' votes, and the outcome that tells the added one from
+    the supported ones not added."""
+    cands = step.get("candidates") or []
+    lines = ["| # | candidate | score test | likelihood ratio | Δ BIC (rule: ≤ "
+             f"−{MIN_BIC_DROP:g}) | p-value | supported | held-out folds for / against / "
+             "inconclusive | outcome | tied with | method | note |",
+             "|---|---|---:|---:|---:|---:|---|---|---|---|---|---|"]
+    for c in evidence_rows(step, next_step):
         ties = ", ".join(_effect(t) for t in (c.get("tied_with") or [])) or "–"
         st, lr = c.get("score_test"), c.get("likelihood_ratio")
         if st is None and lr is None:  # a report from before the two were told apart
             st, lr = (None, c.get("score")) if c.get("method") == "refit" else (c.get("score"),
                                                                                 None)
+        f, a, n = votes(c)
+        out = f"**{c['outcome']}**" if c["outcome"] == "added" else c["outcome"]
         lines.append("| " + " | ".join(_cell(v) for v in (
-            k, _effect(c), _num(st), _num(lr), _num(c.get("delta_bic"), "+.4g"),
-            _num(c.get("p_value"), "p"), _yes_no(c.get("supported")), ties,
+            c["rank"], _effect(c), _num(st), _num(lr), _num(c.get("delta_bic"), "+.4g"),
+            _num(c.get("p_value"), "p"), _yes_no(c.get("supported")),
+            f"{f} / {a} / {n}" if f + a + n else "not checked", out, ties,
             c.get("method") or "–", c.get("note") or "")) + " |")
     if len(cands) > _TOP:
         lines.append(f"\n({len(cands) - _TOP} more candidates not shown; all are in report.json.)")
@@ -187,7 +198,8 @@ def step_plot_options(i: int, step: dict, prefix: str | None = None) -> dict:
 
 
 def _diagnose_steps(out: Path, steps, step_traces, columns, input_names, boundary_inputs,
-                    prefix: str | None = None, units: dict | None = None, plots_ahead=None):
+                    prefix: str | None = None, units: dict | None = None, plots_ahead=None,
+                    white_p: float | None = None):
     """Per step: `diagnose_traces` and `diagnostic_plots` of its traces (None for both
     when the step has none). Plots are named `step<i>_*.png`, or `<prefix>_*.png` for a
     single step with `prefix`; with `plots_ahead` (a `PlotsAhead`) they come from it."""
@@ -197,8 +209,10 @@ def _diagnose_steps(out: Path, steps, step_traces, columns, input_names, boundar
         traces = step_traces[i] if i < len(step_traces) else None
         if traces:
             options = step_plot_options(i, steps[i], prefix)
+            extra = {} if white_p is None else {"white_p": white_p}
             diagnoses.append(diagnose_traces(columns, traces, input_names, boundary_inputs,
-                                             units=units, time_scale=options["time_scale"]))
+                                             units=units, time_scale=options["time_scale"],
+                                             **extra))
             plots.append(draw(out, prefix or f"step{i}", columns, traces, input_names,
                               boundary_inputs, units=units, **options))
         else:
@@ -227,7 +241,7 @@ def noise_sources(steps: list[dict], columns) -> dict[str, str]:
 
 
 def _summary(report: dict, steps: list[dict], columns, noise: dict, units: dict,
-             diagnosis: bool = False) -> list[str]:
+             diagnosis: bool = False, verdict: dict | None = None) -> list[str]:
     """The `## Summary` section: what was added, why the loop stopped, RMSE against noise."""
     first, last = (steps[0] if steps else {}), (steps[-1] if steps else {})
     added = [(i, s["added"]) for i, s in enumerate(steps) if s.get("added")]
@@ -243,28 +257,40 @@ def _summary(report: dict, steps: list[dict], columns, noise: dict, units: dict,
         md.append("The investigation added no effect to the given model.")
     stopped = report.get("stopped_because")
     if stopped and not diagnosis:
-        md.append(f"It stopped because {_STOPPED.get(stopped, stopped)} (`{stopped}`).")
+        md.append(stopping_sentence(stopped, verdict, _STOPPED))
     if report.get("likelihood"):
         md.append(f"Likelihood: `{report['likelihood']}`.")
-    if report.get("significance_rule"):
-        md.append(f"A candidate counts as supported when: {report['significance_rule']}.")
     md.append("")
+    if report.get("significance_rule"):  # stated here once; the steps refer to it
+        md += [f"**Significance rule.** A candidate counts as supported when: "
+               f"{_sentence(report['significance_rule'])} Every step below judges its "
+               "candidates by this rule.", ""]
     sources = noise_sources(steps, columns)
-    md += ["| column | start RMSE | final RMSE | noise std | noise is | final / noise "
-           "(given noise only) | final whiteness p | unit |",
-           "|---|---:|---:|---:|---|---:|---:|---|"]
+    kalman = bool(verdict and verdict["kalman"])
+    free = {r["column"]: r["free_run_p"] for r in (verdict or {}).get("rows", [])}
+    head = ("| column | start RMSE | final RMSE | noise std | noise is | final / noise "
+            "(given noise only) | " + ("final innovations whiteness p | final free-run "
+                                       "whiteness p" if kalman else
+                                       "final free-run whiteness p") + " | unit |")
+    md += [head, "|---|---:|---:|---:|---|---:|---:|" + ("---:|" if kalman else "") + "---|"]
     for c in columns:
         r0, r1 = (first.get("rmse") or {}).get(c), (last.get("rmse") or {}).get(c)
         sd = noise.get(c)
         ratio = (r1 / sd) if isinstance(r1, (int, float)) and isinstance(sd, (int, float)) \
             and sd > 0 and sources[c] == "given" else None
+        ps = [_num((last.get("whiteness_p") or {}).get(c), "p")]
+        if kalman:
+            ps.append(_num(free.get(c), "p"))
         md.append("| " + " | ".join(_cell(v) for v in (
             c, _num(r0), _num(r1), _num(sd),
             "given in the model" if sources[c] == "given" else "estimated",
-            _num(ratio, ".3g"), _num((last.get("whiteness_p") or {}).get(c), "p"),
-            units[c])) + " |")
+            _num(ratio, ".3g"), *ps, units[c])) + " |")
     md.append("")
-    if any(v == "estimated" for v in sources.values()):
+    if any(v == "estimated" for v in sources.values()) and kalman:
+        md.append("An estimated noise std is the measurement noise the Kalman filter "
+                  "assumes, not a floor the free run must reach; the free-run RMSE shows "
+                  "what the model alone, driven by its inputs, leaves.")
+    elif any(v == "estimated" for v in sources.values()):
         md.append("An estimated noise std is the fit's own residual scale, so RMSE ≈ noise "
                   "holds by construction: it is no yardstick of success; the whiteness p "
                   "is.")
@@ -316,23 +342,41 @@ def _steps_table(steps: list[dict], columns, units: dict) -> list[str]:
     return md
 
 
-def _whiteness_table(s: dict, dg: dict | None, columns) -> list[str]:
-    """`### Residual whiteness` of one step: the report's p against the traces' test."""
+def _whiteness_table(verdict: dict) -> list[str]:
+    """`### Residual whiteness` of one step: Ljung-Box p per column of the sequence the
+    loop's rule reads (under the Kalman likelihood the innovations, and the free run
+    beside them, each named), each judged at the loop's threshold, and the one verdict
+    (`_whiteness_verdict`) built from these very numbers."""
     md = ["### Residual whiteness", ""]
-    wp = s.get("whiteness_p") or {}
-    md += ["| column | whiteness p (report) | Ljung-Box p (traces) | lags | white |",
-           "|---|---:|---:|---:|---|"]
-    for c in columns:
-        lb = ((dg or {}).get("columns", {}).get(c) or {}).get("ljung_box") or {}
-        md.append("| " + " | ".join(_cell(v) for v in (
-            c, _num(wp.get(c), "p"), _num(lb.get("p"), "p"), _num(lb.get("lags"), ".0f"),
-            _yes_no(lb.get("white")))) + " |")
-    md.append("")
+    t = f"p > {verdict['white_p']:g}"
+    if verdict["kalman"]:
+        md += [f"| column | innovations p | innovations white ({t}) | free-run p | "
+               f"free run white ({t}) | lags |", "|---|---:|---|---:|---|---:|"]
+        for r in verdict["rows"]:
+            md.append("| " + " | ".join(_cell(v) for v in (
+                r["column"], _num(r["rule_p"], "p"), _yes_no(r["rule_white"]),
+                _num(r["free_run_p"], "p"), _yes_no(r["free_run_white"]),
+                _num(r["lags"], ".0f"))) + " |")
+    else:
+        md += [f"| column | free-run p | white ({t}) | lags |", "|---|---:|---|---:|"]
+        for r in verdict["rows"]:
+            md.append("| " + " | ".join(_cell(v) for v in (
+                r["column"], _num(r["rule_p"], "p"), _yes_no(r["rule_white"]),
+                _num(r["lags"], ".0f"))) + " |")
+    md += ["", verdict["sentence"], ""]
     return md
 
 
+def _whiteness_finding(f: str, columns) -> bool:
+    """A `diagnose_traces` finding that only restates a column's Ljung-Box verdict (the
+    step's whiteness table and verdict say it once)."""
+    return any(f.startswith((f"{c}: residuals white", f"{c}: residuals not white"))
+               for c in columns)
+
+
 def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagnoses,
-                  units: dict) -> list[str]:
+                  units: dict, verdict: dict | None = None, heat: list[str] = (),
+                  evidence: str | None = None) -> list[str]:
     """`## Step i`: the evidence for its effect, its fit, residual and candidates."""
     s = steps[i]
     title = "the given model" if i == 0 and not s.get("added") \
@@ -349,13 +393,16 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
                    f"![after: step {i}]({pl['fit']})", ""]
         else:
             md += ["Measured against model:", "", f"![step {i}]({pl['fit']})", ""]
-    md += _whiteness_table(s, dg, columns)
+    if verdict is not None:
+        md += _whiteness_table(verdict)
+    md.append("Lags as stated; runs pooled by summing per-run autocovariances, each run "
+              "about its own mean (a lag never straddles two runs).")
+    md.append("")
     if dg:
-        md.append("Lags as stated; runs pooled by summing per-run autocovariances, each run "
-                  "about its own mean (a lag never straddles two runs).")
-        md.append("")
-        if dg["findings"]:
-            md += ["What the residual shows:", ""] + [f"- {f}" for f in dg["findings"]] + [""]
+        shown = [f for f in dg["findings"] if not _whiteness_finding(f, columns)]
+        if shown:
+            md += ["What the free-run residual shows:", ""] + [f"- {f}" for f in shown] + [""]
+    md += list(heat)
     if pl:
         md += [f"![residual autocorrelation]({pl['acf']})", "",
                f"![residual against inputs and their rates]({pl['xcorr']})", "",
@@ -369,9 +416,14 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
         md.append("Ranked by evidence (larger is stronger): the likelihood-ratio statistic "
                   "2 (−log L before − after) for refitted candidates, else the score-test "
                   "statistic (no refit), each in its own column; Δ BIC = BIC after − BIC "
-                  "before; the first, if supported, is added at the next step.")
+                  "before. Supported means: passes the significance rule stated at the "
+                  "top; the first supported candidate that the held-out folds do not "
+                  "reject is added at the next step, and the outcome column says what "
+                  "became of each.")
         md.append("")
-        md += _candidate_table(cands) + [""]
+        if evidence:
+            md += [f"![evidence per candidate at step {i}]({evidence})", ""]
+        md += _candidate_table(s, steps[i + 1] if i + 1 < len(steps) else None) + [""]
         if s.get("separation"):
             md += [f"What would separate the tied candidates: {_sentence(s['separation'])}", ""]
     else:
@@ -382,7 +434,9 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
 def write_investigation_report(out_dir, report: dict, step_traces: list, columns: list[str],
                                input_names: list[str], boundary_inputs=(),
                                diagnosis: bool = False, units: dict | None = None,
-                               plots_ahead=None) -> Path:
+                               plots_ahead=None, missing_heat: list | None = None,
+                               nearest: dict | None = None,
+                               input_units: dict | None = None) -> Path:
     """Write `report.md` (and its PNGs, plus `diagnostics.json`) into `out_dir`.
 
     **Arguments:**
@@ -402,6 +456,11 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
       for `*_ug`).
     - `plots_ahead`: a `PlotsAhead` that may already have drawn the steps' figures
       (the investigation's, while it went on); the figures are drawn by it.
+    - `missing_heat`: per step, its `discovery.MissingHeat` where at hand (else the
+      step's `step<i>_missing_heat.csv` in `out_dir` is drawn, without an added law).
+    - `nearest`: node -> the sensor columns nearest it
+      (`_missing_heat_plots.nearest_sensors`), drawn under its missing heat.
+    - `input_units`: input column -> unit for the missing-heat figure.
 
     **Returns:** the path of `report.md`.
     """
@@ -410,22 +469,39 @@ def write_investigation_report(out_dir, report: dict, step_traces: list, columns
     steps = list(report.get("steps") or [])
     units = {**_default_units(steps, columns), **(units or {})}
     noise = {k: v for k, v in (report.get("noise") or {}).items() if v is not None}
+    white_p = white_threshold(report)
     diagnoses, plots = _diagnose_steps(out, steps, step_traces, columns, input_names,
                                        boundary_inputs, "diagnose" if diagnosis else None,
-                                       units, plots_ahead)
+                                       units, plots_ahead, white_p)
+    verdicts = [whiteness_verdict(s, d, report.get("likelihood"), white_p, columns, units)
+                for s, d in zip(steps, diagnoses)]
     (out / "diagnostics.json").write_text(json.dumps(
         {"steps": diagnoses}, indent=1, allow_nan=False, ensure_ascii=False))
     sources = noise_sources(steps, columns)
     if not diagnosis:
-        error_chart(out / "error_by_step.png", steps or [{}], columns,
-                    {c: v for c, v in noise.items() if sources.get(c) == "given"}, units)
+        error_chart(out / "error_by_step.png", steps or [{}], columns, noise, units,
+                    {c: sources.get(c) == "given" for c in noise},
+                    kalman=report.get("likelihood") == "kalman")
 
     md = ["# Diagnosis report" if diagnosis else "# Investigation report", ""]
-    md += _summary(report, steps, columns, noise, units, diagnosis)
+    md += _summary(report, steps, columns, noise, units, diagnosis,
+                   verdicts[-1] if verdicts else None)
     if not diagnosis:
         md += _steps_table(steps, columns, units)
     for i in range(len(steps)):
-        md += _step_section(i, steps, report, columns, plots, diagnoses, units)
+        traces = step_traces[i] if i < len(step_traces) else None
+        heat = missing_heat_section(
+            out, i, steps, traces, columns, input_names, boundary_inputs,
+            (missing_heat or [])[i] if i < len(missing_heat or []) else None, nearest,
+            units, input_units, "diagnose" if diagnosis else None)
+        evidence = None
+        if not diagnosis and steps[i].get("candidates"):
+            evidence = f"step{i}_evidence.png"
+            if evidence_figure(out / evidence, steps[i], steps[i + 1] if i + 1 < len(steps)
+                               else None, title=f"Step {i}") is None:
+                evidence = None
+        md += _step_section(i, steps, report, columns, plots, diagnoses, units, verdicts[i],
+                            heat, evidence)
     path = out / "report.md"
     path.write_text("\n".join(md) + "\n", encoding="utf-8")
     return path
