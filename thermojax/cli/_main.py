@@ -230,6 +230,18 @@ def cmd_fit(args) -> int:
         result, experiments = fit_dropping(spec, experiments, telemetry, dropped, outliers,
                                            args.progress, likelihood=args.likelihood,
                                            n_starts=args.starts, smoothed=True)
+        if _worse_than_mean(result) and args.starts < POOR_FIT_STARTS:
+            args.progress(f"{_worse_than_mean(result)}: trying {POOR_FIT_STARTS} starts")
+            again, refitted = fit_dropping(spec, experiments, telemetry, dropped, outliers,
+                                           args.progress, likelihood=args.likelihood,
+                                           n_starts=POOR_FIT_STARTS, smoothed=True)
+            if again.nll < result.nll:
+                result, experiments = again, refitted
+        if _worse_than_mean(result):
+            warnings.warn(f"{_worse_than_mean(result)} even from {POOR_FIT_STARTS} starts: "
+                          "this is no fit of the data. Check the start values (a "
+                          "conductance or capacitance off by orders of magnitude), the "
+                          "columns' units, and the model's structure.")
         profiles = ({} if getattr(args, "no_interval_check", False)
                     else check_intervals(result, args.progress))
         for name in args.profile or []:
@@ -248,6 +260,21 @@ def cmd_fit(args) -> int:
     print(comparison_table(result))
     print(f"wrote {out / 'model.toml'}, {out / 'report.json'}, {out / 'report.md'} and plots")
     return 0
+
+
+# Starts a fit is given when a sensor's fit ends worse than the sensor's own mean.
+POOR_FIT_STARTS = 5
+
+
+def _worse_than_mean(result) -> str:
+    """Words for the sensors whose fit % is negative (the model predicts them worse than
+    their own mean: a local optimum, not a fit), or ""."""
+    bad = {c: v for c, v in result.fit_percent.items() if v is not None and v < 0}
+    if not bad:
+        return ""
+    return ("the fit stopped where " + ", ".join(f"{c} (fit {v:.0f} %)" for c, v in
+                                                    bad.items())
+            + " is predicted worse than by its own mean")
 
 
 def _check_profile_names(spec, names: list[str], likelihood: str) -> None:
