@@ -350,7 +350,9 @@ def fit_output_error(prep: Prepared, solver, max_steps: int, n_starts: int, seed
                                  bias=prep.bias),
                     np.asarray(best.theta), state, prep.names, info, best.nll, best.n_steps,
                     best.converged, np.asarray(best.evaluation.predictions), noise,
-                    best.n_evaluations)
+                    best.n_evaluations,
+                    alternatives=[(np.asarray(r.theta), float(r.nll)) for r in passes
+                                  if r is not best])
 
 
 def _accurate_at_solution(best: _Pass, prep: Prepared, theta0, solver, max_steps: int, say

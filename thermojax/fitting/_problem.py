@@ -98,6 +98,8 @@ class Solution:
     n_evaluations: int | None = None  # residual evaluations at trial points
     at_bound: tuple[str, ...] = ()  # free parameters held at zero (a variance's boundary)
     innovations: np.ndarray | None = None  # Kalman: standardized, (runs, times, outputs)
+    # The other starts of a multi-start fit: (theta, nll) each (`_twin_optima`).
+    alternatives: list = field(default_factory=list)
 
 
 # ---------------------------------------------------------------------------

@@ -24,6 +24,7 @@ from ._dominance import dominance_message, dominant_samples
 from ._fit_result import FitResult
 from ._output_error import bias_coefficient_jacobian
 from ._identifiability import Identifiability, identifiability
+from ._twin_optima import with_twin_optima
 from ._problem import Prepared, Solution, _is_log
 
 
@@ -36,6 +37,8 @@ def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) ->
                             sample_period=float(np.max(np.asarray(data.dt))),
                             powered=bool(heat) and bool(np.any(
                                 np.asarray(data.inputs)[:, :, heat] != 0)))
+    if sol.alternatives:
+        ident = with_twin_optima(ident, sol.names, sol.theta, sol.nll, sol.alternatives)
     parameters = _parameters(sol, ident, spec)
     n_params = len(sol.names) + len(sol.noise)
     n_samples = int(np.asarray(data.mask).sum())
