@@ -47,6 +47,9 @@ def reject_unphysical(cands: list[Candidate], span: DataSpan) -> None:
         if c.method != "refit" or not c.parameters:
             continue
         why = KINDS[c.kind].unphysical(tuple(c.where), c.parameters, span)
+        if not why and c.learned is not None:
+            why = KINDS["expression"].reverses_heat(c.learned.text(c.where), tuple(c.where),
+                                                     c.parameters, span)
         if why:
             c.physical = False
             if c.supported:

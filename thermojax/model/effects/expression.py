@@ -8,7 +8,9 @@ enumerated from places: the discovery stage proposes them from the missing heat.
 
 from __future__ import annotations
 
-from .._expression import evaluate, parse, resolve
+import numpy as np
+
+from .._expression import evaluate, evaluate_numpy, names, parse, resolve
 from ._base import PathEffect, Term
 
 
@@ -40,3 +42,30 @@ class Expression(PathEffect):
     def score_direction(self, ctx, where):
         raise NotImplementedError("expression candidates are refitted, not score-tested")
 
+    def reverses_heat(self, text: str, where, parameters: dict, span) -> str | None:
+        """Why a passive law between two temperatures (`where = [a, b]`, reading no
+        other signal) carries heat from the colder to the warmer somewhere in the
+        data's range (`span.temperatures`, °C), in words; else None. A law that reads a
+        power or any other column is a source, and is not judged."""
+        if len(where) != 2:
+            return None
+        tree = parse(text)
+        params = tuple(parameters)
+        if set(names(tree)) - set(where) - set(params):
+            return None
+        program = resolve(tree, tuple(where), (), params)
+        lo, hi = span.temperatures
+        grid = np.linspace(lo, hi, 25)
+        ta, tb = np.meshgrid(grid, grid, indexing="ij")
+        T = np.stack([ta.ravel(), tb.ravel()], axis=-1)
+        q = np.asarray(evaluate_numpy(program, T, np.zeros((len(T), 0)),
+                                      [parameters[k] for k in params]), float)
+        dT = T[:, 1] - T[:, 0]
+        scale = np.nanmax(np.abs(q)) if np.isfinite(q).any() else 0.0
+        wrong = (q * dT < 0) & (np.abs(dT) > 0.5) & (np.abs(q) > 1e-3 * scale)
+        if not wrong.any():
+            return None
+        k = int(np.flatnonzero(wrong)[0])
+        return (f"the law carries {abs(q[k]):.3g} W from the colder to the warmer "
+                f"({where[1]} at {T[k, 1]:.3g} °C, {where[0]} at {T[k, 0]:.3g} °C), within "
+                "the data's temperatures: a passive path between two temperatures cannot")
