@@ -60,6 +60,7 @@ def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool,
     builtin = profile_arg in BUILTIN_PROFILES
     checks.check_power(baseline_power, spec, not builtin, str(model_path))
     if builtin:
+        checks.check_profile_columns(spec, profile_arg, str(model_path))
         checks.check_profile_size(profile_arg, dt, len(spec.input_columns) + 2 * len(
             spec.nodes) + len(spec.sensors) + 2 * len(spec.effects))
     source = io.load_profile(profile_arg, dt=dt)
