@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import InputError
+from ..reference._artifact_checks import HASH_FIELD, content_hash
 
 SCHEMA = 1
 LIMITS = (-55.0, 125.0)       # °C, plausibility limits (the seed)
@@ -459,6 +460,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
             meta["files"][path.name] = key
     meta["files"]["observer.npz"] = "arrays"
     np.savez(out / "observer.npz", **arrays)
+    # verified by every load (reference._artifact_checks): a modified artifact is refused
+    meta[HASH_FIELD] = content_hash(meta, dict(np.load(out / "observer.npz")))
     (out / "observer.json").write_text(json.dumps(meta, indent=2, ensure_ascii=False) + "\n",
                                        encoding="utf-8")
     files = {f: (out / f).stat().st_size for f in [*meta["files"], "observer.json"]}
