@@ -34,6 +34,7 @@ import numpy as np
 
 from .._errors import InputError
 from ..reference._artifact_checks import HASH_FIELD, content_hash
+from ._input_scale import representable_input_scale
 
 SCHEMA = 1
 LIMITS = (-55.0, 125.0)       # °C, plausibility limits (the seed)
@@ -365,6 +366,10 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     if fmt is not None:
         u_scale = np.array([power_scale if j in power_inputs else fmt.state_scale
                             for j in range(m)])
+        # the input limits inside the codes' range, or the format refused (_input_scale)
+        u_scale = representable_input_scale(
+            u_scale, u_ref, faults.input_limits_array(obs_system), fmt, power_inputs, inputs,
+            scale_given=power_scale != 1.0, where=where)
         scaling = ref.FixedScaling(x_ref, y_ref, u_ref, u_scale)
         try:
             fixed_obs = ref.FixedObserver(obs_system, fmt, scaling, faults, biases=bias_eval)
