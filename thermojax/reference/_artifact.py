@@ -258,8 +258,12 @@ def load_observer(folder) -> ObserverArtifact:
     if not npz_path.is_file():
         raise ArtifactError(f"the array file is missing from '{folder}'.", file=str(npz_path))
     try:
-        with np.load(npz_path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
+        with open(npz_path, "rb") as fh:  # closed here even where np.load fails midway
+            z = np.load(fh, allow_pickle=False)
+            if not isinstance(z, np.lib.npyio.NpzFile):
+                raise ValueError("a single array, not an .npz archive")
+            with z:
+                arrays = {k: z[k] for k in z.files}
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as err:
         raise ArtifactError(f"cannot be read as .npz ({err}).", file=str(npz_path)) from None
     for key in REQUIRED_ARRAYS:

@@ -105,8 +105,9 @@ def check_dynamics(arrays: dict, system, npz_path, cls=InputError) -> None:
     size = 1.0 + max(np.abs(x_ref).max(initial=0.0), np.abs(u_ref).max(initial=0.0))
     dx = np.abs(a["Phi"] @ x_ref + (a["B0"] + a["B1"]) @ u_ref - x_ref).max(initial=0.0)
     dy = np.abs(a["C"] @ x_ref + a["D"] @ u_ref - y_ref).max(initial=0.0)
-    if not max(dx, dy) <= EQUILIBRIUM_TOLERANCE * size:
-        field = "x_ref" if dx >= dy else "y_ref"
+    tol = EQUILIBRIUM_TOLERANCE * size
+    if not max(dx, dy) <= tol:
+        field = "x_ref" if not dx <= tol else "y_ref"
         raise _error(cls, f"the reference offsets are not an equilibrium of the matrices "
                      f"(off by {max(dx, dy):.3g}): the offsets or matrices were modified.",
                      npz_path, field)
