@@ -154,3 +154,12 @@ def test_q_formats_hold_a_heater_within_its_limits(tmp_path, fmt):
     assert not np.any(fx.input_fault)
     assert flt.states[-1].max() > 45  # the heater is seen: 1 W warms the die by ~24 K
     assert np.abs(fx.states - flt.states).max() <= art.metadata["fixed"]["error_bound"]["max_K"]
+
+
+def test_a_given_input_scale_that_cannot_hold_the_limits_refuses_the_format(tmp_path):
+    from thermojax import InputError
+    from thermojax.observer import export_observer
+
+    with pytest.raises(InputError, match=r"field '--fixed'.*P_die.*not representable in q15"):
+        export_observer(CONFIGS / "chain3.toml", 1, tmp_path / "o", fixed="q15",
+                        power_scale=0.5)

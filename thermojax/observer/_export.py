@@ -367,7 +367,7 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
         u_scale = np.array([power_scale if j in power_inputs else fmt.state_scale
                             for j in range(m)])
         # the input limits inside the codes' range, or the format refused (_input_scale)
-        u_scale = representable_input_scale(
+        u_scale, unrepresentable = representable_input_scale(
             u_scale, u_ref, faults.input_limits_array(obs_system), fmt, power_inputs, inputs,
             scale_given=power_scale != 1.0, where=where)
         scaling = ref.FixedScaling(x_ref, y_ref, u_ref, u_scale)
@@ -375,6 +375,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
             fixed_obs = ref.FixedObserver(obs_system, fmt, scaling, faults, biases=bias_eval)
         except ValueError as err:
             raise InputError(str(err), file=where, field="--fixed") from None
+        if unrepresentable is not None:
+            raise unrepresentable
         arrays["u_scale"] = u_scale
         for name in fixed_obs.MATRICES:
             arrays[f"fixed_{name}"] = fixed_obs.coef[name]

@@ -17,11 +17,13 @@ def _span(fmt, scale: float) -> tuple[float, float]:
 
 
 def representable_input_scale(u_scale, u_ref, limits, fmt, power_inputs, names, *,
-                              scale_given: bool, where: str) -> np.ndarray:
-    """`u_scale (m,)` with each power input's scale raised (a power of two) until its
-    `limits (m, 2)` lie inside the codes' range around `u_ref`; `InputError` naming
-    `--fixed` where a given scale (or a temperature's) cannot hold them."""
+                              scale_given: bool, where: str):
+    """`(u_scale (m,), problem)`: each power input's scale raised (a power of two) until
+    its `limits (m, 2)` lie inside the codes' range around `u_ref`; `problem` an
+    `InputError` naming `--fixed` where a given scale (or a temperature's) cannot hold
+    them (for the caller to raise after the format's own checks), else None."""
     out = np.asarray(u_scale, float).copy()
+    problem = None
     for j in range(len(out)):
         lo, hi = (float(v) - float(u_ref[j]) for v in limits[j])
         need_lo = lo if np.isfinite(lo) else 0.0
@@ -40,12 +42,14 @@ def representable_input_scale(u_scale, u_ref, limits, fmt, power_inputs, names, 
             if fits(s):
                 out[j] = s
                 continue
+        if problem is not None:
+            continue
         a, b = _span(fmt, out[j])
         unit = "W" if j in power_inputs else "°C"
-        raise InputError(
+        problem = InputError(
             f"the input {names[j]}'s limits {limits[j][0]:g} … {limits[j][1]:g} {unit} are "
             f"not representable in {fmt.name}: at scale {out[j]:g} its codes span "
             f"{u_ref[j] + a:g} … {u_ref[j] + b:g} {unit}, so every value beyond them would "
             "saturate and be held as a fault. Choose a wider format (q16.16 or q8.24), or "
             "narrower input limits.", file=where, field="--fixed")
-    return out
+    return out, problem
