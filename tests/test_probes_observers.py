@@ -149,3 +149,39 @@ def test_trimmed_c_matches_numpy_on_bad_samples(trimmed, tmp_path):
     got = unpack_trimmed((tmp_path / "out.bin").read_bytes(), 3)
     assert np.all(np.isfinite(got))
     assert np.array_equal(got, want)
+
+
+@pytest.fixture(scope="module")
+def adaptive():
+    from thermojax.observer import adaptive_design
+
+    return adaptive_design(parse_model(MODEL), ["links.die-board.conductance"], 2.0,
+                           drift=2e-4, ceiling=0.5)
+
+
+def test_adaptive_holds_and_flags_bad_samples(adaptive):
+    x0, bad_u, bad_y, held_u, held_y = bad_and_held()
+    filt = ref.AdaptiveReference(adaptive)
+    got, want = filt.run(x0, bad_u, bad_y), filt.run(x0, held_u, held_y)
+    assert np.all(np.isfinite(got.states)) and np.all(np.isfinite(got.conductances))
+    np.testing.assert_array_equal(got.states, want.states)
+    np.testing.assert_array_equal(got.conductances, want.conductances)
+    assert got.input_fault[NAN_INPUT] == 1 and got.input_fault[NAN_INPUT + 1] == 2
+    assert got.reading_fault[BIG_READING] == 1
+
+
+def test_adaptive_c_matches_numpy_on_bad_samples(adaptive, tmp_path):
+    x0, bad_u, bad_y, _, _ = bad_and_held()
+    want = ref.AdaptiveReference(adaptive).run(x0, bad_u, bad_y)
+    src = ref.generate_adaptive_c(adaptive, "tj_adaptive")
+    for name, text in (("tj_adaptive.h", src.header), ("tj_adaptive.c", src.source),
+                       ("main.c", src.harness)):
+        (tmp_path / name).write_text(text)
+    _compile({"source": tmp_path / "tj_adaptive.c", "harness": tmp_path / "main.c"},
+             tmp_path / "prog")
+    (tmp_path / "in.bin").write_bytes(ref.pack_adaptive(x0, bad_u, bad_y))
+    subprocess.run([str(tmp_path / "prog"), str(tmp_path / "in.bin"),
+                    str(tmp_path / "out.bin")], check=True)
+    got = ref.unpack_adaptive((tmp_path / "out.bin").read_bytes(), 3, 1)
+    assert np.array_equal(got.states, want.states)
+    assert np.array_equal(got.conductances, want.conductances)
