@@ -185,3 +185,28 @@ def test_adaptive_c_matches_numpy_on_bad_samples(adaptive, tmp_path):
     got = ref.unpack_adaptive((tmp_path / "out.bin").read_bytes(), 3, 1)
     assert np.array_equal(got.states, want.states)
     assert np.array_equal(got.conductances, want.conductances)
+
+
+def test_multirate_ramps_hold_a_non_finite_bias_in_numpy_and_c(tmp_path):
+    """A NaN or inf bias published by the thermal task never enters the inertial ramp
+    (before, the ramp started from NaN forever after): the last target is held."""
+    from thermojax.reference._multirate import _ramped
+
+    T, q, ratio = 40, 2, 8
+    bias = np.stack([np.linspace(0, 1, T), np.linspace(2, 1, T)], 1)
+    bias[10, 0], bias[11, 1], bias[12, 0] = np.nan, np.inf, -np.inf
+    b0 = np.zeros(q)
+    delay = np.arange(T) % ratio
+    want = _ramped(bias, b0, ratio, delay, codes=False).inertial
+    assert np.all(np.isfinite(want))
+    src = ref.generate_multirate_c("tj_multirate", q, ratio)
+    for name, text in (("tj_multirate.h", src.header), ("tj_multirate.c", src.source),
+                       ("main.c", src.harness)):
+        (tmp_path / name).write_text(text)
+    _compile({"source": tmp_path / "tj_multirate.c", "harness": tmp_path / "main.c"},
+             tmp_path / "prog")
+    (tmp_path / "in.bin").write_bytes(ref.pack_multirate(b0, bias, delay))
+    subprocess.run([str(tmp_path / "prog"), str(tmp_path / "in.bin"),
+                    str(tmp_path / "out.bin")], check=True)
+    got = np.frombuffer((tmp_path / "out.bin").read_bytes(), np.float64).reshape(-1, q)
+    assert np.array_equal(got, want)
