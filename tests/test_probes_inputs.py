@@ -14,7 +14,7 @@ import pytest
 
 from thermojax.cli import main
 
-from helpers import CONFIGS
+from helpers import CONFIGS, ROOT
 
 RTD2 = CONFIGS / "rtd2.toml"
 
@@ -211,3 +211,34 @@ def test_a_damaged_cache_entry_is_removed_and_recompiled(tmp_path, monkeypatch):
             np.testing.assert_array_equal(np.asarray(f(x)), want)
         assert not any("compile-cache entry" in str(w.message) for w in caught), kind
         good = entry.read_bytes()
+
+
+def test_a_damaged_jax_cache_entry_is_removed_and_recompiled(tmp_path):
+    """JAX's own persistent cache (the command line's default): a damaged entry is
+    removed with a warning and stored afresh, so the next run is quiet."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, THERMOJAX_CACHE_DIR=str(tmp_path / "cache"),
+               PYTHONPATH=str(ROOT))
+    env.pop("THERMOJAX_NO_CACHE", None)
+
+    def simulate():
+        return subprocess.run([sys.executable, "-m", "thermojax", "simulate", "--model",
+                               str(RTD2), "--profile", "shock", "--out",
+                               str(tmp_path / "s.csv"), "--force", "--quiet"],
+                              env=env, capture_output=True, text=True, timeout=600)
+
+    assert simulate().returncode == 0
+    entries = list((tmp_path / "cache").rglob("*-cache"))
+    assert entries
+    for e in entries:
+        data = bytearray(e.read_bytes())
+        data[len(data) // 2: len(data) // 2 + 64] = bytes(64)
+        e.write_bytes(bytes(data))
+    again = simulate()
+    assert again.returncode == 0, again.stderr
+    assert "compile-cache entry" in again.stderr and "Traceback" not in again.stderr
+    quiet = simulate()
+    assert quiet.returncode == 0 and "compile-cache entry" not in quiet.stderr
