@@ -294,7 +294,8 @@ def load_observer(folder) -> ObserverArtifact:
     if not np.array_equal(system.gain_table, a["gain_table"]):
         raise ArtifactError("the array 'gain_table' has nonzero gains for sensors outside "
                             "their subset.", file=str(npz_path), field="gain_table")
-    checks.check_dynamics(a, system, npz_path, ArtifactError)
+    checks.check_dynamics(a, system, npz_path, ArtifactError,
+                          integrating=meta.get("reconstruct") is not None)
     checks.check_hash(meta, arrays, meta_path, ArtifactError)
     f = meta["faults"]
     try:
