@@ -55,13 +55,14 @@ def check_profile_size(profile_name: str, dt: float, n_columns: int) -> int:
 
 
 def check_profile_columns(spec, profile_name: str, model_file: str) -> None:
-    """A built-in profile drives boundary and heat-input columns only: a column that an
-    expression reads (a name that is neither a node nor a parameter) is refused, named."""
+    """A built-in profile drives boundary and heat-input columns only: another column the
+    model reads (an effect's input, a name in an expression) is refused, named."""
     driven = set(spec.boundary_columns) | set(spec.heat_columns)
     for c in spec.input_columns:
         if c not in driven:
-            raise InputError(f"the model reads the column '{c}' (a name in an expression that "
-                             "is neither a node nor one of its parameters), which the built-in "
-                             f"profile '{profile_name}' does not give; check the spelling, or "
+            raise InputError(f"the model's effects read the input column '{c}' (an effect's "
+                             "input, or a name in an expression that is neither a node nor a "
+                             "parameter), which the built-in profile "
+                             f"'{profile_name}' does not drive; check the spelling, or "
                              "simulate from a CSV profile holding that column.",
                              file=model_file, field=c)
