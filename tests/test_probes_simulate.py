@@ -175,3 +175,36 @@ def test_a_dangling_symlink_as_out_is_refused(capsys, tmp_path):
     rc, _, err = run(capsys, "simulate", "--model", RTD2, "--profile", "shock", "--out", link)
     refused(rc, err, "--out", "symbolic link")
     assert link.is_symlink()
+
+
+CHAIN3 = CONFIGS / "chain3.toml"
+EFFECTS = {
+    "conductance_temperature": 'where = ["pcb", "die"]\nalpha = -0.005',
+    "capacitance_temperature": 'where = ["die"]\nbeta = 0.002',
+    "heat_source": 'where = ["P_die", "pcb"]\ngain = 0.3',
+    "boundary": 'where = ["T_chamber", "pcb"]\nconductance = 0.05',
+    "sensor_gain": 'where = ["T_die"]\ngain = 0.01',
+    "radiation": 'where = ["housing", "T_chamber"]\ncoefficient = 3e-10',
+}
+
+
+@pytest.fixture(scope="module")
+def chain3_plain(tmp_path_factory):
+    out = tmp_path_factory.mktemp("plain") / "plain.csv"
+    assert main(["simulate", "--model", str(CHAIN3), "--profile", "ramp5", "--power", "0.3",
+                 "--out", str(out), "--quiet"]) == 0
+    return read_telemetry(out)
+
+
+@pytest.mark.parametrize("kind", sorted(EFFECTS))
+def test_every_effect_kind_changes_the_simulation(capsys, tmp_path, chain3_plain, kind):
+    model = tmp_path / f"{kind}.toml"
+    model.write_text(CHAIN3.read_text() + f'\n[[effects]]\nkind = "{kind}"\n{EFFECTS[kind]}\n')
+    out = tmp_path / "e.csv"
+    rc, _, err = run(capsys, "simulate", "--model", model, "--profile", "ramp5", "--power",
+                     "0.3", "--out", out, "--quiet")
+    assert rc == 0, err
+    got = read_telemetry(out)
+    diff = max(np.abs(got.channels[c] - chain3_plain.channels[c]).max()
+               for c in ("T_housing", "T_die"))
+    assert diff > 0.01, (kind, diff)
