@@ -535,7 +535,8 @@ def _scheduled_source(spec, rate_hz, schedule: dict, where, meta, arrays):
         "use": f"every step: {SCHEDULED_PREFIX}_step(u, y); the matrices and gains are "
                f"interpolated linearly at the reading of {schedule['by']} (clamped to the "
                "points, held while it is not finite)"}
-    return ref.generate_scheduled_c(design, SCHEDULED_PREFIX)
+    return ref.generate_scheduled_c(design, SCHEDULED_PREFIX,  # the artifact's limits
+                                    reading_limits=tuple(meta["faults"]["limits_C"]))
 
 
 def _trimmed_source(spec, rate_hz, trim: dict, where, meta, arrays):
@@ -554,7 +555,8 @@ def _trimmed_source(spec, rate_hz, trim: dict, where, meta, arrays):
     for name in ("Phi", "B0", "B1", "L", "C", "D"):
         arrays[f"trim_{name}"] = np.asarray(getattr(design, name), float)
     unit = None
-    src = ref.generate_trimmed_c(design, TRIMMED_PREFIX)
+    src = ref.generate_trimmed_c(design, TRIMMED_PREFIX,  # the artifact's limits
+                                 reading_limits=tuple(meta["faults"]["limits_C"]))
     if trim.get("factors") is not None:
         values = trim["factors"]
         if isinstance(values, dict):   # by name, as `thermojax trim` writes them

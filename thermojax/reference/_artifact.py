@@ -118,7 +118,7 @@ class ObserverArtifact:
         except (ValueError, KeyError) as err:
             raise ArtifactError(f"the gain schedule cannot be read ({err}).",
                                 file=str(self.folder / META), field="schedule") from None
-        return ScheduledObserver(design)
+        return ScheduledObserver(design, reading_limits=tuple(self.faults.limits))
 
     def trimmed_observer(self, factors=None):
         """The artifact's end-of-line trimmed observer (exported with `--trim`) as a
@@ -149,7 +149,7 @@ class ObserverArtifact:
         except (ValueError, KeyError) as err:
             raise ArtifactError(f"the trim cannot be read ({err}).",
                                 file=str(self.folder / META), field="trim") from None
-        return TrimmedObserver(design, factors)
+        return TrimmedObserver(design, factors, reading_limits=tuple(self.faults.limits))
 
     def adaptive_reference(self):
         """The artifact's firmware adaptive filter (exported with `--adaptive`) as an
