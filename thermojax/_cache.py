@@ -45,4 +45,42 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    _discard_damaged_entries()
     return folder
+
+
+def _discard_damaged_entries() -> None:
+    """Make JAX remove a persistent-cache entry it cannot read back (a damaged file), so
+    the program is compiled and stored afresh instead of warned about on every later run
+    (JAX only warns and recompiles). Wraps JAX's reader where this JAX has it; else
+    nothing changes."""
+    try:
+        from jax._src import compilation_cache as cc
+    except ImportError:  # pragma: no cover
+        return
+    read = getattr(cc, "get_executable_and_time", None)
+    if read is None or getattr(read, "_thermojax_discards", False):
+        return
+
+    def get_executable_and_time(cache_key, compile_options, backend, *args, **kwargs):
+        try:
+            return read(cache_key, compile_options, backend, *args, **kwargs)
+        except Exception as err:
+            import warnings
+
+            cache = getattr(cc, "_cache", None)
+            folder = getattr(cache, "path", None)
+            if folder is not None:
+                for suffix in ("-cache", "-atime"):
+                    try:
+                        (Path(folder) / f"{cache_key}{suffix}").unlink(missing_ok=True)
+                    except OSError:
+                        pass
+                warnings.warn(f"the compile-cache entry {cache_key} was damaged "
+                              f"({type(err).__name__}); it was removed and the program is "
+                              "compiled afresh", RuntimeWarning, stacklevel=2)
+                return None, None
+            raise
+
+    get_executable_and_time._thermojax_discards = True
+    cc.get_executable_and_time = get_executable_and_time

@@ -227,7 +227,10 @@ def _compile(fn, treedef, leaves, dynamic, key: str, options=None):
                                                specs)
     if stored is not None:
         exported, out_tree = stored
-        return jax.jit(exported.call).lower(*specs).compile(options), out_tree
+        try:
+            return jax.jit(exported.call).lower(*specs).compile(options), out_tree
+        except Exception as err:  # a damaged entry that read back: removed, traced again
+            _discard(folder / key, f"it could not be compiled ({type(err).__name__})")
     flat, out_tree = _flat(fn, treedef, leaves, dynamic)
     return jax.jit(flat).lower(*specs).compile(options), out_tree[0]
 
@@ -249,14 +252,36 @@ def _flat(fn, treedef, leaves, dynamic):
     return flat, out_tree
 
 
-def _load(path: Path):
-    """`(jax.export.Exported, outputs' treedef)` stored at `path`, or None."""
+def _discard(path: Path, why: str) -> None:
+    """Remove a damaged cache entry, with a warning; the program is traced again."""
+    import warnings
+
     try:
-        blob = pickle.loads(path.read_bytes())
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass
+    warnings.warn(f"the compile-cache entry {path} was damaged ({why}); it was removed and "
+                  "the program is compiled afresh", RuntimeWarning, stacklevel=3)
+
+
+def _load(path: Path):
+    """`(jax.export.Exported, outputs' treedef)` stored at `path`, or None. An entry that
+    exists but fails its content hash or cannot be read back is removed, with a warning."""
+    try:
+        raw = path.read_bytes()
+    except OSError:  # absent or unreadable: trace again
+        return None
+    try:
+        blob = pickle.loads(raw)
+        digest = blob.get("sha256")
+        if digest is not None and hashlib.sha256(blob["exported"]).hexdigest() != digest:
+            raise ValueError("its content hash does not match")
         exported = jax.export.deserialize(blob["exported"])
         out_tree = jax.tree.structure(blob["outputs"])
         os.utime(path)  # recently used
-    except Exception:  # absent, unreadable or from another format: trace again
+    except Exception as err:
+        _discard(path, str(err) if isinstance(err, ValueError) and "hash" in str(err)
+                 else f"{type(err).__name__} on reading it")
         return None
     return exported, out_tree
 
@@ -269,7 +294,9 @@ def _store(path: Path, fn, treedef, leaves, dynamic, specs):
         exported = jax.export.export(jax.jit(flat))(*specs)
         outputs = jax.tree.unflatten(out_tree[0], [jax.ShapeDtypeStruct(a.shape, a.dtype)
                                                    for a in exported.out_avals])
-        blob = pickle.dumps({"exported": exported.serialize(), "outputs": outputs})
+        serialized = bytes(exported.serialize())
+        blob = pickle.dumps({"exported": serialized, "outputs": outputs,
+                             "sha256": hashlib.sha256(serialized).hexdigest()})
     except Exception:
         return None
     try:

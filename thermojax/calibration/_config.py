@@ -117,10 +117,25 @@ def _number(path, table, key, where, default, *, positive=True, integer=False):
     return int(value) if integer else float(value)
 
 
+# The fields each optional table may hold: any other is a typo, refused rather than dropped.
+_TABLE_KEYS = {
+    "outliers": {"window", "n_sigmas", "implausible", "scale_window"},
+    "lowpass": {"cutoff_fraction", "filter_order"},
+    "orientation": {"columns", "tolerance_deg"},
+    "static_polynomial": {"order", "settle_s", "min_duration_s", "max_rate_k_per_min"},
+    "thermal_fit": {"max_steps"},
+    "verify": {"rate_hz", "skip_s"},
+}
+
+
 def _table(path, doc, key):
     value = doc.get(key, {})
     if not isinstance(value, dict):
         raise _err(path, f"expected a table [{key}], got {value!r}.", key)
+    unknown = sorted(set(value) - _TABLE_KEYS.get(key, set(value)))
+    if unknown:
+        raise _err(path, f"unknown field; [{key}] may hold "
+                   f"{', '.join(sorted(_TABLE_KEYS[key]))}.", f"{key}.{unknown[0]}")
     return value
 
 

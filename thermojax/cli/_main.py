@@ -59,11 +59,22 @@ def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool,
     from .. import io
     from ..measurements._telemetry import Telemetry
 
+    from ..measurements._profiles import BUILTIN_PROFILES
+    from . import _simulate_checks as checks
+
+    if noise:
+        checks.check_seed(seed)
     spec = io.load_model(model_path)
     if not spec.sensor_columns and not write_states:
         raise InputError("the model has no sensors, so the file would hold only its inputs; "
                          "add a [[sensors]] table to the model file, or pass --states to write "
                          "every node temperature.", file=str(model_path), field="sensors")
+    builtin = profile_arg in BUILTIN_PROFILES
+    checks.check_power(baseline_power, spec, not builtin, str(model_path))
+    if builtin:
+        checks.check_profile_columns(spec, profile_arg, str(model_path))
+        checks.check_profile_size(profile_arg, dt, len(spec.input_columns) + 2 * len(
+            spec.nodes) + len(spec.sensors) + 2 * len(spec.effects))
     source = io.load_profile(profile_arg, dt=dt)
     if isinstance(source, Telemetry):
         ts = source.ts
@@ -78,18 +89,17 @@ def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool,
         raise InputError("`simulate` needs uniformly sampled inputs (jitter under 1 %).",
                          file=profile_arg, field="time_s")
 
-    import jax.numpy as jnp
-
     # Through the package's lazy loader, which switches JAX to float64 first: importing
-    # `._network` directly would simulate in float32 outside the test suite.
-    from .. import ThermalNetwork
-    from .. import simulate
+    # the dynamics directly would simulate in float32 outside the test suite.
+    from .. import ThermalNetwork  # noqa: F401
+    from ..dynamics._as_written import simulate_as_written
 
-    net = ThermalNetwork.from_spec(spec)
     ts_uniform = ts[0] + np.median(steps) * np.arange(len(ts))
-    sol = simulate(net, jnp.asarray(inputs), jnp.asarray(ts_uniform))
-    states, outputs = np.asarray(sol.states), np.asarray(sol.outputs)
-    _check_finite_simulation(spec, model_path, inputs, ts_uniform, states, outputs)
+    # The model as written, effects included, by the simulator `fit` uses.
+    sim = simulate_as_written(spec, ts_uniform, inputs)
+    states, outputs = sim.states, sim.outputs
+    _check_finite_simulation(spec, model_path, inputs, ts_uniform, states, outputs,
+                             sim.node_names)
     measured = outputs.copy()
     if noise:
         rng = np.random.default_rng(seed)
@@ -98,14 +108,15 @@ def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool,
     channels = {c: inputs[:, j] for j, c in enumerate(spec.input_columns)}
     channels.update({c: measured[:, j] for j, c in enumerate(spec.sensor_columns)})
     if write_states:
-        channels.update({f"state_{n}": states[:, i] for i, n in enumerate(spec.node_names)})
+        channels.update({f"state_{n}": states[:, i] for i, n in enumerate(sim.node_names)})
     comments = [f"simulated by thermojax from model '{spec.name}' ({model_path}), "
                 f"profile '{profile_arg}'" + (f", sensor noise seed {seed}" if noise else "")]
     io.write_telemetry(out, ts, channels, comments=comments)
     return spec, ts, inputs, states, outputs, measured
 
 
-def _check_finite_simulation(spec, model_path, inputs, ts, states, outputs) -> None:
+def _check_finite_simulation(spec, model_path, inputs, ts, states, outputs,
+                             node_names=None) -> None:
     """Refuse to write a simulation that went non-finite, naming the input or node and why."""
     if np.isfinite(states).all() and np.isfinite(outputs).all():
         return
@@ -121,7 +132,7 @@ def _check_finite_simulation(spec, model_path, inputs, ts, states, outputs) -> N
     bad_x = ~np.isfinite(states)
     if bad_x.any():
         k, i = np.argwhere(bad_x)[0]  # the earliest time first
-        node = spec.node_names[i]
+        node = (node_names or spec.node_names)[i]
     else:  # finite states, a non-finite reading: the sensor's own node
         k, j = np.argwhere(~np.isfinite(outputs))[0]
         node = spec.sensors[j].node

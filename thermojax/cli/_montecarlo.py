@@ -13,7 +13,10 @@ from ._outputs import check_output_folder, is_own_folder, mark_own
 def cmd_montecarlo(args) -> int:
     from ..montecarlo import load_config, run_montecarlo
 
+    from ..montecarlo._size import check_study_size
+
     config = load_config(args.config)
+    check_study_size(config)  # before the folder is claimed or any unit drawn
     out = Path(args.out or config.out or f"montecarlo_{Path(args.config).stem}")
     check_output_folder(out, args.force, in_place=True, shared=_shared_lock_key())
     if out.is_dir() and is_own_folder(out) and (out / "manifest.json").is_file() and not (

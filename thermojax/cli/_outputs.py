@@ -75,7 +75,10 @@ def _is_own_csv(path: Path) -> bool:
         return False
 
 
-def _check_parent(path: Path) -> None:
+def _check_parent(path: Path, *, existing_folder: bool = False) -> None:
+    from ._out_names import check_out_name
+
+    check_out_name(path, existing_folder=existing_folder)
     parent = path.parent
     if not parent.is_dir():
         raise InputError(f"the folder '{parent}' does not exist; create it first or choose "
@@ -337,7 +340,7 @@ def claim_output_folder(path: Path) -> None:
     """Lock a folder the command fills beside what it holds (`calibrate
     --make-example-data DIR`), and check it is writable and has room, before any work,
     without judging what the folder already holds (nothing in it is removed)."""
-    _check_parent(path)
+    _check_parent(path, existing_folder=True)
     if path.is_file():
         raise InputError("is a file, but this names a folder; choose a folder name.",
                          file=str(path))

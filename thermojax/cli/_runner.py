@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import InputError
+from ._config_checks import check_name, check_synthetic
 
 _KEYS = {"name", "model", "likelihood", "out", "data", "synthetic", "options"}
 _OPTIONS = {"starts", "perturb", "max_steps", "outliers", "interval_check"}
@@ -56,6 +57,9 @@ def check_options(options: dict, path: str | Path) -> None:
     if options.get("outliers", "stop") not in ("stop", "drop"):
         raise InputError(f"options.outliers must be \"stop\" or \"drop\", got "
                          f"{options['outliers']!r}.", file=str(path), field="options.outliers")
+    from ._config_checks import check_option_values
+
+    check_option_values(options, path)
     if not isinstance(options.get("interval_check", True), bool):
         raise InputError(f"options.interval_check must be true or false, got "
                          f"{options['interval_check']!r}.", file=str(path),
@@ -90,7 +94,7 @@ def load_config(path: str | Path) -> dict:
         return str(q if q.is_absolute() else (base / q).resolve())
 
     cfg = {
-        "name": str(raw.get("name", path.stem)),
+        "name": check_name(raw.get("name", path.stem), path),
         "config_file": str(path.resolve()),
         "model": resolve(raw["model"], "model"),
         "likelihood": raw.get("likelihood", "output_error"),
@@ -104,10 +108,12 @@ def load_config(path: str | Path) -> dict:
                              field="data")
         cfg["data"] = [resolve(p, "data") for p in raw["data"]]
     else:
-        syn = dict(raw["synthetic"])
-        if "truth" not in syn or "profiles" not in syn:
+        syn = raw["synthetic"]
+        if not isinstance(syn, dict) or "truth" not in syn or "profiles" not in syn:
             raise InputError("[synthetic] needs `truth` (a model file) and `profiles` (built-in "
                              "profile names).", file=str(path), field="synthetic")
+        check_synthetic(syn, path)
+        syn = dict(syn)
         syn["truth"] = resolve(syn["truth"], "synthetic.truth")
         cfg["synthetic"] = syn
     return cfg
@@ -144,11 +150,10 @@ def package_versions() -> dict:
 def synthetic_runs(spec, syn: dict, folder: Path) -> list[str]:
     """Simulate the truth model through built-in profiles (with sensor noise); write CSVs."""
     from .. import io
-    from ..model._network import ThermalNetwork
-    from ..dynamics._simulate import simulate
+    from .. import ThermalNetwork  # noqa: F401  (switches JAX to float64 first)
+    from ..dynamics._as_written import simulate_as_written
 
     truth = io.load_model(syn["truth"])
-    net = ThermalNetwork.from_spec(truth)
     rng = np.random.default_rng(int(syn.get("seed", 0)))
     paths = []
     for i, name in enumerate(syn["profiles"]):
@@ -157,7 +162,7 @@ def synthetic_runs(spec, syn: dict, folder: Path) -> list[str]:
         step = float(syn.get("power_step", 0.0))
         heat = [j for j, c in enumerate(truth.input_columns) if c in truth.heat_columns]
         u[:, heat] += step * ((prof.ts >= 1800) & (prof.ts < 3600))[:, None]
-        y = np.asarray(simulate(net, u, prof.ts).outputs)
+        y = simulate_as_written(truth, np.asarray(prof.ts, float), u).outputs  # effects too
         stds = np.array([s.noise.value if s.noise is not None else 0.01 for s in truth.sensors])
         y = y + rng.standard_normal(y.shape) * stds
         channels = {c: u[:, j] for j, c in enumerate(truth.input_columns)}

@@ -164,10 +164,12 @@ def read_telemetry(path: str | os.PathLike, *, uniform: bool = True) -> Telemetr
 
 
 def _read_text(path, file: str) -> str:
-    """The file's text (UTF-8, a byte-order mark dropped)."""
+    """The file's text (UTF-8, a byte-order mark dropped), refused by its size before it
+    is read whole (`_file_size`): neither a huge file nor `/dev/zero` fills memory."""
+    from ._file_size import read_bounded
+
     try:
-        with open(path, encoding="utf-8-sig", newline="") as f:
-            return f.read()
+        return read_bounded(path, file).decode("utf-8-sig")
     except FileNotFoundError:
         raise InputError("no such file; check the path given to --data.", file=file) from None
     except IsADirectoryError:

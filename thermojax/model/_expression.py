@@ -51,11 +51,29 @@ def _tokens(text: str) -> list[tuple[str, str, int]]:
         pos = m.end()
 
 
+#: Deepest nesting (parentheses, signs, powers, calls) an expression may have: a
+#: physical law needs a handful; thousands would exhaust Python's recursion.
+MAX_DEPTH = 64
+#: Most tokens an expression may have (a long chain of terms nests as deep as it is long).
+MAX_TOKENS = 400
+
+
 class _Parser:
     def __init__(self, text: str):
         self.text = text
         self.toks = _tokens(text)
+        if len(self.toks) > MAX_TOKENS:
+            raise ExpressionError(f"the expression has {len(self.toks)} tokens, more than the "
+                                  f"{MAX_TOKENS} allowed; write the law in fewer terms")
         self.i = 0
+        self.depth = 0
+
+    def nested(self, pos: int):
+        self.depth += 1
+        if self.depth > MAX_DEPTH:
+            raise ExpressionError(f"the expression nests deeper than {MAX_DEPTH} levels "
+                                  f"(parentheses, signs or powers) at position {pos}; "
+                                  "simplify it")
 
     def peek(self):
         return self.toks[self.i] if self.i < len(self.toks) else ("end", "", len(self.text) + 1)
@@ -85,23 +103,31 @@ class _Parser:
         return tree
 
     def sum(self):
-        return self.left(self.product, ("+", "-"))
+        self.nested(self.peek()[2])
+        tree = self.left(self.product, ("+", "-"))
+        self.depth -= 1
+        return tree
 
     def product(self):
         return self.left(self.unary, ("*", "/"))
 
     def unary(self):
         if self.peek()[0] == "op" and self.peek()[1] in ("-", "+"):
-            sign = self.take()[1]
+            sign, pos = self.take()[1:]
+            self.nested(pos)
             inner = self.unary()
+            self.depth -= 1
             return ("neg", inner) if sign == "-" else inner
         return self.power()
 
     def power(self):
         base = self.atom()
         if self.peek()[0] == "op" and self.peek()[1] == "^":
-            self.take()
-            return ("bin", "^", base, self.unary())
+            pos = self.take()[2]
+            self.nested(pos)
+            tree = ("bin", "^", base, self.unary())
+            self.depth -= 1
+            return tree
         return base
 
     def atom(self):
@@ -252,3 +278,49 @@ def evaluate_numpy(tree, T, u, p):
     with np.errstate(all="ignore"):
         return evaluate(tree, np.asarray(T, float), np.asarray(u, float),
                         np.asarray(p, float), xp=np)
+
+
+def _subtrees(tree):
+    """Every subtree of `tree`, the whole first (a walk without recursion)."""
+    stack, out = [tree], []
+    while stack:
+        t = stack.pop()
+        out.append(t)
+        if t[0] == "neg":
+            stack.append(t[1])
+        elif t[0] == "bin":
+            stack += [t[2], t[3]]
+        elif t[0] == "call":
+            stack += list(t[2])
+    return out
+
+
+def constant_fault(tree) -> str | None:
+    """Why a part of `tree` that reads no name is not finite (a division by zero, `log(0)`,
+    an overflow), or None: such a part is not finite at any temperature, so a model
+    holding it cannot be simulated or fitted."""
+    def value(t) -> float:
+        with np.errstate(all="ignore"):
+            return float(evaluate(t, None, None, None, xp=np))
+
+    for t in _subtrees(tree):
+        if t[0] == "bin" and t[1] == "/" and not names(t[3]) and value(t[3]) == 0.0:
+            return f"{_text(t)} divides by zero"
+        if t[0] in ("bin", "call") and not names(t) and not np.isfinite(value(t)):
+            return f"the constant part {_text(t)} is not finite"
+    return None
+
+
+def _text(t) -> str:
+    """A short text of a tree, for messages."""
+    if t[0] == "num":
+        return np.format_float_positional(t[1], trim="-")
+    if t[0] == "name":
+        return t[1]
+    if t[0] == "neg":
+        return f"-{_text(t[1])}"
+    if t[0] == "bin":
+        return f"({_text(t[2])} {t[1]} {_text(t[3])})"
+    if t[0] == "call":
+        return f"{t[1]}({', '.join(_text(a) for a in t[2])})"
+    return str(t)

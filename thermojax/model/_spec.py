@@ -418,7 +418,7 @@ def _validate_effects(spec, fail, nodes: set[str], inputs: set[str], sensors: se
 
 
 def _validate_expression(e: Effect, fail, i: int, nodes: set[str], sensors: set[str]) -> None:
-    from ._expression import ExpressionError, names, parse
+    from ._expression import ExpressionError, constant_fault, names, parse
 
     if e.expression is None:
         fail("an expression effect needs `expression`, a formula of node temperatures, "
@@ -428,6 +428,10 @@ def _validate_expression(e: Effect, fail, i: int, nodes: set[str], sensors: set[
         used = names(parse(e.expression))
     except ExpressionError as err:
         fail(f"cannot read the expression {e.expression!r}: {err}.", "effects", i, "expression")
+    fault = constant_fault(parse(e.expression))
+    if fault is not None:
+        fail(f"the expression {e.expression!r} cannot be evaluated: {fault}; fix the "
+             "formula.", "effects", i, "expression")
     for name in used:
         if name in sensors and name not in nodes and name not in e.parameters:
             fail(f"'{name}' is a sensor column, a measurement the model explains; an "

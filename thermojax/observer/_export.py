@@ -34,6 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from .._errors import InputError
+from ..reference._artifact_checks import HASH_FIELD, content_hash
+from ._input_scale import representable_input_scale
 from ._linearize import linearize as _linearize
 
 SCHEMA = 1
@@ -350,11 +352,17 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
     if fmt is not None:
         u_scale = np.array([power_scale if j in power_inputs else fmt.state_scale
                             for j in range(m)])
+        # the input limits inside the codes' range, or the format refused (_input_scale)
+        u_scale, unrepresentable = representable_input_scale(
+            u_scale, u_ref, faults.input_limits_array(obs_system), fmt, power_inputs, inputs,
+            scale_given=power_scale != 1.0, where=where)
         scaling = ref.FixedScaling(x_ref, y_ref, u_ref, u_scale)
         try:
             fixed_obs = ref.FixedObserver(obs_system, fmt, scaling, faults, biases=bias_eval)
         except ValueError as err:
             raise InputError(str(err), file=where, field="--fixed") from None
+        if unrepresentable is not None:
+            raise unrepresentable
         arrays["u_scale"] = u_scale
         for name in fixed_obs.MATRICES:
             arrays[f"fixed_{name}"] = fixed_obs.coef[name]
@@ -445,6 +453,8 @@ def export_observer(spec_or_model, rate_hz: float, out_dir, fixed=None, method: 
             meta["files"][path.name] = key
     meta["files"]["observer.npz"] = "arrays"
     np.savez(out / "observer.npz", **arrays)
+    # verified by every load (reference._artifact_checks): a modified artifact is refused
+    meta[HASH_FIELD] = content_hash(meta, dict(np.load(out / "observer.npz")))
     (out / "observer.json").write_text(json.dumps(meta, indent=2, ensure_ascii=False) + "\n",
                                        encoding="utf-8")
     files = {f: (out / f).stat().st_size for f in [*meta["files"], "observer.json"]}
@@ -511,7 +521,8 @@ def _scheduled_source(spec, rate_hz, schedule: dict, where, meta, arrays):
         "use": f"every step: {SCHEDULED_PREFIX}_step(u, y); the matrices and gains are "
                f"interpolated linearly at the reading of {schedule['by']} (clamped to the "
                "points, held while it is not finite)"}
-    return ref.generate_scheduled_c(design, SCHEDULED_PREFIX)
+    return ref.generate_scheduled_c(design, SCHEDULED_PREFIX,  # the artifact's limits
+                                    reading_limits=tuple(meta["faults"]["limits_C"]))
 
 
 def _trimmed_source(spec, rate_hz, trim: dict, where, meta, arrays):
@@ -530,7 +541,8 @@ def _trimmed_source(spec, rate_hz, trim: dict, where, meta, arrays):
     for name in ("Phi", "B0", "B1", "L", "C", "D"):
         arrays[f"trim_{name}"] = np.asarray(getattr(design, name), float)
     unit = None
-    src = ref.generate_trimmed_c(design, TRIMMED_PREFIX)
+    src = ref.generate_trimmed_c(design, TRIMMED_PREFIX,  # the artifact's limits
+                                 reading_limits=tuple(meta["faults"]["limits_C"]))
     if trim.get("factors") is not None:
         values = trim["factors"]
         if isinstance(values, dict):   # by name, as `thermojax trim` writes them

@@ -93,6 +93,25 @@ class AdaptiveReferenceRun:
     variances: np.ndarray
     nis: np.ndarray
     flags: np.ndarray
+    # bit masks per sample of the inputs held and the readings not trusted
+    # (`_sample_guard`); None from the C harness
+    input_fault: np.ndarray | None = None
+    reading_fault: np.ndarray | None = None
+
+
+#: W: a heat input beyond this is not a plausible sample (held as a fault).
+MAX_POWER_W = 1e6
+
+
+def adaptive_input_limits(design, reading_limits=None) -> np.ndarray:
+    """`(m, 2)` input limits of the adaptive filter: a boundary temperature within the
+    plausibility limits, any other input (a power) within ±`MAX_POWER_W`."""
+    from ._sample_guard import READING_LIMITS
+
+    lim = READING_LIMITS if reading_limits is None else reading_limits
+    temps = {c for _, c, _ in design.boundaries}
+    return np.array([list(lim) if j in temps else [-MAX_POWER_W, MAX_POWER_W]
+                     for j in range(len(design.holds))], float).reshape(-1, 2)
 
 
 def _product(A, B):
@@ -149,8 +168,12 @@ class AdaptiveReference:
     """The firmware adaptive filter in plain float64 Python (see the module)."""
 
     def __init__(self, design: AdaptiveDesign):
+        from ._sample_guard import SampleGuard
+
         self.d = design
         d = design
+        self.guard = SampleGuard(adaptive_input_limits(design))
+        self.input_fault = self.reading_fault = 0
         self.g_nominal = [d.conductance(i)[3] for i in d.tracked]
         self.g_min = [1e-6 * g for g in self.g_nominal]
         self.h = d.dt / float(d.substeps)
@@ -169,6 +192,7 @@ class AdaptiveReference:
             c = d.ceiling[j] * self.g[j]
             self.P[n + j][n + j] = c * c
         self.buf = [0.0] * d.window
+        self.guard.reset()
         self.count = 0
         self.u_prev = None
 
@@ -275,7 +299,8 @@ class AdaptiveReference:
         n, k, p = d.n, d.k, len(d.sensors)
         nk = n + k
         sen = d.sensors
-        e = [y[i] - z[sen[i]] for i in range(p)]
+        ok = [math.isfinite(v) for v in y]  # the guard made an untrusted reading NaN
+        e = [y[i] - z[sen[i]] if ok[i] else 0.0 for i in range(p)]
         Sm = [[P[sen[i]][sen[j]] + (d.sensor_noise[i] * d.sensor_noise[i] if i == j else 0.0)
                for j in range(p)] for i in range(p)]
         _lu(Sm)
@@ -290,6 +315,10 @@ class AdaptiveReference:
                 var = P[a][a]
             if not delta * delta > (d.excitation * d.excitation) * var:
                 Kt[n + jj] = [0.0] * p
+        for i in range(p):  # an untrusted reading corrects nothing (Joseph form: any gain)
+            if not ok[i]:
+                for r in range(nk):
+                    Kt[r][i] = 0.0
         v = _solve(Sm, e)
         nis = 0.0
         for i in range(p):
@@ -334,8 +363,8 @@ class AdaptiveReference:
         d = self.d
         n, k = d.n, d.k
         nk = n + k
-        u = [float(v) for v in u]
-        y = [float(v) for v in y]
+        u, self.input_fault = self.guard.inputs([float(v) for v in u])
+        y, self.reading_fault = self.guard.readings([float(v) for v in y])
         if self.u_prev is None:
             z, P = self.x + self.g, self.P
         else:
@@ -374,9 +403,11 @@ class AdaptiveReference:
         n, k = self.d.n, self.d.k
         xs, gs = np.empty((T, n)), np.empty((T, k))
         vs, nis, flags = np.empty((T, n + k)), np.empty(T), np.zeros(T, bool)
+        u_fault, y_fault = np.zeros(T, np.int64), np.zeros(T, np.int64)
         self.reset(x0)
         for t in range(T):
             flags[t], nis[t] = self.step(u[t], y[t])
+            u_fault[t], y_fault[t] = self.input_fault, self.reading_fault
             xs[t], gs[t] = self.x, self.g
             vs[t] = [self.P[i][i] for i in range(n + k)]
-        return AdaptiveReferenceRun(xs, gs, vs, nis, flags)
+        return AdaptiveReferenceRun(xs, gs, vs, nis, flags, u_fault, y_fault)

@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._adaptive import AdaptiveDesign, AdaptiveReferenceRun
+from ._adaptive import AdaptiveDesign, AdaptiveReference, AdaptiveReferenceRun
 from ._c_source import CSource, pack_log
+from ._filter_form import guard_c, guard_reset_c, guard_step_c
 
 
 def _d(v: float) -> str:
@@ -43,6 +44,7 @@ def generate_adaptive_c(design: AdaptiveDesign, prefix: str = "tj_adaptive") -> 
         f"#ifndef {P}_H", f"#define {P}_H", "#include <stdint.h>",
         f"#define {P}_N {n}", f"#define {P}_K {k}", f"#define {P}_NK {n + k}",
         f"#define {P}_M {m}", f"#define {P}_P {p}",
+        f"extern unsigned long {prefix}_input_fault, {prefix}_reading_fault;  /* bit j: input j held, reading j not trusted */",
         f"void {prefix}_reset(const double x0[{P}_N]);",
         f"int {prefix}_step(const double u[{P}_M], const double y[{P}_P]);",
         f"extern double {prefix}_x[{P}_N], {prefix}_g[{P}_K], {prefix}_P[{P}_NK][{P}_NK], "
@@ -95,6 +97,7 @@ double {prefix}_x[{P}_N], {prefix}_g[{P}_K], {prefix}_P[{P}_NK][{P}_NK], {prefix
 static double u_prev[{P}_M], buf[WIN];
 static long count;
 static int started;
+{guard_c(prefix, AdaptiveReference(design).guard)}
 
 static void lu(double *A, int n) {{
     int c, i, j;
@@ -133,7 +136,7 @@ void {prefix}_reset(const double x0[{P}_N]) {{
     count = 0;
     started = 0;
     {prefix}_nis = 0.0;
-}}
+{guard_reset_c(prefix)}}}
 
 static void predict(const double u[{P}_M], double x[{P}_N], double F[{P}_NK][{P}_NK]) {{
     double g[NL + NB + 1], K[{P}_N][{P}_N], B[{P}_N][{P}_M + 1], M[{P}_N * {P}_N],
@@ -228,13 +231,13 @@ int {prefix}_step(const double u[{P}_M], const double y[{P}_P]) {{
         A[{P}_NK][{P}_NK], Kt[{P}_NK][{P}_P], Sm[{P}_P * {P}_P];
     double e[{P}_P], v[{P}_P], x[{P}_N], nis, total;
     int i, j, r, c, jj, flag;
-    if (!started) {{
+{guard_step_c(prefix)}    if (!started) {{
         for (i = 0; i < {P}_N; i++) z[i] = {prefix}_x[i];
         for (jj = 0; jj < {P}_K; jj++) z[{P}_N + jj] = {prefix}_g[jj];
         for (r = 0; r < {P}_NK; r++)
             for (c = 0; c < {P}_NK; c++) Pm[r][c] = {prefix}_P[r][c];
     }} else {{
-        predict(u, x, F);
+        predict(ug, x, F);
         for (i = 0; i < {P}_N; i++) z[i] = x[i];
         for (jj = 0; jj < {P}_K; jj++) z[{P}_N + jj] = {prefix}_g[jj];
         for (r = 0; r < {P}_NK; r++)
@@ -256,7 +259,7 @@ int {prefix}_step(const double u[{P}_M], const double y[{P}_P]) {{
         }}
     }}
     /* correction */
-    for (i = 0; i < {P}_P; i++) e[i] = y[i] - z[SENSOR[i]];
+    for (i = 0; i < {P}_P; i++) e[i] = yok[i] ? y[i] - z[SENSOR[i]] : 0.0;
     for (i = 0; i < {P}_P; i++)
         for (j = 0; j < {P}_P; j++)
             Sm[i * {P}_P + j] = Pm[SENSOR[i]][SENSOR[j]] + ((i == j) ? R[i] * R[i] : 0.0);
@@ -273,12 +276,15 @@ int {prefix}_step(const double u[{P}_M], const double y[{P}_P]) {{
             delta = z[a] - z[b];
             var = (Pm[a][a] + Pm[b][b]) - 2.0 * Pm[a][b];
         }} else {{
-            delta = z[a] - u[TR_C[jj]];
+            delta = z[a] - ug[TR_C[jj]];
             var = Pm[a][a];
         }}
         if (!(delta * delta > (EXC * EXC) * var))
             for (i = 0; i < {P}_P; i++) Kt[{P}_N + jj][i] = 0.0;
     }}
+    for (i = 0; i < {P}_P; i++)   /* an untrusted reading corrects nothing */
+        if (!yok[i])
+            for (r = 0; r < {P}_NK; r++) Kt[r][i] = 0.0;
     for (i = 0; i < {P}_P; i++) v[i] = e[i];
     solve(Sm, {P}_P, v);
     nis = 0.0;
@@ -339,7 +345,7 @@ int {prefix}_step(const double u[{P}_M], const double y[{P}_P]) {{
         }}
         for (i = 0; i < WIN; i++) buf[i] = 0.0;
     }}
-    for (c = 0; c < {P}_M; c++) u_prev[c] = u[c];
+    for (c = 0; c < {P}_M; c++) u_prev[c] = ug[c];
     started = 1;
     return flag;
 }}

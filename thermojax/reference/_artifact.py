@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
 from .._errors import InputError
+from . import _artifact_checks as checks
 from ._bias import BiasEvaluator, bias_channels_from_metadata
 from ._faults import FaultConfig
 from ._fixed import FixedObserver, FixedScaling
@@ -116,7 +118,7 @@ class ObserverArtifact:
         except (ValueError, KeyError) as err:
             raise ArtifactError(f"the gain schedule cannot be read ({err}).",
                                 file=str(self.folder / META), field="schedule") from None
-        return ScheduledObserver(design)
+        return ScheduledObserver(design, reading_limits=tuple(self.faults.limits))
 
     def trimmed_observer(self, factors=None):
         """The artifact's end-of-line trimmed observer (exported with `--trim`) as a
@@ -147,7 +149,7 @@ class ObserverArtifact:
         except (ValueError, KeyError) as err:
             raise ArtifactError(f"the trim cannot be read ({err}).",
                                 file=str(self.folder / META), field="trim") from None
-        return TrimmedObserver(design, factors)
+        return TrimmedObserver(design, factors, reading_limits=tuple(self.faults.limits))
 
     def adaptive_reference(self):
         """The artifact's firmware adaptive filter (exported with `--adaptive`) as an
@@ -188,9 +190,14 @@ class ObserverArtifact:
         if "u_scale" not in a:
             raise ArtifactError("the array 'u_scale' is missing (needed by the fixed build).",
                                 file=str(self.folder / ARRAYS), field="u_scale")
-        obs = FixedObserver(self.system, fmt,
-                            FixedScaling(a["x_ref"], a["y_ref"], a["u_ref"], a["u_scale"]),
-                            self.faults, biases=self.bias_evaluator())
+        try:
+            obs = FixedObserver(self.system, fmt,
+                                FixedScaling(a["x_ref"], a["y_ref"], a["u_ref"], a["u_scale"]),
+                                self.faults, biases=self.bias_evaluator())
+        except ValueError as err:
+            raise ArtifactError(f"the fixed-point build cannot be made from the artifact "
+                                f"({err})", file=str(self.folder / META),
+                                field="fixed") from None
         for name in obs.MATRICES:
             key = f"fixed_{name}"
             if key not in a:
@@ -247,12 +254,17 @@ def load_observer(folder) -> ObserverArtifact:
         if key not in meta:
             raise ArtifactError(f"the field '{key}' is missing.", file=str(meta_path),
                                 field=key)
+    checks.check_metadata(meta, meta_path, ArtifactError)
     if not npz_path.is_file():
         raise ArtifactError(f"the array file is missing from '{folder}'.", file=str(npz_path))
     try:
-        with np.load(npz_path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as err:
+        with open(npz_path, "rb") as fh:  # closed here even where np.load fails midway
+            z = np.load(fh, allow_pickle=False)
+            if not isinstance(z, np.lib.npyio.NpzFile):
+                raise ValueError("a single array, not an .npz archive")
+            with z:
+                arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as err:
         raise ArtifactError(f"cannot be read as .npz ({err}).", file=str(npz_path)) from None
     for key in REQUIRED_ARRAYS:
         if key not in arrays:
@@ -274,10 +286,17 @@ def load_observer(folder) -> ObserverArtifact:
     gains = {tuple(j for j in range(p) if mask >> j & 1):
              a["gain_table"][mask][:, [j for j in range(p) if mask >> j & 1]]
              for mask in range(1, 1 << p)}
-    system = ObserverSystem.build(a["Phi"], a["B0"], a["B1"], a["C"], a["D"], gains)
+    try:
+        system = ObserverSystem.build(a["Phi"], a["B0"], a["B1"], a["C"], a["D"], gains)
+    except ValueError as err:
+        raise ArtifactError(f"the matrices do not make an observer ({err}).",
+                            file=str(npz_path), field="Phi") from None
     if not np.array_equal(system.gain_table, a["gain_table"]):
         raise ArtifactError("the array 'gain_table' has nonzero gains for sensors outside "
                             "their subset.", file=str(npz_path), field="gain_table")
+    checks.check_dynamics(a, system, npz_path, ArtifactError,
+                          integrating=meta.get("reconstruct") is not None)
+    checks.check_hash(meta, arrays, meta_path, ArtifactError)
     f = meta["faults"]
     try:
         faults = FaultConfig(limits=tuple(f["limits_C"]), rails=_rail_pairs(f["rails_C"]),

@@ -186,9 +186,19 @@ def _names(source, n: int, m: int, p: int):
         return generic
     out = []
     for names, default in zip(given, generic):
-        names = [str(v).replace("*/", "* /") for v in names] if names is not None else default
+        names = [comment_safe(v) for v in names] if names is not None else default
         out.append(names if len(names) == len(default) else default)
     return tuple(out)
+
+
+def comment_safe(text) -> str:
+    """`text` made safe inside a C block comment: neither `/*` (which `-Wcomment` makes
+    an error under `-Werror`) nor `*/` (which would end the comment) survives, and no
+    line break or trigraph either."""
+    t = str(text).replace("\r", " ").replace("\n", " ").replace("??", "? ?")
+    while "/*" in t or "*/" in t:
+        t = t.replace("/*", "/ *").replace("*/", "* /")
+    return t
 
 
 def _colmajor(M):
@@ -360,7 +370,7 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
     q = 0 if biases is None else biases.n_channels
     bias_word = "int32_t" if fixed else "double"
     if q:
-        h += [f"/* bias channels: {', '.join(biases.names)} */", f"#define {P}_Q {q}",
+        h += [f"/* bias channels: {', '.join(map(comment_safe, biases.names))} */", f"#define {P}_Q {q}",
               f"typedef {bias_word} {prefix}_bias_t;",
               f"extern {prefix}_bias_t {prefix}_bias[{P}_Q];"]
     h += [f"#endif", ""]
@@ -797,7 +807,7 @@ def _float_bias_c(ev, prefix, xmv, uv, st) -> list:
     c.append("        double d, b;" if any(ch.poly for ch in ev.channels) else "        double b;")
     v_all = 0
     for k, (ch, coef) in enumerate(zip(ev.channels, ev._strain)):
-        c.append(f"        /* {ch.name} */")
+        c.append(f"        /* {comment_safe(ch.name)} */")
         first = v_all
         for v, (node, a, w1, w0, _) in enumerate(coef):
             e = f"{prefix}_eps[{first + v}]"
@@ -849,7 +859,7 @@ def _fixed_bias_c(fb, prefix, xmv, uv, st) -> list:
         e = f"{prefix}_eps[{v}]"
         inc = f"{L(W1)} * d1 + {L(W0)} * d0"
         inc = f"{prefix}_rnd({inc}, {fw - 30})" if fw > 30 else f"({inc})"
-        c += [f"        /* strain {v} on {st[node]} ({fb.channels[ch_i]['name']}) */",
+        c += [f"        /* strain {v} on {st[node]} ({comment_safe(fb.channels[ch_i]['name'])}) */",
               f"        if ({prefix}_started) {{",
               f"            E = {e};",
               f"            d1 = {prefix}_rnd(th{node} * {L(1 << sh_e)} - E, {f_d});",
@@ -861,7 +871,7 @@ def _fixed_bias_c(fb, prefix, xmv, uv, st) -> list:
               f"        e{v} = {prefix}_rnd({e}, {sh_e});"]
     for k, ch in enumerate(fb.channels):
         Pc = ch["poly"]
-        c.append(f"        /* {ch['name']}: {ch['g']} fractional bits; linear sum at {ch['h']} */")
+        c.append(f"        /* {comment_safe(ch['name'])}: {ch['g']} fractional bits; linear sum at {ch['h']} */")
         c.append(f"        acc = {L(Pc[-1])};")
         for cp in reversed(Pc[:-1]):
             c.append(f"        acc = {prefix}_rnd(acc * th{ch['node']}, 31) + {L(cp)};")

@@ -50,10 +50,56 @@ def filter_step(M: dict, C: list, D: list, x: list, u_prev: list | None, u: list
     return out
 
 
+def _c_double(v: float) -> str:
+    v = float(v)
+    return "HUGE_VAL" if v == np.inf else "-HUGE_VAL" if v == -np.inf else repr(v)
+
+
+def guard_c(prefix: str, guard) -> str:
+    """C definitions of a `SampleGuard`: the limits, the held inputs, the guarded sample
+    (`ug`, `yok`) and the fault masks `{prefix}_input_fault`, `{prefix}_reading_fault`."""
+    P = prefix.upper()
+    arr = lambda name, v: (f"static const double {name}[{len(v)}] = "
+                           f"{{{', '.join(_c_double(x) for x in v)}}};")
+    return "\n".join([
+        arr("U_LO", guard.u_lo), arr("U_HI", guard.u_hi), arr("U_START", guard.u_start),
+        f"static const double Y_LO = {_c_double(guard.y_lo)}, Y_HI = {_c_double(guard.y_hi)};",
+        f"static double u_held[{P}_M], ug[{P}_M];", f"static int yok[{P}_P];",
+        f"unsigned long {prefix}_input_fault, {prefix}_reading_fault;"])
+
+
+def guard_reset_c(prefix: str) -> str:
+    """C of `SampleGuard.reset` (inside a reset function)."""
+    P = prefix.upper()
+    return f"    {{ int g; for (g = 0; g < {P}_M; g++) u_held[g] = U_START[g]; }}\n"
+
+
+def guard_step_c(prefix: str) -> str:
+    """C of `SampleGuard.inputs` and `.readings` for `u`, `y`: fills `ug`, `yok` and the
+    fault masks; first in a step function."""
+    P = prefix.upper()
+    return f"""    {{
+    int g;
+    {prefix}_input_fault = 0;
+    {prefix}_reading_fault = 0;
+    for (g = 0; g < {P}_M; g++) {{
+        if (U_LO[g] < u[g] && u[g] < U_HI[g]) u_held[g] = u[g];
+        else {prefix}_input_fault |= 1UL << g;
+        ug[g] = u_held[g];
+    }}
+    for (g = 0; g < {P}_P; g++) {{
+        yok[g] = Y_LO < y[g] && y[g] < Y_HI;
+        if (!yok[g]) {prefix}_reading_fault |= 1UL << g;
+    }}
+    }}
+"""
+
+
 def filter_step_c(prefix: str) -> str:
-    """The C body of `filter_step`, updating `{prefix}_x` from `u`, `y`, `u_prev` and
-    `started`, with the matrices in `Phi`, `B0`, `B1`, `L`, `CM`, `DM` and the sizes in
-    `{PREFIX}_N`, `_M`, `_P` (declares its own locals `xm`, `e`, `r`, `c`, `i`)."""
+    """The C body of `filter_step`, updating `{prefix}_x` from the guarded sample (`ug`,
+    `y` where `yok`: `guard_step_c` first), `u_prev` and `started`, with the matrices in
+    `Phi`, `B0`, `B1`, `L`, `CM`, `DM` and the sizes in `{PREFIX}_N`, `_M`, `_P` (declares
+    its own locals `xm`, `e`, `r`, `c`, `i`)."""
     P = prefix.upper()
     return f"""    {{
     double xm[{P}_N], e[{P}_P];
@@ -63,7 +109,7 @@ def filter_step_c(prefix: str) -> str:
             double acc = 0.0;
             for (c = 0; c < {P}_N; c++) acc = acc + Phi[r][c] * {prefix}_x[c];
             for (c = 0; c < {P}_M; c++) acc = acc + B0[r][c] * u_prev[c];
-            for (c = 0; c < {P}_M; c++) acc = acc + B1[r][c] * u[c];
+            for (c = 0; c < {P}_M; c++) acc = acc + B1[r][c] * ug[c];
             xm[r] = acc;
         }}
     }} else {{
@@ -72,15 +118,15 @@ def filter_step_c(prefix: str) -> str:
     for (i = 0; i < {P}_P; i++) {{
         double acc = 0.0;
         for (c = 0; c < {P}_N; c++) acc = acc + CM[i][c] * xm[c];
-        for (c = 0; c < {P}_M; c++) acc = acc + DM[i][c] * u[c];
-        e[i] = isfinite(y[i]) ? y[i] - acc : 0.0;
+        for (c = 0; c < {P}_M; c++) acc = acc + DM[i][c] * ug[c];
+        e[i] = yok[i] ? y[i] - acc : 0.0;
     }}
     for (r = 0; r < {P}_N; r++) {{
         double acc = 0.0;
         for (i = 0; i < {P}_P; i++) acc = acc + L[r][i] * e[i];
         {prefix}_x[r] = xm[r] + acc;
     }}
-    for (c = 0; c < {P}_M; c++) u_prev[c] = u[c];
+    for (c = 0; c < {P}_M; c++) u_prev[c] = ug[c];
     started = 1;
     }}
 """

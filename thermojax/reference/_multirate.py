@@ -61,10 +61,15 @@ class BiasInterpolator:
         self.target = self.output.copy()
         self.tick_in_ramp = self.ratio
         self.seen = 0
+        self.held = 0  # non-finite bias values held at the last target so far
 
     def tick(self, buffer: DoubleBuffer) -> np.ndarray:
         seq, values = buffer.read()
         if seq != self.seen:
+            if not self.codes:  # a non-finite bias never enters the ramp: the last target
+                bad = ~np.isfinite(values)
+                self.held += int(np.count_nonzero(bad))
+                values = np.where(bad, self.target, values)
             self.seen, self.start, self.target, self.tick_in_ramp = seq, self.output, values, 0
         if self.tick_in_ramp < self.ratio:
             self.tick_in_ramp += 1

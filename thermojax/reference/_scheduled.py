@@ -15,9 +15,11 @@ Each step:
     x   = x⁻ + L (y − C x⁻ − D u[k])
 
 Every sum in index order, every product as written (a Python float is a C double;
-`-ffp-contract=off`). A non-finite reading contributes no correction (its residual is
-taken as 0); otherwise every sensor is used at every step: the channel supervision of the
-fixed-gain observer (docs/observer.md §5) is not part of the scheduled one.
+`-ffp-contract=off`). Bad samples are held and flagged (`_sample_guard`): an input outside
+its limits is held at its last good value, a reading outside the plausibility limits (NaN
+included) contributes no correction and does not schedule; otherwise every sensor is used
+at every step: the channel state machine of the fixed-gain observer (docs/observer.md §5)
+is not part of the scheduled one.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import math
 import numpy as np
 
 from ._filter_form import filter_step
+from ._sample_guard import READING_LIMITS, SampleGuard, design_input_limits
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -57,18 +60,27 @@ class ScheduledDesign:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class ScheduledRun:
-    """`states (T, n)` °C after each correction and the scheduling value `s (T,)` used."""
+    """`states (T, n)` °C after each correction and the scheduling value `s (T,)` used;
+    `input_fault`, `reading_fault (T,)`: the bit masks of inputs held and readings not
+    trusted at each step (`_sample_guard`; None from the C harness, which writes states)."""
 
     states: np.ndarray
     s: np.ndarray
+    input_fault: np.ndarray | None = None
+    reading_fault: np.ndarray | None = None
 
 
 class ScheduledObserver:
     """The scheduled observer in plain float64 Python (see the module)."""
 
-    def __init__(self, design: ScheduledDesign):
+    def __init__(self, design: ScheduledDesign, input_limits=None,
+                 reading_limits=READING_LIMITS):
         d = design
         self.d = d
+        if input_limits is None:
+            input_limits = design_input_limits(d.Phi[0], d.B0[0], d.B1[0], d.C, d.D,
+                                               reading_limits)
+        self.guard = SampleGuard(input_limits, reading_limits)
         self.points = [float(v) for v in d.points]
         self.tables = {k: np.asarray(getattr(d, k), float).tolist()
                        for k in ("Phi", "B0", "B1", "L")}
@@ -95,11 +107,17 @@ class ScheduledObserver:
         x = [float(v) for v in x0]
         s_last = self.points[0]
         states, used = np.empty((len(u), len(x))), np.empty(len(u))
+        u_fault, y_fault = np.zeros(len(u), np.int64), np.zeros(len(u), np.int64)
+        self.guard.reset()
+        u_prev = None
         for k in range(len(u)):
-            s = y[k][self.d.by]
+            u_k, u_fault[k] = self.guard.inputs(u[k])
+            y_k, y_fault[k] = self.guard.readings(y[k])
+            s = y_k[self.d.by]
             s = s if math.isfinite(s) else s_last
             M, s = self._interpolated(s)
             s_last = s
-            x = filter_step(M, self.C, self.D, x, u[k - 1] if k > 0 else None, u[k], y[k])
+            x = filter_step(M, self.C, self.D, x, u_prev, u_k, y_k)
+            u_prev = u_k
             states[k], used[k] = x, s
-        return ScheduledRun(states, used)
+        return ScheduledRun(states, used, u_fault, y_fault)

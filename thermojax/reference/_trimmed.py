@@ -25,6 +25,7 @@ import math
 import numpy as np
 
 from ._filter_form import filter_step
+from ._sample_guard import READING_LIMITS, SampleGuard, design_input_limits
 
 MATRICES = ("Phi", "B0", "B1", "L")
 
@@ -117,21 +118,41 @@ def trim_matrices(design: TrimDesign, factors) -> Trim:
     return Trim(out, tuple(used), replaced)
 
 
+def trimmed_input_limits(design: TrimDesign, reading_limits=READING_LIMITS):
+    """`(m, 2)` default input limits of a trimmed design: those of its first grid design
+    (the same for every unit, so the C, whose factors come at run time, agrees)."""
+    return design_input_limits(design.Phi[0], design.B0[0], design.B1[0], design.C,
+                               design.D, reading_limits)
+
+
 class TrimmedObserver:
     """The trimmed observer in plain float64 Python (see the module)."""
 
-    def __init__(self, design: TrimDesign, factors):
+    def __init__(self, design: TrimDesign, factors, input_limits=None,
+                 reading_limits=READING_LIMITS):
         self.d = design
         self.trim = trim_matrices(design, factors)
         self.C, self.D = np.asarray(design.C, float).tolist(), np.asarray(design.D, float).tolist()
+        if input_limits is None:
+            input_limits = trimmed_input_limits(design, reading_limits)
+        self.guard = SampleGuard(input_limits, reading_limits)
+        self.input_fault = self.reading_fault = None
 
     def run(self, x0, u, y) -> np.ndarray:
-        """Play back `u (T, m)`, `y (T, p)` from `x0 (n,)`: the estimates `(T, n)` °C."""
+        """Play back `u (T, m)`, `y (T, p)` from `x0 (n,)`: the estimates `(T, n)` °C. Bad
+        samples are held and flagged (`_sample_guard`): the bit masks of each step are
+        `input_fault` and `reading_fault` (T,) after the run."""
         u, y = np.asarray(u, float).tolist(), np.asarray(y, float).tolist()
         x = [float(v) for v in x0]
         states = np.empty((len(u), len(x)))
+        u_fault, y_fault = np.zeros(len(u), np.int64), np.zeros(len(u), np.int64)
+        self.guard.reset()
+        u_prev = None
         for k in range(len(u)):
-            x = filter_step(self.trim.matrices, self.C, self.D, x, u[k - 1] if k > 0 else None,
-                            u[k], y[k])
+            u_k, u_fault[k] = self.guard.inputs(u[k])
+            y_k, y_fault[k] = self.guard.readings(y[k])
+            x = filter_step(self.trim.matrices, self.C, self.D, x, u_prev, u_k, y_k)
+            u_prev = u_k
             states[k] = x
+        self.input_fault, self.reading_fault = u_fault, y_fault
         return states
