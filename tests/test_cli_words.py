@@ -14,7 +14,8 @@ import pytest
 
 import thermojax
 from thermojax.cli import main
-from thermojax.cli._main import build_parser, rate_hz
+from thermojax.cli._arguments import rate_hz
+from thermojax.cli._main import build_parser
 
 from test_compensate_certainty import DETERMINED, HOUSE
 

@@ -55,7 +55,7 @@ def cmd_calibrate(args) -> int:
 
 
 def add_calibrate(sub):
-    from ._main import _add_force, _add_quiet
+    from ._arguments import _add_force, _add_quiet
 
     p = sub.add_parser("calibrate", help="run the calibration pipeline of a config",
                        description="Run the calibration pipeline's named stages (condition, "

@@ -14,7 +14,7 @@ def cmd_compensate(args) -> int:
     from .. import io
     from ..measurements._plausibility import check_plausibility
     from ..observer._compensate import compensate
-    from ._main import _resolve_model
+    from ._arguments import _resolve_model
 
     out = Path(args.out)
     check_output_file(out, args.force)
@@ -102,7 +102,7 @@ def _plot(path: Path, telemetry, spec, column: str, result) -> None:
 
 
 def add_compensate(sub) -> None:
-    from ._main import _add_force, _add_quiet, _positive_float
+    from ._arguments import _add_force, _add_quiet, _positive_float
 
     p = sub.add_parser(
         "compensate", help="reconstruct an input (the fluid a lagging sensor sees) from a log",

@@ -46,7 +46,7 @@ def cmd_export(args) -> int:
         raise InputError(f"{', '.join(missing)} required (or --check DIR to check an "
                          "existing artifact).", field=missing[0])
     from ..observer._export import export_observer
-    from ._main import _resolve_model
+    from ._arguments import _resolve_model
 
     out = Path(args.out)
     check_output_folder(out, args.force)
@@ -230,7 +230,7 @@ def supervision_line(faults: dict) -> str:
 
 
 def add_export(sub):
-    from ._main import _add_force, _add_quiet, _positive_float, rate_hz
+    from ._arguments import _add_force, _add_quiet, _positive_float, rate_hz
 
     p = sub.add_parser("export", help="export the reference observer (JSON, .npz, C99)",
                        usage="thermojax export --model M --rate HZ --out DIR [options]\n"

@@ -66,7 +66,7 @@ def _shared_lock_key() -> str | None:
 
 
 def add_montecarlo(sub):
-    from ._main import _add_force, _add_quiet
+    from ._arguments import _add_force, _add_quiet
 
     p = sub.add_parser("montecarlo", help="unit-variance Monte Carlo study, in resumable chunks",
                        description="Sample a population of units (the config's preset, "

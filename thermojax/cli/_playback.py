@@ -103,7 +103,7 @@ def _plot(path: Path, pb, names, faults) -> None:
 
 
 def add_playback(sub) -> None:
-    from ._main import _add_force, _add_quiet
+    from ._arguments import _add_force, _add_quiet
 
     p = sub.add_parser(
         "playback", help="play a log through an exported observer, with injected faults",

@@ -13,7 +13,7 @@ def cmd_rate(args) -> int:
     from ..model._model import ThermalModel
     from ..model.effects import lower_effects
     from ..observer._rate import DEFAULT_RATES, anti_alias_cost, rate_advice
-    from ._main import _resolve_model
+    from ._arguments import _resolve_model
 
     spec = lower_effects(io.load_model(_resolve_model(args.model))).spec
     model = ThermalModel.from_spec(spec)
@@ -76,7 +76,7 @@ def _rates(text: str) -> list[float]:
     """Comma-separated rates, each a number or a fraction (`1/1800,1/900,0.01`)."""
     import argparse
 
-    from ._main import rate_hz
+    from ._arguments import rate_hz
 
     try:
         values = [float(rate_hz(v)) for v in text.split(",")]
@@ -89,7 +89,7 @@ def _rates(text: str) -> list[float]:
 
 
 def add_rate(sub) -> None:
-    from ._main import _add_quiet, _positive_float, rate_hz
+    from ._arguments import _add_quiet, _positive_float, rate_hz
 
     p = sub.add_parser(
         "rate", help="which observer rate is enough, and an anti-alias filter's cost",

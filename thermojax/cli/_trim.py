@@ -15,7 +15,7 @@ def cmd_trim(args) -> int:
     from ..io import load_model
     from ..observer._trim import load_trim_plan
     from ._checked_runs import load_runs
-    from ._main import _resolve_model
+    from ._arguments import _resolve_model
 
     out = Path(args.out)
     check_output_folder(out, args.force)
@@ -49,7 +49,7 @@ def cmd_trim(args) -> int:
 
 
 def add_trim(sub):
-    from ._main import _add_force, _add_quiet
+    from ._arguments import _add_force, _add_quiet
 
     p = sub.add_parser("trim", help="a unit's end-of-line trim factors from its test log",
                        description="Estimate a unit's end-of-line scale factors (the trim file's "
