@@ -104,6 +104,7 @@ class Candidate:
                 "holdout_folds": [v.as_json() for v in self.holdout_votes],
                 "refit_start": self.refit_start, "parameters": self.parameters,
                 "hold": self.hold, "absorbed_by": self.absorbed_by, "note": self.note,
+                "physical": bool(self.physical),
                 **({"expression": self.expression, "law": self.learned.term.name}
                    if self.learned is not None else {})}
 
