@@ -208,3 +208,45 @@ def one_node_guess(name: str = "room") -> Network:
     return Network(nodes={name: 1.0e7}, links=[], boundaries=[(name, "T_out", 100.0)],
                    heats=[(name, "P_heat", 1.0), (name, "solar", 1.0)],
                    sensors=[("T_room", name, 0.05)])
+
+
+def sensor_module_hidden_heat(n: int = 500, seed: int = 5):
+    """`sensor_module` whose board also dissipates 30 % of the die's power (a regulator
+    on the same rail): `(truth, user)` networks and the log. The user's model has the
+    die's power on the die alone."""
+    rng = np.random.default_rng(seed)
+    user = Network(nodes={"housing": 30.0, "board": 4.0, "die": 0.5},
+                   links=[("housing", "board", 0.4), ("board", "die", 0.25)],
+                   boundaries=[("housing", "T_chamber", 0.8)],
+                   heats=[("die", "P_die", 1.0)],
+                   sensors=[("T_housing", "housing", 0.01), ("T_die", "die", 0.01)])
+    truth = Network(nodes=user.nodes, links=user.links, boundaries=user.boundaries,
+                    heats=[("die", "P_die", 1.0), ("board", "P_die", 0.3)],
+                    sensors=user.sensors)
+    dt = 1.0
+    ts = np.arange(n) * dt
+    U = np.column_stack([np.interp(ts, [0, 100, 400, n], [25.0, 25.0, 45.0, 45.0]),
+                         prbs(n, rng, 25, 0.0, 0.5)])
+    X = simulate(truth, U, dt, np.array([26.0, 29.0, 31.0]))
+    return truth, user, ts, dict(zip(truth.inputs, U.T)), readings(truth, X, rng), X
+
+
+def heater_lagging_sensor(n: int = 600, seed: int = 6):
+    """`heater` whose block thermometer lags its block by 10 s (a probe in a loose
+    well), a sensor artifact the user's model lacks: `(truth, user)` and the log."""
+    rng = np.random.default_rng(seed)
+    user = Network(nodes={"block": 40.0, "plate": 200.0},
+                   links=[("block", "plate", 2.0)],
+                   boundaries=[("plate", "T_chamber", 1.5)],
+                   heats=[("block", "P_heater", 1.0)],
+                   sensors=[("T_block", "block", 0.02), ("T_plate", "plate", 0.02)])
+    c_probe = 1e-3  # J/K: a probe this light takes no heat worth counting from the block
+    truth = Network(nodes={**user.nodes, "probe": c_probe},
+                    links=[*user.links, ("block", "probe", c_probe / 10.0)],
+                    boundaries=user.boundaries, heats=user.heats,
+                    sensors=[("T_block", "probe", 0.02), ("T_plate", "plate", 0.02)])
+    dt = 2.0
+    ts = np.arange(n) * dt
+    U = np.column_stack([25.0 + 0.0 * ts, prbs(n, rng, 15, 0.0, 20.0)])
+    X = simulate(truth, U, dt, np.array([48.0, 33.0, 47.0]))
+    return truth, user, ts, dict(zip(truth.inputs, U.T)), readings(truth, X, rng), X

@@ -47,10 +47,10 @@ __all__ = ["FitResult", "LIKELIHOODS", "fit", "output_error_at", "profile_interv
 
 def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "output_error",
         solver=None, max_steps: int = 100, prior_log_std: float = 3.0, n_starts: int = 1,
-        seed: int = 0, progress=None, holdout: int | None = None,
+        seed: int = 0, progress=None, holdout: int | tuple | None = None,
         restart_plateaus: bool = True, polish: bool = True,
         nested_nll: float | None = None, smoothed: bool = False,
-        restart_unconverged: bool = True) -> FitResult:
+        restart_unconverged: bool = True, starts: dict | None = None) -> FitResult:
     """Fit the free parameters of `spec` to several runs at once.
 
     **Arguments:**
@@ -75,7 +75,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
       (std 0.5); the best likelihood wins. `seed` seeds them.
     - `progress`: optional callable taking a one-line string.
     - `holdout`: index of a run left out of the likelihood (its measurements are masked;
-      it is still simulated, so `predictions` hold its out-of-sample prediction).
+      it is still simulated, so `predictions` hold its out-of-sample prediction), or
+      `(run, (start, stop))`, a block of that run's samples left out likewise.
     - `restart_plateaus`: when the fit stops with a node's time constant far outside the
       data's time scales and its parameters unidentifiable, fit again with that node at
       a time constant the data can see and keep the better (`_plateau`); the message
@@ -94,6 +95,10 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
       from the file's values is fitted again from the output-error fit (the better of
       the two is kept). False returns the unconverged fit (a failure raises): one start
       among several that are fitted anyway (an investigation's refit starts).
+    - `starts`: node -> each run's start (°C, (runs,)) for the nodes whose start is
+      estimated, instead of their first readings (`fitting._initial_states`); a held-out
+      fit passes the full fit's estimates, which data after a held-out first block
+      cannot determine.
     - `smoothed`: Kalman fits whose `FitResult.smoothed` (RTS-smoothed node temperatures)
       will be read: their program is compiled beside the fit's last steps, where it
       costs no wall time on two cores. Otherwise they are computed when first read.
@@ -102,7 +107,7 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     """
     t_start = time.perf_counter()
     say = progress or (lambda _msg: None)
-    prep = prepare(spec, experiments, likelihood, holdout)
+    prep = prepare(spec, experiments, likelihood, holdout, starts)
     cost = check_fit_size(prep.template.model.network.topology.n_nodes, len(prep.names),
                           spec.source)
     if cost.seconds > LONG_FIT_S:
@@ -121,7 +126,7 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
                               max_steps=max_steps, prior_log_std=prior_log_std,
                               n_starts=n_starts, seed=seed, holdout=holdout,
                               nested_nll=nested_nll, smoothed=smoothed,
-                              restart_unconverged=restart_unconverged)
+                              restart_unconverged=restart_unconverged, starts=starts)
         result.wall_time_s = time.perf_counter() - t_start
     say(f"fit done: -log L = {result.nll:.2f}, {result.n_params} parameters, {result.message}")
     _warn_start_mismatch(result, experiments)

@@ -158,3 +158,13 @@ def start_mismatches(spec: ModelSpec, columns, noise: dict[str, float], predicti
                     "Remove `initial` from the nodes (each run's start is then estimated) "
                     "or correct it.")
     return out
+
+
+def fitted_starts(result) -> dict[str, np.ndarray]:
+    """Node -> each run's estimated start (°C, (runs,)) of a `FitResult`, for the nodes
+    of its file whose start the fit estimated."""
+    names = result.lowered_spec.node_names
+    run_initial = np.asarray(result.state.run_initial)
+    estimated = set(nodes_to_estimate(result.spec))
+    return {names[i]: run_initial[:, k] for k, i in enumerate(result.model.initial_nodes)
+            if names[i] in estimated}

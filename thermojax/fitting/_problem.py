@@ -151,10 +151,15 @@ class Prepared:
 
 
 def prepare(spec: ModelSpec, experiments: list[Experiment], likelihood: str,
-            holdout: int | None = None) -> Prepared:
+            holdout: int | tuple | None = None, starts: dict | None = None) -> Prepared:
     """Lower `spec`'s structural effects, check and pad the runs, and lay out `theta`.
 
-    `holdout`: index of a run whose measurements are masked out of the likelihood.
+    `holdout`: index of a run whose measurements are masked out of the likelihood, or
+    `(run, (start, stop))`: a block of samples of that run masked out (its sensor
+    readings; a run's start is still estimated from its first readings, so a block at a
+    run's start does not move the start to the block's end). `starts`: node -> per-run
+    start (°C, (runs,)) replacing the data's for the nodes whose start is estimated (a
+    held-out fit starts from the full fit's estimates: `fitting._initial_states`).
     """
     if likelihood not in LIKELIHOODS:
         raise InputError(f"unknown likelihood '{likelihood}'; use one of {list(LIKELIHOODS)}.",
@@ -168,9 +173,12 @@ def prepare(spec: ModelSpec, experiments: list[Experiment], likelihood: str,
     data = dataset(experiments)
     if holdout is not None:
         mask = np.array(data.mask)
-        mask[holdout] = False
+        run, span = holdout if isinstance(holdout, tuple) else (holdout, None)
+        mask[run, slice(*span) if span is not None else slice(None)] = False
         data = dataclasses.replace(data, mask=jax.device_put(mask))
-    starts = estimated_starts(lowered, experiments, ThermalModel.from_spec)
+    estimated = estimated_starts(lowered, experiments, ThermalModel.from_spec)
+    starts = {**estimated, **{n: np.asarray(v, float) for n, v in (starts or {}).items()
+                              if n in estimated}}
     if starts:
         lowered = lower_effects(with_starts(lowered.original, starts))
         spec = lowered.spec
@@ -183,7 +191,7 @@ def prepare(spec: ModelSpec, experiments: list[Experiment], likelihood: str,
                          "capacitance, conductance or gain a bare number.", file=spec.source)
     fixed_sigma = np.array([s.noise is not None and s.noise.fixed
                             for s in (*spec.sensors, *spec.biases)], dtype=bool)
-    bias = bias_columns(spec, experiments, holdout)
+    bias = bias_columns(spec, experiments, holdout if not isinstance(holdout, tuple) else None)
     bias_sigma = np.array([_bias_sigma_start(b, j, experiments)
                            for j, b in enumerate(spec.biases)])
     prep = Prepared(lowered, experiments, data, template, index, names, fixed_sigma, bias,
