@@ -258,7 +258,8 @@ POOR_FIT_STARTS = 5
 def _worse_than_mean(result) -> str:
     """Words for the sensors whose fit % is negative (the model predicts them worse than
     their own mean: a local optimum, not a fit), or ""."""
-    bad = {c: v for c, v in result.fit_percent.items() if v is not None and v < 0}
+    percent = getattr(result, "fit_percent", None) or {}  # a result without the metric: none
+    bad = {c: v for c, v in percent.items() if v is not None and v < 0}
     if not bad:
         return ""
     return ("the fit stopped where " + ", ".join(f"{c} (fit {v:.0f} %)" for c, v in
