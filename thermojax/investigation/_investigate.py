@@ -26,6 +26,8 @@ and what is written (`_outputs`).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from ._background import _beside, score_ahead
@@ -65,6 +67,27 @@ def _extend(current: Step, chosen: Candidate, runs, likelihood) -> Step:
     return nxt
 
 
+@dataclass
+class _Loop:
+    """What every step of one investigation works with: the model as the user wrote it
+    (a refit also starts from its values), the runs, the settings of `investigate`, the
+    held-out fits kept from step to step and the figures drawn ahead."""
+
+    spec: ModelSpec
+    runs: list[Telemetry]
+    likelihood: str
+    max_steps: int
+    refits: int
+    fdr: float
+    white_p: float
+    holdout_check: bool
+    network: bool
+    out: Path | None
+    say: Callable[[str], None]
+    held_out: HeldOutFits
+    plots: PlotsAhead | None
+
+
 @one_blas_thread()  # XLA's pool and the fits' threads use the cores (`_blas_threads`)
 def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "output_error",
                 max_steps: int = 4, refits: int = 3, fdr: float = 0.05,
@@ -80,6 +103,44 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
     t0 = time.perf_counter()
     out = Path(out) if out is not None else None
     inputs = _inputs(spec, runs, likelihood)
+    records, current = _first_step(spec, runs, likelihood, out, inputs, resume, say)
+    steps_traces = [None] * (len(records) - 1) + [current.traces]
+    heat_series = [None] * len(records)  # per step its MissingHeat, for the report's figure
+    loop = _Loop(spec, runs, likelihood, max_steps, refits, fdr, white_p, holdout_check,
+                 network, out, say, HeldOutFits(), PlotsAhead() if out is not None else None)
+    advice = None
+    try:
+        while (stopped := _stops_before(loop, records)) is None:
+            t_step = time.perf_counter()
+            current = confirmed_optimum(current, runs, likelihood, say)
+            records[-1] = current.record
+            steps_traces[-1] = current.traces
+            cands, chosen, heat_series[-1] = _step_candidates(loop, current, len(records) - 1)
+            _record_candidates(current.record, cands, chosen, t_step)
+            if chosen is None:
+                record_unexplained(current, heat_series[-1], say)
+                advice = held_out_advice(cands, likelihood)
+                stopped = "no_supported_candidate"
+                break
+            current = _extend(current, chosen, runs, likelihood)
+            say(f"added {chosen.kind} {list(chosen.where)}")
+            records.append(current.record)
+            steps_traces.append(current.traces)
+            heat_series.append(None)
+            if out is not None:
+                _save_checkpoint(out, inputs, records, current.spec)
+            release_compiled_if_crowded()  # rejected candidates' programs are not reused
+        return _finish(loop, records, stopped, advice, current, steps_traces, heat_series,
+                       time.perf_counter() - t0)
+    finally:
+        if loop.plots is not None:
+            loop.plots.close()
+
+
+def _first_step(spec, runs, likelihood, out, inputs, resume, say) -> tuple[list[dict], Step]:
+    """`(records, step)`: the loop's records so far and the step it goes on from, fitted:
+    step 0 (the given model), or resuming from `out`'s checkpoint (`resume`), its last
+    finished step. A fresh start in an existing `out` clears an earlier run's files."""
     records: list[dict] = []
     start_spec = spec
     if out is not None and resume:
@@ -95,71 +156,71 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
                        records[-1].get("wall_time_s")}
     else:
         records.append(current.record)
-    steps_traces = [None] * (len(records) - 1) + [current.traces]
-    heat_series = [None] * len(records)  # per step its MissingHeat, for the report's figure
-    held_out = HeldOutFits()
-    plots = PlotsAhead() if out is not None else None
-    stopped, advice = "max_steps", None
-    try:
-        while True:
-            i = len(records) - 1
-            rec = records[-1]
-            say(f"step {i}: −log L {rec['nll']:.1f}, RMSE " +
-                ", ".join(f"{c} {v:.4g}" for c, v in rec["rmse"].items()))
-            if all(p is not None and p > white_p for p in rec["whiteness_p"].values()):
-                stopped = "residuals_white"
-                break
-            if i >= max_steps:
-                stopped = "max_steps"
-                break
-            t_step = time.perf_counter()
-            current = confirmed_optimum(current, runs, likelihood, say)
-            records[-1] = rec = current.record
-            steps_traces[-1] = current.traces
-            _plot_ahead(plots, out, i, current)
-            if out is not None:
-                out.mkdir(parents=True, exist_ok=True)
-            missing = _beside(record_missing_heat, current, out, i, white_p, say=say)
-            cands = diagnose_step(current, runs, likelihood, refits=refits, fdr=fdr, say=say,
-                                  white_p=white_p, initial=spec)
-            def checking(c, i=i):  # while a candidate's held-out folds are fitted
-                _plot_ahead(plots, out, i + 1, c.result, _added(c))
-                if i + 1 < max_steps:  # the step it would make is scored next
-                    score_ahead(c.result, runs, likelihood)
+    return records, current
 
-            chosen = _choose(cands, current, runs, likelihood, holdout_check, say, held_out,
-                             checking)
-            missing = heat_series[-1] = missing()
-            if chosen is None and network and missing is not None and missing.carriers:
-                chosen = _network_step(current, runs, missing, cands, likelihood, fdr,
-                                       white_p, spec, holdout_check, say, held_out)
-            rec["candidates"] = [c.as_json() for c in cands]
-            rec["wall_time_s"] = time.perf_counter() - t_step
-            if chosen is not None and chosen.tied_with:
-                rec["separation"] = separation_advice({chosen.kind, *(k for k, _ in
-                                                                       chosen.tied_with)})
-            if chosen is None:
-                record_unexplained(current, missing, say)
-                advice = held_out_advice(cands, likelihood)
-                stopped = "no_supported_candidate"
-                break
-            current = _extend(current, chosen, runs, likelihood)
-            say(f"added {chosen.kind} {list(chosen.where)}")
-            records.append(current.record)
-            steps_traces.append(current.traces)
-            heat_series.append(None)
-            if out is not None:
-                _save_checkpoint(out, inputs, records, current.spec)
-            release_compiled_if_crowded()  # rejected candidates' programs are not reused
-        report = _report(records, stopped, likelihood, fdr, white_p,
-                         time.perf_counter() - t0)
-        report["noise"] = _noise(current)
-        if advice:
-            report["advice"] = advice
-        if out is not None:
-            _write_outputs(out, report, current, steps_traces, runs, plots, heat_series)
-        return json_safe(report)
-    finally:
-        if plots is not None:
-            plots.close()
 
+def _stops_before(loop: _Loop, records: list[dict]) -> str | None:
+    """Why the loop stops at its last step (`records[-1]`, said first): its residuals are
+    white, or it is step `max_steps`; None to go on."""
+    i = len(records) - 1
+    rec = records[-1]
+    loop.say(f"step {i}: −log L {rec['nll']:.1f}, RMSE " +
+             ", ".join(f"{c} {v:.4g}" for c, v in rec["rmse"].items()))
+    if all(p is not None and p > loop.white_p for p in rec["whiteness_p"].values()):
+        return "residuals_white"
+    if i >= loop.max_steps:
+        return "max_steps"
+    return None
+
+
+def _step_candidates(loop: _Loop, current: Step, i: int) -> tuple:
+    """`(candidates, chosen or None, MissingHeat or None)` of step `i`: its figures
+    queued, its missing heat reconstructed beside the candidates' scoring and refits,
+    the first supported candidate the held-out check keeps, else, where heat is missing,
+    the heat network's proposal."""
+    say, out = loop.say, loop.out
+    _plot_ahead(loop.plots, out, i, current)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    missing = _beside(record_missing_heat, current, out, i, loop.white_p, say=say)
+    cands = diagnose_step(current, loop.runs, loop.likelihood, refits=loop.refits,
+                          fdr=loop.fdr, say=say, white_p=loop.white_p, initial=loop.spec)
+
+    def checking(c):  # while a candidate's held-out folds are fitted
+        _plot_ahead(loop.plots, out, i + 1, c.result, _added(c))
+        if i + 1 < loop.max_steps:  # the step it would make is scored next
+            score_ahead(c.result, loop.runs, loop.likelihood)
+
+    chosen = _choose(cands, current, loop.runs, loop.likelihood, loop.holdout_check, say,
+                     loop.held_out, checking)
+    missing = missing()
+    if chosen is None and loop.network and missing is not None and missing.carriers:
+        chosen = _network_step(current, loop.runs, missing, cands, loop.likelihood, loop.fdr,
+                               loop.white_p, loop.spec, loop.holdout_check, say,
+                               loop.held_out)
+    return cands, chosen, missing
+
+
+def _record_candidates(rec: dict, cands: list[Candidate], chosen: Candidate | None,
+                       t_step: float) -> None:
+    """The step's record gets its candidates, its wall time (since `t_step`) and, where
+    the chosen candidate is tied, the advice that would separate the tie."""
+    rec["candidates"] = [c.as_json() for c in cands]
+    rec["wall_time_s"] = time.perf_counter() - t_step
+    if chosen is not None and chosen.tied_with:
+        rec["separation"] = separation_advice({chosen.kind, *(k for k, _ in
+                                                               chosen.tied_with)})
+
+
+def _finish(loop: _Loop, records, stopped, advice, final: Step, steps_traces, heat_series,
+            wall_time_s: float) -> dict:
+    """The report (`report.json`'s dict), written with `out` beside the final model, the
+    Markdown report and its figures."""
+    report = _report(records, stopped, loop.likelihood, loop.fdr, loop.white_p, wall_time_s)
+    report["noise"] = _noise(final)
+    if advice:
+        report["advice"] = advice
+    if loop.out is not None:
+        _write_outputs(loop.out, report, final, steps_traces, loop.runs, loop.plots,
+                       heat_series)
+    return json_safe(report)
