@@ -43,4 +43,3 @@ def score_ahead(step: Step, runs: list[Telemetry], likelihood: str) -> None:
     folds are fitted, so that their programs' compilation (1-3 s a step on PRBS1) is
     off the loop's single-threaded scoring. A failure is raised where they are taken."""
     step.scoring = (likelihood, _on_thread(scoring_inputs, step, runs, likelihood))
-

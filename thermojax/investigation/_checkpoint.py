@@ -106,4 +106,3 @@ def _clear_earlier_run(out: Path) -> None:
         for f in out.glob(pattern):
             if f.is_file():
                 f.unlink()
-

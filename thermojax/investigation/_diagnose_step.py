@@ -197,4 +197,3 @@ def scoring_inputs(step: Step, runs: list[Telemetry], likelihood: str) -> tuple:
         r = whiten((r.reshape(weights.shape) * scale)[..., None]).reshape(-1)
         J = whiten(J.reshape(*weights.shape, -1) * scale[..., None]).reshape(r.size, -1)
     return data, weights, r, J, states, whiten
-

@@ -251,4 +251,3 @@ def _viscoelastic_step(current: Step, c: Candidate, runs, likelihood) -> Step:
     eff = Effect("viscoelastic", c.where, {k: Parameter(v) for k, v in c.parameters.items()})
     return evaluate(current.spec.replace(effects=current.spec.effects + (eff,)), runs,
                     likelihood)
-

@@ -75,4 +75,3 @@ def _learned_places(spec: ModelSpec, lowered: ModelSpec, unused: dict[str, str],
     helpers = helper_nodes(spec, lowered)
     return [(law, where) for law, where in learned_places(lowered, roles, scales)
             if (tuple(where), law.text(where)) not in have and not helpers & set(where)]
-

@@ -99,4 +99,3 @@ def _unexplained(record: dict, white_p: float) -> str:
             "is not explained by any effect of the vocabulary with the data "
             "columns given (an unrecorded input, or physics outside the "
             "vocabulary).")
-

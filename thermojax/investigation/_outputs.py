@@ -103,4 +103,3 @@ def _write_outputs(out: Path, report: dict, final: Step, traces, runs,
                                inputs, boundary, units=units, plots_ahead=plots,
                                missing_heat=heat_series, nearest=nearest_sensors(final.spec),
                                input_units=watts)
-

@@ -110,4 +110,3 @@ def absorbing_nodes(step: Step, extended: Step) -> dict[str, list[str]]:
             if shift > ABSORB_STDS * p["std"] and shift > ABSORB_SHARE * abs(p["value"]):
                 out.setdefault(node, []).append(name)
     return out
-

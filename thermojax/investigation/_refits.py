@@ -326,4 +326,3 @@ def _fit_plans(plans: list[list[tuple]], runs, likelihood, nested_nll: float,
                                          for k, i in order])))
     return [[(hold, start, done[k, i]) for k, (hold, start, _) in enumerate(plan)]
             for i, plan in enumerate(plans)]
-

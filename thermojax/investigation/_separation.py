@@ -28,4 +28,3 @@ def separation_advice(kinds) -> str:
     return ("the data cannot tell these apart: excite the system differently (a power step "
             "in the node concerned, a faster ramp, a wider temperature range) or add a sensor "
             "near the candidates' places")
-

@@ -160,4 +160,3 @@ def confirmed_optimum(step: Step, runs, likelihood, say) -> Step:
         step = again
     step.record["multistart_gain"] = float(max(gain, 0.0))
     return step
-

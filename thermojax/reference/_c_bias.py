@@ -144,4 +144,3 @@ def _fixed_bias_c(fb, prefix, xmv, uv, st) -> list:
     c += [f"        {prefix}_tprev[{i}] = th{i};" for i in nodes]
     c.append("    }")
     return c
-

@@ -59,4 +59,3 @@ def _readable_lit(v, word: str) -> str:
 
 def _zero(word: str) -> str:
     return "0.0f" if word == "float" else "0.0"
-

@@ -702,4 +702,3 @@ def pack_log(x0, u, y) -> bytes:
     rows = np.concatenate([np.asarray(u, np.float64), np.asarray(y, np.float64)], axis=1)
     return np.int32(rows.shape[0]).tobytes() + np.asarray(x0, np.float64).tobytes() + \
         rows.tobytes()
-

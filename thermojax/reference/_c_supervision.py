@@ -117,4 +117,3 @@ def _lane_supervision_c(prefix, word, p, lanes, rv, lim, rails, thr, fc) -> tupl
                [f"        /* ({prefix}_wire_break stays 0: no residual threshold) */"]),
              "    }"]
     return tables, state, reset, step
-
