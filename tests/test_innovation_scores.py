@@ -127,7 +127,7 @@ def test_the_loops_whitening_of_many_directions_is_each_ones_filter(case):
     on that direction alone."""
     from types import SimpleNamespace
 
-    from thermojax.investigation._investigate import WHITEN_BLOCK, innovation_directions
+    from thermojax.investigation._diagnose_step import WHITEN_BLOCK, innovation_directions
 
     U, Y, mask, model, data = case
     residual = np.where(mask, Y - free_run(np.column_stack([U[:, :2], 0 * U[:, 2]])), 0.0)

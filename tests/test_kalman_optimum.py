@@ -306,7 +306,7 @@ def test_a_held_out_fold_fit_reaches_the_folds_optimum_without_the_polish(refere
     NumPy filter (those samples predicted, not updated), warm-started at SciPy's optimum
     of all the data."""
     from thermojax.fitting import _kalman_fit
-    from thermojax.investigation._investigate import _fit_without
+    from thermojax.investigation._held_out import _fit_without
 
     t, U, Y = make_data()
     full, _ = direct_fit

@@ -36,7 +36,9 @@ def test_the_loop_asks_the_network_and_its_proposal_recovers_the_truth(monkeypat
     is chosen, ends at the noise and holds the truth within three stds."""
     from thermojax.discovery import missing_heat
     from thermojax.investigation import _network_candidate
-    from thermojax.investigation._investigate import HeldOutFits, _network_step, evaluate
+    from thermojax.investigation._held_out import HeldOutFits
+    from thermojax.investigation._missing_heat_step import _network_step
+    from thermojax.investigation._step import evaluate
 
     monkeypatch.setattr(_network_candidate, "TRAJECTORY_STEPS", 5)  # a scaled-down run
     runs = g.generate_case("law_quadratic_input", seed=0, horizon_s=1500.0)

@@ -17,15 +17,15 @@ def _one_run(case, tmp_path, horizon_s):
 
 def test_held_out_fits_are_made_once_per_model_and_fold(tmp_path, monkeypatch):
     from thermojax import parse_model
-    from thermojax.investigation import _investigate as inv
+    from thermojax.investigation import _held_out
 
     calls = []
-    monkeypatch.setattr(inv, "_fit_without",
+    monkeypatch.setattr(_held_out, "_fit_without",
                         lambda spec, exps, fold, lk: calls.append((spec, fold, lk)) or len(calls))
     text = (g.HERE / "models" / "chain3.toml").read_text()
     a, a_again = parse_model(text), parse_model(text)  # equal, distinct objects
     b = parse_model(text.replace("noise = 0.01", "noise = 0.02", 1))
-    fits = inv.HeldOutFits()
+    fits = _held_out.HeldOutFits()
     assert fits(a, [], (0, None), "output_error") == 1
     assert fits(a_again, [], (0, None), "output_error") == 1  # kept
     assert fits(a, [], (1, None), "output_error") == 2  # another fold
@@ -37,7 +37,7 @@ def test_held_out_fits_are_made_once_per_model_and_fold(tmp_path, monkeypatch):
 def test_the_noise_start_does_not_move_the_optimum(tmp_path):
     # Estimated noise stds are held at their ML values inside the solve: the stds a fit
     # starts from do not change the optimum it reaches, nor the stds it ends with.
-    from thermojax.investigation._investigate import evaluate
+    from thermojax.investigation._step import evaluate
     from thermojax.model._parameters_by_name import with_spec_parameters
     from thermojax.model._spec import Parameter
 
@@ -66,16 +66,18 @@ def test_a_steps_scoring_inputs_computed_ahead_are_the_ones_taken(tmp_path, monk
     bit, and scoring the step takes them instead of computing them again."""
     import numpy as np
 
-    from thermojax.investigation import _investigate as inv
+    from thermojax.investigation import _diagnose_step
+    from thermojax.investigation._background import score_ahead
+    from thermojax.investigation._step import evaluate
 
     spec, runs = _one_run("one_run", tmp_path, 900.0)
-    step = inv.evaluate(spec, runs, "kalman")
-    inv.score_ahead(step, runs, "kalman")
+    step = evaluate(spec, runs, "kalman")
+    score_ahead(step, runs, "kalman")
     ahead = step.scoring[1].result()
-    again = inv.scoring_inputs(step, runs, "kalman")
+    again = _diagnose_step.scoring_inputs(step, runs, "kalman")
     for a, b in zip(ahead[1:5], again[1:5]):  # weights, r, J, states (None: linear)
         assert (a is None and b is None) or np.array_equal(a, b)
-    monkeypatch.setattr(inv, "scoring_inputs", lambda *a: (_ for _ in ()).throw(
+    monkeypatch.setattr(_diagnose_step, "scoring_inputs", lambda *a: (_ for _ in ()).throw(
         AssertionError("computed again")))
-    cands = inv.diagnose_step(step, runs, "kalman", refits=0, say=lambda m: None)
+    cands = _diagnose_step.diagnose_step(step, runs, "kalman", refits=0, say=lambda m: None)
     assert cands and all(c.method == "score" for c in cands)

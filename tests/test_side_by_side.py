@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import thermojax
-from thermojax.investigation import _investigate as inv
+from thermojax.investigation import _refits
 from thermojax.investigation import _plots_ahead
 from thermojax.investigation._candidates import Candidate
 from thermojax.investigation._plots_ahead import PlotsAhead
@@ -65,7 +65,7 @@ def test_waves_try_the_candidates_one_at_a_time_would_try():
             tried.extend(c.where for c in batch if c is not law)
             return [succeeds[c.where] for c in batch]
 
-        inv.refit_best(cands, refits, wave, beside=beside)
+        _refits.refit_best(cands, refits, wave, beside=beside)
         assert tried == _one_at_a_time(cands, refits, succeeds), trial
         assert all(len(w) <= refits + (w[:1] == [law.where]) for w in waves)
         law_refitted = bool(beside) and law.method == "score" and law.score > 0
@@ -101,14 +101,14 @@ def test_every_start_of_every_candidate_is_fitted_side_by_side(monkeypatch, cpus
         concluded[c.where[0]] = fits
         return not any(isinstance(f, Exception) for _, _, f in fits)
 
-    monkeypatch.setattr(inv, "_refit_starts", fake_starts)
-    monkeypatch.setattr(inv, "evaluate", fake_evaluate)
-    monkeypatch.setattr(inv, "_refit", fake_refit)
-    monkeypatch.setattr(inv, "_needs_retry", lambda fits, step: False)
+    monkeypatch.setattr(_refits, "_refit_starts", fake_starts)
+    monkeypatch.setattr(_refits, "evaluate", fake_evaluate)
+    monkeypatch.setattr(_refits, "_refit", fake_refit)
+    monkeypatch.setattr(_refits, "_needs_retry", lambda fits, step: False)
     monkeypatch.setattr(os, "cpu_count", lambda: cpus)
     cands = _cands(["radiation", "sensor_offset", "extra_node", "capacitance_temperature"])
     nested = SimpleNamespace(thermal_nll=-12.5)  # the step the candidates extend
-    ok = inv._refit_side_by_side(cands, nested, [], "output_error", set(), None,
+    ok = _refits._refit_side_by_side(cands, nested, [], "output_error", set(), None,
                                  lambda m: None)
     assert ok == [True, True, False, True]
     assert sorted(submitted) == ["n0:0", "n1:0", "n1:1", "n2:0", "n2:1", "n3:0", "n3:1",
@@ -136,12 +136,12 @@ def test_a_learned_laws_refit_is_not_polished_and_a_kinds_is(monkeypatch):
         seen.append((model, polish))
         return "fit"
 
-    monkeypatch.setattr(inv, "_refit_starts", fake_starts)
-    monkeypatch.setattr(inv, "evaluate", fake_evaluate)
-    monkeypatch.setattr(inv, "_refit", lambda c, step, runs, nc, fits, say, w=0.01: True)
-    monkeypatch.setattr(inv, "_needs_retry", lambda fits, step: True)  # retried too
+    monkeypatch.setattr(_refits, "_refit_starts", fake_starts)
+    monkeypatch.setattr(_refits, "evaluate", fake_evaluate)
+    monkeypatch.setattr(_refits, "_refit", lambda c, step, runs, nc, fits, say, w=0.01: True)
+    monkeypatch.setattr(_refits, "_needs_retry", lambda fits, step: True)  # retried too
     law = Candidate("expression", ("n1",), 99.0, 0.0, learned=LearnedLaw(LIBRARY[0], None))
-    inv._refit_side_by_side([_cands(["radiation"])[0], law], SimpleNamespace(thermal_nll=0.0),
+    _refits._refit_side_by_side([_cands(["radiation"])[0], law], SimpleNamespace(thermal_nll=0.0),
                             [], "kalman", set(), None, lambda m: None)
     assert sorted(seen) == sorted((f"{n}:{k}:{nested}", n == "n0") for n in ("n0", "n1")
                                   for k in range(2) for nested in (False, True))
@@ -163,11 +163,11 @@ def test_only_a_holds_first_start_is_restarted_from_output_error(monkeypatch):
         seen[model] = restart_unconverged
         return "fit"
 
-    monkeypatch.setattr(inv, "_refit_starts", fake_starts)
-    monkeypatch.setattr(inv, "evaluate", fake_evaluate)
-    monkeypatch.setattr(inv, "_refit", lambda c, step, runs, nc, fits, say, w=0.01: True)
-    monkeypatch.setattr(inv, "_needs_retry", lambda fits, step: True)
-    inv._refit_side_by_side(_cands(["radiation"]), SimpleNamespace(thermal_nll=0.0), [],
+    monkeypatch.setattr(_refits, "_refit_starts", fake_starts)
+    monkeypatch.setattr(_refits, "evaluate", fake_evaluate)
+    monkeypatch.setattr(_refits, "_refit", lambda c, step, runs, nc, fits, say, w=0.01: True)
+    monkeypatch.setattr(_refits, "_needs_retry", lambda fits, step: True)
+    _refits._refit_side_by_side(_cands(["radiation"]), SimpleNamespace(thermal_nll=0.0), [],
                             "kalman", set(), None, lambda m: None)
     assert seen == {f"n0:{h}:{s}": s == "fitted" for h in ("zoh", "foh")
                     for s in ("fitted", "user", "tau")} | {"n0:nested": True}

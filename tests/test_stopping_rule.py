@@ -84,7 +84,8 @@ def _one_run(case, tmp_path, horizon_s):
 
 @pytest.mark.slow
 def test_one_run_case_is_found_with_blocked_holdout(tmp_path):
-    from thermojax.investigation._investigate import holdout_folds, investigate
+    from thermojax.investigation._held_out import holdout_folds
+    from thermojax.investigation._investigate import investigate
 
     spec, runs = _one_run("one_run", tmp_path, 1800.0)
     assert len(holdout_folds(runs)) == 4 and holdout_folds(runs)[0][1] == (0, 450)
@@ -119,17 +120,19 @@ def test_a_refit_gone_non_finite_fails_softly(tmp_path, monkeypatch):
     # reported with the reason, the loop ends normally and writes its report.
     import dataclasses
 
-    from thermojax.investigation import _investigate as inv
+    from thermojax.investigation import _held_out, _step
+    from thermojax.investigation._investigate import investigate
 
-    real_fit = inv.fit
+    real_fit = _step.fit
 
     def broken_fit(spec, experiments, **kw):
         res = real_fit(spec, experiments, **kw)
         return dataclasses.replace(res, nll=float("nan")) if spec.effects else res
 
-    monkeypatch.setattr(inv, "fit", broken_fit)
+    for module in (_step, _held_out):  # the steps' and refits' fits, the held-out ones
+        monkeypatch.setattr(module, "fit", broken_fit)
     spec, runs = _one_run("one_run", tmp_path, 900.0)
-    report = inv.investigate(spec, runs, max_steps=1, refits=1, out=tmp_path / "out")
+    report = investigate(spec, runs, max_steps=1, refits=1, out=tmp_path / "out")
     assert report["stopped_because"] == "no_supported_candidate"
     cands = report["steps"][0]["candidates"]
     failed = [c for c in cands if c["note"].startswith("refit from")]
@@ -220,7 +223,7 @@ def test_a_fold_dominated_by_a_few_samples_or_a_failed_fit_cannot_vote():
 
 def test_duplicates_of_existing_structure_are_named():
     from thermojax.investigation._candidates import Candidate
-    from thermojax.investigation._investigate import duplicate_reason
+    from thermojax.investigation._refit_verdicts import duplicate_reason
 
     def cand(kind, where, **p):
         return Candidate(kind, where, 50.0, 1e-6, method="refit", parameters=p)
@@ -244,7 +247,8 @@ def test_an_unmeasured_node_that_mimicked_the_effect_is_named():
     from pathlib import Path
 
     from thermojax import parse_model
-    from thermojax.investigation._investigate import Step, absorbing_nodes
+    from thermojax.investigation._refit_verdicts import absorbing_nodes
+    from thermojax.investigation._step import Step
 
     text = (Path(__file__).parent / "hidden" / "models" / "chain3.toml").read_text()
     spec = parse_model(text)  # housing and die measured, pcb not
@@ -301,7 +305,7 @@ def test_a_learned_law_is_refitted_only_where_its_score_could_win():
     (`_law_adds_nothing`); each skip is noted on the law. Otherwise it is refitted."""
     from thermojax.discovery import LIBRARY, LearnedLaw
     from thermojax.investigation._candidates import Candidate
-    from thermojax.investigation._investigate import _law_adds_nothing, _law_outranked
+    from thermojax.investigation._laws_screen import _law_adds_nothing, _law_outranked
 
     law_of_power = LearnedLaw(LIBRARY[1], "P_aux")  # nests heat_source [P_aux, pcb]
 
@@ -339,7 +343,7 @@ def test_a_law_whose_best_shape_is_a_heat_the_model_has_is_not_refitted():
     from thermojax import parse_model
     from thermojax.discovery import LIBRARY, LearnedLaw
     from thermojax.investigation._candidates import Candidate
-    from thermojax.investigation._investigate import _law_adds_nothing
+    from thermojax.investigation._laws_screen import _law_adds_nothing
 
     def model(heated):
         heat = ('[[heat_inputs]]\nnode = "pcb"\ninput = "P_aux"\ngain = 0.8\n'
@@ -379,7 +383,7 @@ def test_a_learned_law_is_refitted_from_the_users_values_alone_where_given():
     from types import SimpleNamespace
 
     from thermojax.discovery import LIBRARY, LearnedLaw
-    from thermojax.investigation import _investigate as inv
+    from thermojax.investigation import _refits
     from thermojax.investigation._candidates import Candidate
     from thermojax.model._model_file import load_model
     from thermojax.model._parameters_by_name import spec_parameters
@@ -397,22 +401,22 @@ def test_a_learned_law_is_refitted_from_the_users_values_alone_where_given():
 
     def starts(c, initial):
         return [(hold, start, {k: p.value for k, p in spec_parameters(model).items()})
-                for hold, start, model in inv._refit_starts(c, step, set(), initial)]
+                for hold, start, model in _refits._refit_starts(c, step, set(), initial)]
 
     (hold, start, values), = starts(law, user)
-    assert start == inv.START_USER and hold is None
+    assert start == _refits.START_USER and hold is None
     assert values["links.housing-pcb.conductance"] == 0.4  # the user's, not the fit's 0.8
     assert values["effects.expression.pcb.c"] == 0.3 and values[
         "effects.expression.pcb.p"] == 2.0  # the law at its score's estimate and shape
     (_, start, values), = starts(law, None)
-    assert start == inv.START_FITTED and values["links.housing-pcb.conductance"] == 0.8
-    assert [s for _, s, _ in starts(kind, user)] == [inv.START_FITTED, inv.START_USER]
+    assert start == _refits.START_FITTED and values["links.housing-pcb.conductance"] == 0.8
+    assert [s for _, s, _ in starts(kind, user)] == [_refits.START_FITTED, _refits.START_USER]
 
 
 def _chain3_step(spec, nll, n_params=5, starts=1):
     from types import SimpleNamespace
 
-    from thermojax.investigation._investigate import Step
+    from thermojax.investigation._step import Step
 
     record = {"nll": nll, "n_params": n_params, "bic": 2 * nll + n_params * math.log(900),
               "n_samples": 900, "parameters": {}, "whiteness_p": {"T_die": 0.5},
@@ -427,7 +431,7 @@ def test_a_refits_step_counts_the_starts_its_fit_is_the_best_of():
     from pathlib import Path
     from types import SimpleNamespace
 
-    from thermojax.investigation import _investigate as inv
+    from thermojax.investigation import _refits
     from thermojax.investigation._candidates import Candidate
     from thermojax.model._model_file import load_model
 
@@ -436,12 +440,12 @@ def test_a_refits_step_counts_the_starts_its_fit_is_the_best_of():
     runs = [SimpleNamespace(ts=np.arange(900.0))]
     for outcomes, expected in [((-120.0, -121.0), 2), ((FloatingPointError("nan"), -121.0), 1)]:
         c = Candidate("sensor_offset", ("T_die",), 40.0, 0.0)
-        plan = inv._refit_starts(c, nested, set(), user)
+        plan = _refits._refit_starts(c, nested, set(), user)
         fits = [(hold, start, got if isinstance(got, Exception) else
                  _chain3_step(model, got, n_params=6))
                 for (hold, start, model), got in zip(plan, outcomes)]
-        assert inv._refit(c, nested, runs, set(), fits, lambda m: None)
-        assert c.refit_start == inv.START_USER and c.result.starts == expected
+        assert _refits._refit(c, nested, runs, set(), fits, lambda m: None)
+        assert c.refit_start == _refits.START_USER and c.result.starts == expected
         assert c.score == pytest.approx(42.0)
 
 
@@ -451,17 +455,17 @@ def test_a_step_that_is_the_best_of_several_starts_is_not_checked_again(monkeypa
     already the best of `N_STARTS - 1` starts (its refit's) is taken as it is."""
     from pathlib import Path
 
-    from thermojax.investigation import _investigate as inv
+    from thermojax.investigation import _step
     from thermojax.model._model_file import load_model
 
     spec = load_model(Path(__file__).parent / "hidden" / "models" / "chain3.toml")
     better = _chain3_step(spec, -101.5)
     calls = []
-    monkeypatch.setattr(inv, "evaluate", lambda s, runs, lik, n_starts: calls.append(
+    monkeypatch.setattr(_step, "evaluate", lambda s, runs, lik, n_starts: calls.append(
         n_starts) or better)
-    refitted = _chain3_step(spec, -100.0, starts=inv.N_STARTS - 1)
-    assert inv.confirmed_optimum(refitted, [], "kalman", print) is refitted
+    refitted = _chain3_step(spec, -100.0, starts=_step.N_STARTS - 1)
+    assert _step.confirmed_optimum(refitted, [], "kalman", print) is refitted
     assert calls == [] and "multistart_gain" not in refitted.record
     fitted_once = _chain3_step(spec, -100.0)
-    assert inv.confirmed_optimum(fitted_once, [], "kalman", print) is better
-    assert calls == [inv.N_STARTS] and better.record["multistart_gain"] == pytest.approx(1.5)
+    assert _step.confirmed_optimum(fitted_once, [], "kalman", print) is better
+    assert calls == [_step.N_STARTS] and better.record["multistart_gain"] == pytest.approx(1.5)

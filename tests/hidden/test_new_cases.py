@@ -81,13 +81,13 @@ def test_foh_power_and_mass_finds_both_effects(tmp_path, monkeypatch):
     that the unmeasured pcb can partly absorb: both are added within three steps (in either
     order), the power column held as foh, and no fake near-duplicate node is added.
     Step 1's base model is step 0's choice, held out on the same runs: fitted once."""
-    from thermojax.investigation import _investigate as inv
+    from thermojax.investigation import _held_out
 
     asked, made = [], []
-    real_ask, real_fit = inv.HeldOutFits.__call__, inv._fit_without
-    monkeypatch.setattr(inv.HeldOutFits, "__call__", lambda self, s, e, f, lk: (
+    real_ask, real_fit = _held_out.HeldOutFits.__call__, _held_out._fit_without
+    monkeypatch.setattr(_held_out.HeldOutFits, "__call__", lambda self, s, e, f, lk: (
         asked.append((s, f)), real_ask(self, s, e, f, lk))[1])
-    monkeypatch.setattr(inv, "_fit_without", lambda s, e, f, lk: (
+    monkeypatch.setattr(_held_out, "_fit_without", lambda s, e, f, lk: (
         made.append((s, f)), real_fit(s, e, f, lk))[1])
     info, report, _ = _run("foh_power_and_mass", tmp_path, max_steps=3)
     assert len(asked) > len(made), "no held-out fit was asked for twice"

@@ -3,6 +3,7 @@
 
 from .. import _jax_settings  # noqa: F401  (float64 and XLA options before any array is made)
 from ._diagnose import diagnose
-from ._investigate import evaluate, investigate
+from ._investigate import investigate
+from ._step import evaluate
 
 __all__ = ["diagnose", "evaluate", "investigate"]

@@ -54,7 +54,7 @@ class Candidate:
     result: object = field(default=None, repr=False)  # FitResult of the refit
     lr_deflation: float = 1.0  # long-run variance ratio dividing the statistic (non-white)
     holdout_votes: list = field(default_factory=list)  # `_selection.FoldVote` per fold
-    refit_start: str | None = None  # which start of the refit won (`_investigate._refit`)
+    refit_start: str | None = None  # which start of the refit won (`_refits._refit`)
     score_test: float | None = None  # the score-test statistic (kept once refitted)
     hold: str | None = None  # the hold the likelihood chose for a column the effect brings
     duplicate: str = ""  # why the refitted effect only duplicates existing structure
@@ -63,7 +63,7 @@ class Candidate:
     # the least-squares coefficient of its direction, the fitted parameters' projected out.
     estimate: float | None = None
     # For a kind with a time constant of its own (a mass, a lag): the trial time constant
-    # (s) of the best score direction, where a refit also starts (`_investigate`).
+    # (s) of the best score direction, where a refit also starts (`_refits`).
     time_constant: float | None = None
     # A learned law of the library (`discovery.LearnedLaw`) and the shape values (an
     # exponent, a temperature rate) of its best score direction; None for a kind.

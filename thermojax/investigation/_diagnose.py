@@ -7,9 +7,11 @@ from pathlib import Path
 
 from ._diagnostic_plots import PLOT_KEYS
 from ._diagnostics import diagnose_traces, slowest_time_constant
-from ._investigate import (N_BLOCKS, HeldOutFits, check_holdout, diagnose_step, evaluate,
-                           record_missing_heat, record_unexplained,
-                           _noise, _version)
+from ._diagnose_step import diagnose_step
+from ._held_out import N_BLOCKS, HeldOutFits, check_holdout
+from ._missing_heat_step import record_missing_heat, record_unexplained
+from ._outputs import _noise, _version
+from ._step import evaluate
 from ._selection import held_out_advice, significance_rule
 from .._json import json_safe
 from .._plots import column_units

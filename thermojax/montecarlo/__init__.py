@@ -9,8 +9,9 @@ from ._population import (PRESETS, Population, UnitParameters, Voids, log_prior,
                           varied_names)
 from ._run import MonteCarloConfig, load_config, run_montecarlo, study_of
 from ._sharding import chunks_of_process, process_share, shard_units, units_mesh
-from ._study import (METHODS, Study, kalman_gain_doubling, profile_inputs, ramp_profile,
-                     sensitivity, summarize)
+from ._gain_doubling import kalman_gain_doubling
+from ._study import METHODS, Study, profile_inputs, ramp_profile
+from ._summary import sensitivity, summarize
 
 __all__ = [
     "ChunkStore", "METHODS", "MonteCarloConfig", "PRESETS", "Population", "Study",

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._study import PERCENTILES, summarize  # noqa: F401
+from ._summary import PERCENTILES, summarize  # noqa: F401
 
 
 def write_report(out: Path, config, results: dict, names, study, atomic_write) -> dict:

@@ -44,6 +44,10 @@ Hessian there), `fit_param_rms` (RMS of fitted minus true log-deviation, over th
 parameters), `fit_rms` (RMS of the calibration residuals in noise stds; about 1 when
 the fit converged) and `fit_steps` (the Gauss-Newton steps it took; above
 `iterations + POLISH_STEPS - 1` only when it stopped at that cap, not converged).
+
+The steady-state gain by doubling (`_gain_doubling`) and the report's summary of the
+results (`_summary`) have files of their own. The per-unit fit's methods (`fit`, `_fit_evaluate`, `fit_units`, ...) stay on `Study`: they
+share its compiled programs, its prior and its profile arrays with the simulation.
 """
 
 from __future__ import annotations
@@ -53,8 +57,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._gain_doubling import kalman_gain_doubling
 from .._errors import InputError
 from ..model._network import SCALABLE_LEAVES
+
 
 T_REF = 25.0  # °C: centre of the bias polynomials (docs/formats.md §4)
 METHODS = {"nominal": "nominal model (batch-level default observer)",
@@ -780,92 +786,3 @@ def _trust_region_step(H, g, radius, newton_steps: int = 30):
     lam = jnp.where(inside, 0.0, jax.lax.fori_loop(0, newton_steps, newton,
                                                    jnp.zeros((), H.dtype)))
     return -V @ ((V.T @ g) / (lam_h + lam)), lam
-
-
-def kalman_gain_doubling(Phi, C, Qd, R, iterations: int = 48):
-    """Filter-form steady-state Kalman gain `L = P Cᵀ (C P Cᵀ + R)⁻¹`, with `P` the
-    predicted covariance of the DARE `P = Φ P Φᵀ − Φ P Cᵀ (C P Cᵀ + R)⁻¹ C P Φᵀ + Qd`,
-    by the structured doubling algorithm (fixed iteration count: traceable, vmaps;
-    convergence is quadratic, 48 doublings cover 2^48 steps of the recursion). Agrees
-    with `steady_state_kalman` (SciPy's `solve_discrete_are`) to roundoff."""
-    import jax
-    import jax.numpy as jnp
-
-    n = Phi.shape[0]
-    I = jnp.eye(n, dtype=Phi.dtype)
-    A0 = Phi.T
-    G0 = C.T @ jnp.linalg.solve(R, C)
-    H0 = 0.5 * (Qd + Qd.T)
-
-    def body(_, carry):
-        A, G, H = carry
-        W = I + G @ H
-        WA = jnp.linalg.solve(W, A)
-        WG = jnp.linalg.solve(W, G)
-        A_new = A @ WA
-        G_new = G + A @ WG @ A.T
-        H_new = H + A.T @ H @ WA
-        return A_new, 0.5 * (G_new + G_new.T), 0.5 * (H_new + H_new.T)
-
-    _, _, P = jax.lax.fori_loop(0, iterations, body, (A0, G0, H0))
-    S = C @ P @ C.T + R
-    return jnp.linalg.solve(S, C @ P).T
-
-
-# -- the report -------------------------------------------------------------------------
-
-PERCENTILES = (50, 90, 95, 99)
-
-
-def summarize(results: dict[str, np.ndarray], names, logdev: np.ndarray, spec_limit: float,
-              bias_units: str) -> dict:
-    """Percentiles, fraction within the bias specification, sensitivity ranking, and the
-    per-unit fit's parameter errors (for the methods present in `results`)."""
-    methods = {m: label for m, label in METHODS.items() if f"{m}_bias_peak" in results}
-    out = {"n_units": int(len(results["unit"])), "bias_limit": spec_limit,
-           "bias_units": bias_units, "methods": methods, "percentiles": {},
-           "fraction_within_bias_spec": {}}
-    for m in methods:
-        out["percentiles"][m] = {
-            k: {**{f"p{p}": float(np.percentile(results[f"{m}_{k}"], p)) for p in PERCENTILES},
-                "max": float(np.max(results[f"{m}_{k}"])),
-                "mean": float(np.mean(results[f"{m}_{k}"]))} for k in METRICS}
-        out["fraction_within_bias_spec"][m] = float(np.mean(results[f"{m}_bias_peak"]
-                                                            <= spec_limit))
-    out["sensitivity"] = sensitivity(results["nominal_bias_peak"], names, logdev)
-    if "fitted_log_deviation" in results:
-        err = results["fitted_log_deviation"] - logdev
-        z = err / results["fitted_log_std"]
-        out["fit"] = {
-            "fit_rms_median": float(np.median(results["fit_rms"])),
-            "parameters": [{"parameter": n, "prior_std": float(np.std(logdev[:, j])),
-                            "error_rms": float(np.sqrt(np.mean(err[:, j] ** 2))),
-                            "posterior_std_median": float(np.median(
-                                results["fitted_log_std"][:, j])),
-                            "z_rms": float(np.sqrt(np.mean(z[:, j] ** 2)))}
-                           for j, n in enumerate(names)]}
-    return out
-
-
-def sensitivity(error: np.ndarray, names, logdev: np.ndarray) -> list[dict]:
-    """Rank the varied parameters by how much of the error's spread each explains:
-    standardized least-squares coefficients of `error` on the log-deviations (per
-    standard deviation of the parameter, in the error's units), with each one's
-    correlation; ranked by |coefficient|."""
-    if logdev.shape[1] == 0 or len(error) < 3:
-        return []
-    X = logdev - logdev.mean(axis=0)
-    sd = X.std(axis=0)
-    keep = sd > 0
-    Z = X[:, keep] / sd[keep]
-    e = error - error.mean()
-    coef, *_ = np.linalg.lstsq(Z, e, rcond=None)
-    rows = []
-    kept = [n for n, k in zip(names, keep) if k]
-    for j, name in enumerate(kept):
-        denom = np.std(Z[:, j]) * np.std(e)
-        r = float(np.mean(Z[:, j] * e) / denom) if denom > 0 else 0.0
-        rows.append({"parameter": name, "coefficient_per_sd": float(coef[j]),
-                     "correlation": r})
-    rows.sort(key=lambda r: -abs(r["coefficient_per_sd"]))
-    return rows

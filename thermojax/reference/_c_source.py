@@ -32,6 +32,12 @@ over the channels (see `generate_c`).
 
 State, inputs and flags live in statically allocated globals; nothing is allocated at run
 time. `CSource.harness` is a small playback program for tests and benchmarks.
+
+The literals and tables are written by `_c_literals`, the bias channels' statements by
+`_c_bias` and the lane-parallel supervision by `_c_supervision`. What stays here is one
+concept, the observer's step written out as C, and most of it is `generate_c`, a single
+function of some 550 lines (about 100 of them its docstring): it reads as the `.c` file
+it writes, section after section, and stays one function.
 """
 
 from __future__ import annotations
@@ -40,7 +46,9 @@ import dataclasses
 
 import numpy as np
 
-from ._faults import COUNTER_MAX, _Lane, _var, channel_rules
+from ._c_bias import _bias_tables, _fixed_bias_c, _float_bias_c
+from ._c_literals import _array, _lit, _readable_lit, _zero, comment_safe
+from ._c_supervision import _lane_supervision_c
 from ._fixed import FixedObserver
 from ._float import FloatObserver
 
@@ -122,60 +130,6 @@ class CSource:
         return paths
 
 
-def _lit(v, word: str) -> str:
-    v = float(v)
-    if np.isinf(v):
-        return "INFINITY" if v > 0 else "-INFINITY"
-    if word == "float":
-        return float(np.float32(v)).hex() + "f"
-    if word == "double":
-        return v.hex()
-    i = int(v)
-    if word == "int64_t":
-        return f"INT64_C({i})"
-    return f"({i + 1} - 1)" if i < -32767 else str(i)   # no negative literal overflows int
-
-
-def _braced(a, word: str, indent: str) -> str:
-    if a.ndim == 1:
-        return "{" + ", ".join(_lit(v, word) for v in a) + "}"
-    inner = indent + "    "
-    return "{\n" + ",\n".join(inner + _braced(b, word, inner) for b in a) + "\n" + indent + "}"
-
-
-def _array(name: str, ctype: str, values, word: str) -> str:
-    a = np.asarray(values)
-    if a.size == 0:   # C has no empty arrays: a null pointer of the table's type
-        return f"static const {ctype} *const {name} = 0;   /* empty: no inputs */\n"
-    dims = "".join(f"[{d}]" for d in a.shape)
-    return f"static const {ctype} {name}{dims} = {_braced(a, word, '')};\n"
-
-
-def _readable_lit(v, word: str) -> str:
-    """A decimal literal that parses back to exactly `v` in `word` (float or double):
-    the shortest round-trip decimal, checked; hexadecimal if the check fails."""
-    v = float(v)
-    if not np.isfinite(v):
-        return _lit(v, word)
-    if word == "float":
-        x = np.float32(v)
-        text = np.format_float_positional(x, unique=True, trim="0") if \
-            1e-4 <= abs(float(x)) < 1e7 or x == 0 else \
-            np.format_float_scientific(x, unique=True, trim="0")
-        ok = np.float32(text) == x
-        text += "f"
-    else:
-        text = repr(v)
-        ok = float(text) == v
-    if "." not in text and "e" not in text and "inf" not in text:
-        text = text.replace("f", "") + (".0f" if word == "float" else ".0")
-    return text if ok else _lit(v, word)
-
-
-def _zero(word: str) -> str:
-    return "0.0f" if word == "float" else "0.0"
-
-
 def _names(source, n: int, m: int, p: int):
     """`(states, inputs, outputs)` names for comments: from a `(states, inputs, outputs)`
     tuple, from an observer's `names` attribute, or generic (`x0`, `u0`, `y0`)."""
@@ -189,16 +143,6 @@ def _names(source, n: int, m: int, p: int):
         names = [comment_safe(v) for v in names] if names is not None else default
         out.append(names if len(names) == len(default) else default)
     return tuple(out)
-
-
-def comment_safe(text) -> str:
-    """`text` made safe inside a C block comment: neither `/*` (which `-Wcomment` makes
-    an error under `-Werror`) nor `*/` (which would end the comment) survives, and no
-    line break or trigraph either."""
-    t = str(text).replace("\r", " ").replace("\n", " ").replace("??", "? ?")
-    while "/*" in t or "*/" in t:
-        t = t.replace("/*", "/ *").replace("*/", "* /")
-    return t
 
 
 def _colmajor(M):
@@ -750,250 +694,6 @@ def generate_c(observer, prefix: str = "tj_observer", names=None,
         "    fclose(out); free(u); free(y); free(oc);", "    return 0;", "}", ""])
     return CSource(prefix, "\n".join(h), "\n".join(c), harness, word, size, n, m, p, q,
                    bias_word)
-
-
-def _bias_tables(biases, fixed) -> dict:
-    """Coefficient tables of the bias channels, for inspection (`prefix_table(6 + k)`)."""
-    if fixed:
-        width = max(len(ch["poly"]) for ch in biases.channels)
-        poly = np.zeros((biases.n_channels, width), np.int64)
-        for c, ch in enumerate(biases.channels):
-            poly[c, :len(ch["poly"])] = ch["poly"]
-        frac = np.array([[ch["g"], ch["h"]] for ch in biases.channels], np.int64)
-        out = {"BIAS_POLY": ("int64_t", poly), "BIAS_FRAC": ("int64_t", frac)}
-        if biases.strains:
-            out["BIAS_STRAIN"] = ("int64_t", np.array([[s[2], s[3], s[4]] for s in
-                                                      biases.strains], np.int64))
-        return out
-    width = max(max(len(ch.poly), 1) for ch in biases.channels)
-    poly = np.zeros((biases.n_channels, width))
-    for c, ch in enumerate(biases.channels):
-        poly[c, :len(ch.poly)] = ch.poly
-    out = {"BIAS_POLY": ("double", poly)}
-    strains = [s[1:4] for coef in biases._strain for s in coef]
-    if strains:
-        out["BIAS_STRAIN"] = ("double", np.array(strains))
-    return out
-
-
-def _dlit(v) -> str:
-    """A double literal, exact (hexadecimal), parenthesized when negative."""
-    text = _lit(v, "double")
-    return f"({text})" if text.startswith("-") else text
-
-
-def _float_bias_c(ev, prefix, xmv, uv, st) -> list:
-    """The bias channels in double, operation for operation as `BiasEvaluator.step`."""
-    need_x, need_u = set(), set()
-    for ch in ev.channels:
-        need_x.add(ch.node)
-        for a, b, _ in ch.gradients:
-            need_x |= {a, b}
-    for node in ev._rate_nodes:
-        for j, _ in ev._rate_terms[node]:
-            (need_x.add(j) if j >= 0 else need_u.add(-1 - j))
-    for coef in ev._strain:
-        need_x |= {s[0] for s in coef}
-    bx = {i: f"bx{i}" for i in sorted(need_x)}
-    bu = {j: f"bu{j}" for j in sorted(need_u)}
-    c = [f"    {{   /* bias channels, double, in the order of BiasEvaluator.step */"]
-    c += [f"        double {bx[i]} = {xmv[i]};" for i in bx]
-    c += [f"        double {bu[j]} = {uv[j]};" for j in bu]
-    for node in ev._rate_nodes:
-        terms = [f"{_dlit(v)} * {bx[j] if j >= 0 else bu[-1 - j]}"
-                 for j, v in ev._rate_terms[node]]
-        c.append(f"        double rate{node} = {' + '.join(terms) if terms else '0.0'};"
-                 f"   /* d{st[node]}/dt */")
-    c.append("        double d, b;" if any(ch.poly for ch in ev.channels) else "        double b;")
-    v_all = 0
-    for k, (ch, coef) in enumerate(zip(ev.channels, ev._strain)):
-        c.append(f"        /* {comment_safe(ch.name)} */")
-        first = v_all
-        for v, (node, a, w1, w0, _) in enumerate(coef):
-            e = f"{prefix}_eps[{first + v}]"
-            c += [f"        if ({prefix}_started) {e} = {_dlit(a)} * {e} + {_dlit(w1)} * "
-                  f"{bx[node]} + {_dlit(w0)} * {prefix}_tprev[{node}];",
-                  f"        else {e} = {bx[node]};"]
-        if ch.poly:
-            c.append(f"        d = {bx[ch.node]} - 25.0;")
-            c.append(f"        b = {_dlit(ch.poly[-1])};")
-            for cp in reversed(ch.poly[:-1]):
-                c.append(f"        b = b * d + {_dlit(cp)};")
-        else:
-            c.append("        b = 0.0;")
-        for ia, ib, dg in ch.gradients:
-            c.append(f"        b = b + {_dlit(dg)} * ({bx[ia]} - {bx[ib]});")
-        for n_, e_ in ch.rates:
-            c.append(f"        b = b + {_dlit(e_)} * rate{n_};")
-        for v, (node, _, _, _, kk) in enumerate(coef):
-            c.append(f"        b = b + {_dlit(kk)} * ({bx[node]} - {prefix}_eps[{first + v}]);")
-        c.append(f"        {prefix}_bias[{k}] = b;")
-        v_all += len(coef)
-    nodes = sorted({s[0] for coef in ev._strain for s in coef})
-    c += [f"        {prefix}_tprev[{i}] = {bx[i]};" for i in nodes]
-    c.append("    }")
-    return c
-
-
-def _fixed_bias_c(fb, prefix, xmv, uv, st) -> list:
-    """The bias channels in integers, operation for operation as `FixedBiasEvaluator`."""
-    P = prefix.upper()
-    L = lambda v: f"INT64_C({int(v)})"
-    need = {ch["node"] for ch in fb.channels}
-    need |= {i for ch in fb.channels for kind, i, _ in ch["ops"] if kind == "x"}
-    need |= {s[1] for s in fb.strains}
-    s = fb.f_t - fb.f_k
-    sh_e, f_d = fb.f_e - fb.f_t, fb.f_e - fb.f_d
-    c = [f"    {{   /* bias channels, fixed point (FixedBiasEvaluator): temperatures",
-         f"           th = T - 25 degC at {fb.f_t} fractional bits, clamped to the limits */"]
-    for i in sorted(need):
-        conv = (f"(int64_t){xmv[i]} * {L(1 << s)}" if s >= 0 else
-                f"{prefix}_rnd((int64_t){xmv[i]}, {-s})")
-        c.append(f"        int64_t th{i} = {prefix}_clamp({conv} + {L(fb.theta_offset[i])}, "
-                 f"{L(fb.theta_lo)}, {L(fb.theta_hi)});   /* {st[i]} */")
-    if fb.strains:
-        c.append("        int64_t E, d1, d0;")
-        c.append(f"        int64_t " + ", ".join(f"e{v}" for v in range(len(fb.strains))) + ";")
-    c.append("        int64_t acc, lin;")
-    for v, (ch_i, node, W1, W0, fw, k, *_r) in enumerate(fb.strains):
-        e = f"{prefix}_eps[{v}]"
-        inc = f"{L(W1)} * d1 + {L(W0)} * d0"
-        inc = f"{prefix}_rnd({inc}, {fw - 30})" if fw > 30 else f"({inc})"
-        c += [f"        /* strain {v} on {st[node]} ({comment_safe(fb.channels[ch_i]['name'])}) */",
-              f"        if ({prefix}_started) {{",
-              f"            E = {e};",
-              f"            d1 = {prefix}_rnd(th{node} * {L(1 << sh_e)} - E, {f_d});",
-              f"            d0 = {prefix}_rnd({prefix}_tprev[{node}] * {L(1 << sh_e)} - E, {f_d});",
-              f"            {e} = {prefix}_clamp(E + {inc}, {L(fb.E_lo)}, {L(fb.E_hi)});",
-              f"        }} else {{",
-              f"            {e} = th{node} * {L(1 << sh_e)};",
-              "        }",
-              f"        e{v} = {prefix}_rnd({e}, {sh_e});"]
-    for k, ch in enumerate(fb.channels):
-        Pc = ch["poly"]
-        c.append(f"        /* {comment_safe(ch['name'])}: {ch['g']} fractional bits; linear sum at {ch['h']} */")
-        c.append(f"        acc = {L(Pc[-1])};")
-        for cp in reversed(Pc[:-1]):
-            c.append(f"        acc = {prefix}_rnd(acc * th{ch['node']}, 31) + {L(cp)};")
-        terms = [f"{L(qq)} * " + (f"th{i}" if kind == "x" else f"(int64_t){uv[i]}"
-                                  if kind == "u" else f"e{i}")
-                 for kind, i, qq in ch["ops"]]
-        c.append(f"        lin = {' + '.join(terms) if terms else 'INT64_C(0)'};")
-        sh = ch["h"] - ch["g"]
-        lin = f"{prefix}_rnd(lin, {sh})" if sh > 0 else "lin"
-        c.append(f"        {prefix}_bias[{k}] = {prefix}_sat32(acc + {lin});")
-    nodes = sorted({s_[1] for s_ in fb.strains})
-    c += [f"        {prefix}_tprev[{i}] = th{i};" for i in nodes]
-    c.append("    }")
-    return c
-
-
-def _lane_supervision_c(prefix, word, p, lanes, rv, lim, rails, thr, fc) -> tuple:
-    """The channel supervision of `layout="columns"`: all channels at once, one loop over
-    `lanes` (channel `j` in lane `j`, the rest padding), branch free, from
-    `channel_rules` (the rules of `ChannelMonitor`, the rows layout's per-channel
-    blocks). Returns `(tables, state, reset, step)` lines."""
-    P = prefix.upper()
-    # lane masks and counters as wide as a word: one vector length for the whole loop
-    # (int32_t lanes for double cost 10 to 30 more instructions a step with AVX2)
-    it = "int32_t" if word == "float" else "int64_t"
-    fabs = "fabsf" if word == "float" else "fabs"
-    lit = lambda v: _readable_lit(v, word)
-    pad = lambda vals, fill: [*vals, *[fill] * (lanes - p)]
-    has_rails = any(rails[j][0] >= lim[j][0] or rails[j][1] <= lim[j][1] for j in range(p))
-    has_thr = bool(np.isfinite(thr).any())
-    bits = [[(1 << j) << (8 * k) for j in range(p)] + [0] * (lanes - p) for k in range(3)]
-    tables = [f"/* Channel supervision, lane j = channel j ({lanes} lanes, padding "
-              f"lanes unused): the bits",
-              "   of the in-use, healthy and wire-break masks; plausible range"
-              + ("; rails" if has_rails else "") + ("; residual thresholds" if has_thr else "")
-              + ". */",
-              f"static const {it} {P}_SUP_BITS[3][{lanes}] = {{" +
-              ", ".join("{" + ", ".join(f"0x{b:x}" for b in row) + "}" for row in bits) + "};"]
-    rows = [("LO", [lim[j][0] for j in range(p)], 0.0), ("HI", [lim[j][1] for j in range(p)], 0.0)]
-    if has_rails:
-        rows += [("RLO", [rails[j][0] for j in range(p)], -np.inf),
-                 ("RHI", [rails[j][1] for j in range(p)], np.inf)]
-    if has_thr:
-        rows += [("THR", list(thr), np.inf)]
-    for name, vals, fill in rows:
-        tables.append(f"static const {word} {P}_SUP_{name}[{lanes}] = {{" +
-                      ", ".join(lit(v) for v in pad(vals, fill)) + "};")
-    # the counters' limits, 0 in padding lanes (a constant that is not the same in every
-    # lane stays a vector in memory: gcc -O3 builds a uniform one from an immediate)
-    tables.append(f"static const {it} {P}_SUP_RUN[3][{lanes}] = {{" + ", ".join(
-        "{" + ", ".join(pad([str(k)] * p, "0")) + "}"
-        for k in (COUNTER_MAX, int(fc.wire_break_after) - 1, int(fc.recover_after) - 1)) +
-        "};   /* run counter maximum, N - 1, M - 1 */")
-    open_table = word == "float" and p <= 4   # (double: gcc vectorizes the bit test better)
-    if open_table:   # open-circuit flags to lane masks: one row per value of the low p bits
-        tables.append(f"static const {it} {P}_SUP_OPEN[{1 << p}][{lanes}] = {{" + ", ".join(
-            "{" + ", ".join(pad(["-1" if o >> j & 1 else "0" for j in range(p)], "0")) + "}"
-            for o in range(1 << p)) + "};")
-    tables.append("")
-    consts = {"max": f"{P}_SUP_RUN[0][i]", "N-1": f"{P}_SUP_RUN[1][i]",
-              "M-1": f"{P}_SUP_RUN[2][i]"}
-    sv = lambda name: f"{prefix}_sup_{name}[i]"
-    v = {"healthy": _var("healthy", "h"), "good": _var("good", "g", False),
-         # without a residual threshold no residual is large: `bad` stays 0 and the
-         # wire-break flags stay down
-         "wire_break": _var("wire_break", "w") if has_thr else _Lane.known(False),
-         "bad": _var("bad", "b", False) if has_thr else _Lane.known(0, False),
-         "plausible": _var("plausible", "pl"),
-         "railed": _var("railed", "ra") if has_rails else _Lane.known(False),
-         "large": _var("large", "lg") if has_thr else _Lane.known(False),
-         "started": _var("started", "st")}
-    stored = [("h", "healthy"), ("g", "good")] + \
-        ([("w", "wire_break"), ("b", "bad")] if has_thr else [])
-    body = [f"            {it} " + ", ".join(f"{s} = {sv(s)}" for s, _ in stored) + ";"]
-    body += [f"            {it} pl = ~{P}_SUP_OPEN[open_mask & {(1 << p) - 1}u][i] & "
-            f"(({P}_SUP_LO[i] < yl[i]) & (yl[i] < {P}_SUP_HI[i]) ? -1 : 0);" if open_table else
-            f"            {it} pl = ((open_mask & {P}_SUP_BITS[0][i]) == 0) & "
-            f"({P}_SUP_LO[i] < yl[i]) & (yl[i] < {P}_SUP_HI[i]) ? -1 : 0;"]
-    if has_rails:
-        body.append(f"            {it} ra = (yl[i] <= {P}_SUP_RLO[i]) | "
-                    f"(yl[i] >= {P}_SUP_RHI[i]) ? -1 : 0;")
-    if has_thr:
-        body.append(f"            {it} lg = {fabs}(rl[i]) > {P}_SUP_THR[i] ? -1 : 0;")
-    if has_thr and fc.gate:
-        body.append(f"            {it} st = {prefix}_started ? -1 : 0;   /* gating from the "
-                    "second step */")
-
-    def bind(name, e):
-        if e.const is not None or e.c.isidentifier():   # known, or a variable already
-            return e
-        body.append(f"            {it} {name} = {e.c};")
-        return _var(name, flag=e.flag)
-
-    new = channel_rules(v, int(fc.wire_break_after), int(fc.recover_after), bind, consts,
-                        gate=fc.gate)
-    body += [f"            {sv(s)} = {new[k].c};" for s, k in stored]
-    body += [f"            bits |= ({new['in_use'].c} & {P}_SUP_BITS[0][i]) | "
-             f"({new['healthy'].c} & {P}_SUP_BITS[1][i])" +
-             (f"\n                  | ({new['wire_break'].c} & {P}_SUP_BITS[2][i]);" if has_thr
-              else ";")]
-    state = [f"static {it} " + ", ".join(f"{prefix}_sup_{s}[{lanes}]" for s, _ in stored) +
-             ";   /* per channel: healthy" + (", wire break" if has_thr else "") +
-             " (all ones or 0), good run" + (", bad run" if has_thr else "") + " */"]
-    reset = [f"    for (i = 0; i < {lanes}; i++) {{ " +
-             " ".join(f"{prefix}_sup_{s}[i] = {-1 if s == 'h' else 0};" for s, _ in stored) +
-             " }"]
-    step = [f"    {{   /* channel supervision (FaultConfig), all channels at once: lane j = "
-            f"channel j */",
-            f"        {word} yl[{lanes}]" + (f", rl[{lanes}];" if has_thr else ";"),
-            f"        {it} bits = 0;   /* in-use, healthy and wire-break masks, 8 bits apart */"]
-    step += [f"        yl[{j}] = y[{j}];" for j in range(p)]
-    step += [f"        yl[{j}] = y[{p - 1}];" for j in range(p, lanes)]   # padding: any value
-    if has_thr:
-        step += [f"        rl[{j}] = {rv[j]};" for j in range(p)]
-        step += [f"        rl[{j}] = {rv[p - 1]};" for j in range(p, lanes)]
-    step += [f"        for (i = 0; i < {lanes}; i++) {{", *body, "        }",
-             f"        mask = (uint8_t)bits;",
-             f"        {prefix}_healthy = (uint8_t)(bits >> 8);",
-             *([f"        {prefix}_wire_break = (uint8_t)(bits >> 16);"] if has_thr else
-               [f"        /* ({prefix}_wire_break stays 0: no residual threshold) */"]),
-             "    }"]
-    return tables, state, reset, step
 
 
 def pack_log(x0, u, y) -> bytes:
