@@ -211,9 +211,9 @@ def one_node_guess(name: str = "room") -> Network:
 
 
 def sensor_module_hidden_heat(n: int = 500, seed: int = 5):
-    """`sensor_module` whose board also dissipates 30 % of the die's power (a regulator
-    on the same rail): `(truth, user)` networks and the log. The user's model has the
-    die's power on the die alone."""
+    """`sensor_module` whose board also dissipates a regulator's power, recorded as
+    `P_aux` (switched on its own, 0/0.3 W) but left out of the user's model:
+    `(truth, user)` networks and the log."""
     rng = np.random.default_rng(seed)
     user = Network(nodes={"housing": 30.0, "board": 4.0, "die": 0.5},
                    links=[("housing", "board", 0.4), ("board", "die", 0.25)],
@@ -221,12 +221,12 @@ def sensor_module_hidden_heat(n: int = 500, seed: int = 5):
                    heats=[("die", "P_die", 1.0)],
                    sensors=[("T_housing", "housing", 0.01), ("T_die", "die", 0.01)])
     truth = Network(nodes=user.nodes, links=user.links, boundaries=user.boundaries,
-                    heats=[("die", "P_die", 1.0), ("board", "P_die", 0.3)],
+                    heats=[("die", "P_die", 1.0), ("board", "P_aux", 1.0)],
                     sensors=user.sensors)
     dt = 1.0
     ts = np.arange(n) * dt
     U = np.column_stack([np.interp(ts, [0, 100, 400, n], [25.0, 25.0, 45.0, 45.0]),
-                         prbs(n, rng, 25, 0.0, 0.5)])
+                         prbs(n, rng, 25, 0.0, 0.5), prbs(n, rng, 40, 0.0, 0.3)])
     X = simulate(truth, U, dt, np.array([26.0, 29.0, 31.0]))
     return truth, user, ts, dict(zip(truth.inputs, U.T)), readings(truth, X, rng), X
 

@@ -21,7 +21,8 @@ def test_held_out_fits_are_made_once_per_model_and_fold(tmp_path, monkeypatch):
 
     calls = []
     monkeypatch.setattr(_held_out, "_fit_without",
-                        lambda spec, exps, fold, lk: calls.append((spec, fold, lk)) or len(calls))
+                        lambda spec, exps, fold, starts, lk: calls.append((spec, fold, lk))
+                        or len(calls))
     text = (g.HERE / "models" / "chain3.toml").read_text()
     a, a_again = parse_model(text), parse_model(text)  # equal, distinct objects
     b = parse_model(text.replace("noise = 0.01", "noise = 0.02", 1))

@@ -76,16 +76,16 @@ def _named(step, kind, where) -> bool:
 
 @pytest.mark.slow
 def test_sensor_module_finds_the_heat_on_the_board(tmp_path):
-    """The board also dissipates 30 % of the die's power: the loop adds that heat source
-    (or names it in a near-tie with what it added), with a physical gain, and no sensor
-    artifact."""
+    """The board also dissipates a recorded regulator power the model leaves out: the loop
+    adds that heat source (or names it in a near-tie with what it added), with a
+    physical gain, and no sensor artifact."""
     truth, user, ts, inputs, outputs, X = sensor_module_hidden_heat()
     report, _ = _investigate(tmp_path, (truth, ts, inputs, outputs, X), user)
     added = [s["added"] for s in report["steps"][1:]]
     assert added, report["steps"][0]["candidates"][:3]
     first = added[0]
-    assert (first["kind"], list(first["where"])) == ("heat_source", ["P_die", "board"]) \
-        or _named(report["steps"][0], "heat_source", ["P_die", "board"]), added
+    assert (first["kind"], list(first["where"])) == ("heat_source", ["P_aux", "board"]) \
+        or _named(report["steps"][0], "heat_source", ["P_aux", "board"]), added
     assert not ARTIFACTS & {a["kind"] for a in added}, added
     for s in report["steps"]:
         _physical(s)

@@ -85,10 +85,10 @@ def test_foh_power_and_mass_finds_both_effects(tmp_path, monkeypatch):
 
     asked, made = [], []
     real_ask, real_fit = _held_out.HeldOutFits.__call__, _held_out._fit_without
-    monkeypatch.setattr(_held_out.HeldOutFits, "__call__", lambda self, s, e, f, lk: (
-        asked.append((s, f)), real_ask(self, s, e, f, lk))[1])
-    monkeypatch.setattr(_held_out, "_fit_without", lambda s, e, f, lk: (
-        made.append((s, f)), real_fit(s, e, f, lk))[1])
+    monkeypatch.setattr(_held_out.HeldOutFits, "__call__", lambda self, s, e, f, lk,
+                        st=None: (asked.append((s, f)), real_ask(self, s, e, f, lk, st))[1])
+    monkeypatch.setattr(_held_out, "_fit_without", lambda s, e, f, st, lk: (
+        made.append((s, f)), real_fit(s, e, f, st, lk))[1])
     info, report, _ = _run("foh_power_and_mass", tmp_path, max_steps=3)
     assert len(asked) > len(made), "no held-out fit was asked for twice"
     for i, (s, f) in enumerate(made):

@@ -15,6 +15,7 @@ from ._candidates import Candidate
 from ._selection import FoldVote, fold_vote, holdout_verdict
 from ._step import Step, _bias_runs, _experiments, evaluate
 from ..fitting._bias import fit_bias, viscoelastic_candidate
+from ..fitting._initial_states import fitted_starts
 from ..fitting._fit import fit
 from ..fitting._side_by_side import side_by_side
 from ..fitting._solver import TruncatedGaussNewton
@@ -48,26 +49,25 @@ def _held_rows(fold, n: int) -> slice:
 _WARM_START = TruncatedGaussNewton(initial_damping=1e-6)
 
 
-def _fit_without(spec, experiments, fold, likelihood="output_error"):
+def _fit_without(spec, experiments, fold, starts=None, likelihood="output_error"):
     """Fit of `spec` (its values those of the fit to all the data) with the fold's
     measurements masked; its predictions still cover them (the free run, or the filter,
     goes through the held-out block). A Kalman fold fit ends after its scoring steps (no
     polish: from that warm start it would walk the full fit's valleys again for a few
     0.1 of −log L, most of a loop's time on PRBS1). A warm start that does not converge
     is tried once more with the default solver; a fit that still does not converge is
-    returned as it is (`fold_vote` sets its fold aside)."""
+    returned as it is (`fold_vote` sets its fold aside).
+
+    The block is masked in the likelihood, not in the data, and each run's estimated
+    start begins at `starts` (node -> per-run °C: the fit to all the data's), since data
+    after a held-out first block cannot determine it: a start taken from the first
+    reading after the block gave a true sensor lag a held-out gain of −310 on its first
+    block, and the loop rejected it."""
     r, span = fold
-    if span is None:
-        masked = experiments
-    else:
-        e = experiments[r]
-        y = np.array(e.outputs, float)
-        y[span[0]:span[1]] = np.nan
-        masked = [*experiments[:r], dataclasses.replace(e, outputs=y), *experiments[r + 1:]]
-    holdout = r if span is None else None
+    holdout = r if span is None else (r, tuple(span))
     for solver in ((_WARM_START, None) if likelihood == "output_error" else (None,)):
-        res = fit(spec, masked, likelihood=likelihood, holdout=holdout, solver=solver,
-                  restart_plateaus=False, polish=False)
+        res = fit(spec, experiments, likelihood=likelihood, holdout=holdout, solver=solver,
+                  restart_plateaus=False, polish=False, starts=starts)
         if res.converged:
             break
     if not np.isfinite(res.nll) or not all(np.all(np.isfinite(p)) for p in res.predictions):
@@ -112,16 +112,17 @@ class HeldOutFits:
                 return res
         return None
 
-    def __call__(self, spec, experiments, fold, likelihood):
+    def __call__(self, spec, experiments, fold, likelihood, starts=None):
         res = self._kept(spec, fold, likelihood)
         if res is None:
-            self.make([(spec, experiments, fold)], likelihood)
+            self.make([(spec, experiments, fold, starts)], likelihood)
             res = self._kept(spec, fold, likelihood)
         return res
 
     def make(self, wanted: list[tuple], likelihood) -> None:
-        """Make the fits `(spec, experiments, fold)` of `wanted` not made yet, side by
-        side (`fitting._side_by_side`); a fit that raises is kept as its exception."""
+        """Make the fits `(spec, experiments, fold, starts)` of `wanted` not made yet,
+        side by side (`fitting._side_by_side`); a fit that raises is kept as its
+        exception. `starts`: the full fit's per-run starts (`_fit_without`)."""
         missing = [w for w in wanted if self._kept(w[0], w[2], likelihood) is None]
 
         def attempt(*args):
@@ -131,14 +132,16 @@ class HeldOutFits:
                 return err
 
         made = side_by_side([functools.partial(attempt, *w, likelihood) for w in missing])
-        self._done += [(s, fold, likelihood, res) for (s, _, fold), res in zip(missing, made)]
+        self._done += [(s, fold, likelihood, res) for (s, _, fold, _), res in zip(missing, made)]
 
 
 def _thermal_fold_votes(spec_base, spec_ext, runs, sigma, folds, say, likelihood,
-                        fits: HeldOutFits) -> list[FoldVote]:
+                        fits: HeldOutFits, starts=(None, None)) -> list[FoldVote]:
+    """Each fold's vote between the model without the effect and with it; `starts`: the
+    two full fits' per-run starts (`fitting._initial_states.fitted_starts`)."""
     experiments = {id(s): _experiments(s, runs) for s in (spec_base, spec_ext)}
-    fits.make([(s, experiments[id(s)], fold) for fold in folds for s in (spec_base, spec_ext)],
-              likelihood)
+    fits.make([(s, experiments[id(s)], fold, st) for fold in folds
+               for s, st in zip((spec_base, spec_ext), starts)], likelihood)
     votes = []
     for fold in folds:
         rows = _held_rows(fold, len(runs[fold[0]].ts))
@@ -207,7 +210,9 @@ def check_holdout(c: Candidate, current: Step, runs, likelihood, say,
             f"sensors.{s}.noise", {"value": 0.01})["value"]
             for s in current.spec.sensor_columns])
         votes = _thermal_fold_votes(current.spec, c.result.spec, runs, sigma,
-                                    folds, say, likelihood, fits)
+                                    folds, say, likelihood, fits,
+                                    (fitted_starts(current.result),
+                                     fitted_starts(c.result.result)))
     ok, c.holdout_gain, why = holdout_verdict(votes)
     c.holdout_votes = votes
     scheme = "leave one run out" if folds[0][1] is None else f"{len(folds)} contiguous blocks"
