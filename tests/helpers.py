@@ -507,3 +507,24 @@ def law_truths(expression: str, truths: dict) -> dict:
     if scaled is not None:
         out["c"] = truths["c"] * float(scaled.group(1)) ** truths["p"]
     return out
+
+
+def run_cli(capsys, *argv):
+    """`thermojax ARGV` in this process: `(exit status, stdout, stderr)`."""
+    from thermojax.cli import main
+
+    capsys.readouterr()
+    try:
+        rc = main(list(map(str, argv)))
+    except SystemExit as e:
+        rc = e.code
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def assert_refused(rc, err, *fragments):
+    """A user's mistake: exit 2, no traceback, and each fragment in the message."""
+    assert rc == 2, err
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment in err, (fragment, err)

@@ -125,6 +125,18 @@ def prbs(n: int, rng, slot: int, low: float, high: float) -> np.ndarray:
 # The cases
 
 
+def _building_inputs(n: int, dt: float, rng):
+    """Half-hourly building inputs (times s, (n, 3) T_out °C, P_heat W, solar W/m²):
+    outdoor 5 ± 3 °C daily with a random walk, a 3 kW heater on a random binary sequence
+    in 3 h slots, a daytime sun up to 400 W/m²."""
+    ts = np.arange(n) * dt
+    day = ts / 86400.0
+    return ts, np.column_stack([
+        5.0 + 3.0 * np.sin(2 * np.pi * (day - 0.3)) + np.cumsum(rng.normal(0, 0.05, n)),
+        prbs(n, rng, 6, 0.0, 3000.0),
+        np.clip(400.0 * np.sin(2 * np.pi * (day - 0.25)), 0.0, None)])
+
+
 def building(n: int = 400, seed: int = 0):
     """A room and its envelope, half-hourly, outdoor ~5 °C, a 3 kW heater on a random
     binary sequence, solar gain through windows; the log starts with the room at 26.7 °C
@@ -136,12 +148,7 @@ def building(n: int = 400, seed: int = 0):
                   heats=[("room", "P_heat", 1.0), ("room", "solar", 3.0)],
                   sensors=[("T_room", "room", 0.05)])
     dt = 1800.0
-    ts = np.arange(n) * dt
-    day = ts / 86400.0
-    U = np.column_stack([
-        5.0 + 3.0 * np.sin(2 * np.pi * (day - 0.3)) + np.cumsum(rng.normal(0, 0.05, n)),
-        prbs(n, rng, 6, 0.0, 3000.0),
-        np.clip(400.0 * np.sin(2 * np.pi * (day - 0.25)), 0.0, None)])
+    ts, U = _building_inputs(n, dt, rng)
     X = simulate(net, U, dt, np.array([26.7, 22.0]))
     return net, ts, dict(zip(net.inputs, U.T)), readings(net, X, rng), X
 
@@ -192,12 +199,7 @@ def building_one_node_truth(n: int = 400, seed: int = 4):
                   heats=[("room", "P_heat", 1.0), ("room", "solar", 3.0)],
                   sensors=[("T_room", "room", 0.05)])
     dt = 1800.0
-    ts = np.arange(n) * dt
-    day = ts / 86400.0
-    U = np.column_stack([
-        5.0 + 3.0 * np.sin(2 * np.pi * (day - 0.3)) + np.cumsum(rng.normal(0, 0.05, n)),
-        prbs(n, rng, 6, 0.0, 3000.0),
-        np.clip(400.0 * np.sin(2 * np.pi * (day - 0.25)), 0.0, None)])
+    ts, U = _building_inputs(n, dt, rng)
     X = simulate(net, U, dt, np.array([13.0]))
     return net, ts, dict(zip(net.inputs, U.T)), readings(net, X, rng), X
 

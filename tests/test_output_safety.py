@@ -20,25 +20,9 @@ from thermojax.cli import _outputs
 from thermojax.cli._outputs import output_lock, output_session
 
 from helpers import CONFIGS
+from helpers import run_cli as run, assert_refused
 
 RTD2 = str(CONFIGS / "rtd2.toml")
-
-
-def run(capsys, *argv):
-    capsys.readouterr()
-    try:
-        rc = main(list(map(str, argv)))
-    except SystemExit as e:
-        rc = e.code
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def assert_refused(rc, err, *fragments):
-    assert rc == 2, err
-    assert "Traceback" not in err
-    for fragment in fragments:
-        assert fragment in err, (fragment, err)
 
 
 def simulate(capsys, out, *extra):

@@ -17,18 +17,9 @@ import thermojax.reference as ref
 from thermojax.cli import main
 
 from helpers import CONFIGS
+from helpers import run_cli as run
 
 RTD2 = CONFIGS / "rtd2.toml"
-
-
-def run(capsys, *argv):
-    capsys.readouterr()
-    try:
-        rc = main(list(map(str, argv)))
-    except SystemExit as e:
-        rc = e.code
-    out, err = capsys.readouterr()
-    return rc, out, err
 
 
 @pytest.fixture(scope="module")

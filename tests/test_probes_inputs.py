@@ -15,25 +15,9 @@ import pytest
 from thermojax.cli import main
 
 from helpers import CONFIGS, ROOT
+from helpers import run_cli as run, assert_refused as refused
 
 RTD2 = CONFIGS / "rtd2.toml"
-
-
-def run(capsys, *argv):
-    capsys.readouterr()
-    try:
-        rc = main(list(map(str, argv)))
-    except SystemExit as e:
-        rc = e.code
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def refused(rc, err, *fragments):
-    assert rc == 2, err
-    assert "Traceback" not in err
-    for f in fragments:
-        assert f in err, (f, err)
 
 
 @pytest.fixture(scope="module")

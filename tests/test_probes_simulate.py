@@ -10,6 +10,7 @@ from thermojax.cli import main
 from thermojax.measurements import read_telemetry
 
 from helpers import CONFIGS
+from helpers import run_cli as run, assert_refused as refused
 
 RTD2_TEXT = (CONFIGS / "rtd2.toml").read_text()
 LAG = """
@@ -30,23 +31,6 @@ where = ["sheath", "T_fluid"]
 coefficient = 2e-10
 """
 C1, C2, G12, GB = 0.8, 0.1, 0.08333333333333333, 0.2
-
-
-def run(capsys, *argv):
-    capsys.readouterr()
-    try:
-        rc = main(list(map(str, argv)))
-    except SystemExit as e:
-        rc = e.code
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def refused(rc, err, *fragments):
-    assert rc == 2, err
-    assert "Traceback" not in err
-    for f in fragments:
-        assert f in err, (f, err)
 
 
 def simulated(capsys, tmp_path, text, name, *extra):

@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 
 from .._errors import InputError
+from .._sizes import available_memory
 
 BASE_BYTES = 0.6e9
 BYTES_PER_ENTRY = 146.0           # bytes per entry of the P blocks of (2n)²
@@ -40,18 +41,6 @@ def fit_cost(n_states: int, n_free: int) -> FitCost:
     n, P = int(n_states), int(n_free)
     return FitCost(n, P, BASE_BYTES + BYTES_PER_ENTRY * P * (2 * n) ** 2,
                    SECONDS_PER_WORK * P * n ** 3)
-
-
-def available_memory() -> float | None:
-    """Bytes of memory available now (Linux `MemAvailable`), None where unknown."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return float(line.split()[1]) * 1024.0
-    except OSError:
-        return None
-    return None
 
 
 def check_fit_size(n_states: int, n_free: int, source=None, available=None) -> FitCost:
