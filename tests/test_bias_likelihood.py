@@ -39,9 +39,11 @@ name = "package"
 [[nodes]]
 name = "case"
 capacitance = {{ value = 20.0, fixed = true }}
+initial = "steady"  # the runs start at the first input's equilibrium
 [[nodes]]
 name = "mems"
 capacitance = {cm}
+initial = "steady"
 [[links]]
 between = ["case", "mems"]
 conductance = {g}
