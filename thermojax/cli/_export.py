@@ -278,7 +278,7 @@ def add_export(sub):
                    "tj_multirate_<fmt>.c on the int32 bias codes)")
     p.add_argument("--speedup", type=_positive_float, default=4.0, metavar="FACTOR",
                    help="with --method poles: observer poles FACTOR times the open-loop "
-                   "poles (default 4, the seed's 3-5; at least 1; docs/observer.md §4)")
+                   "poles (default 4, at least 1; docs/observer.md §4)")
     p.add_argument("--power-scale", type=_positive_float, default=1.0, metavar="W",
                    help="with --fixed: watts per format unit of a power input (default 1: "
                    "a Q16.16 power spans ±32768 W; docs/observer.md §6)")
