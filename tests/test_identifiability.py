@@ -327,7 +327,11 @@ def test_imu6_proof_mass_is_flagged():
     ident = result.identifiability
     pair = {"nodes.proof_mass.capacitance", "links.mems-proof_mass.conductance"}
     assert pair <= ident.unidentifiable_parameters
-    assert ident.unidentifiable_parameters <= pair | {"nodes.mems.capacitance"}
+    # the proof mass, unsensed and faster than a sample, cannot show its start either:
+    # its per-run estimated starts are flagged with it, and nothing else is
+    starts = {n for n in ident.unidentifiable_parameters
+              if n.startswith("runs.") and n.endswith(".nodes.proof_mass.initial")}
+    assert ident.unidentifiable_parameters <= pair | {"nodes.mems.capacitance"} | starts
     for name in pair:
         assert result.parameters[name]["std"] is None
     assert any("proof_mass" in m and "no sensor sees" in m for m in ident.messages)
