@@ -6,7 +6,7 @@
   keep XLA's default). thermojax compiles a few programs for every model structure it
   fits, and on a CPU these emitters take about half of each compilation: the six-node
   IMU's Kalman scoring program compiles in 2.4-3.3 s instead of 4.5-5.4 s and runs as
-  fast (58-69 ms a call either way; benchmarks/README.md, session 40). XLA reads
+  fast (58-69 ms a call either way; benchmarks/README.md). XLA reads
   `XLA_FLAGS` when JAX starts its backend, so this applies when thermojax is imported
   before the first computation; otherwise XLA's default stays. Other backends ignore it.
 """

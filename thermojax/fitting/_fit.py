@@ -129,7 +129,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
                               restart_unconverged=restart_unconverged, starts=starts)
         result.wall_time_s = time.perf_counter() - t_start
     say(f"fit done: -log L = {result.nll:.2f}, {result.n_params} parameters, {result.message}")
-    _warn_start_mismatch(result, experiments)
+    if not kalman:  # a Kalman free run drifts with its process noise: no start check
+        _warn_start_mismatch(result, experiments)
     return result
 
 
