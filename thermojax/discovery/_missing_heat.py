@@ -142,7 +142,7 @@ def _measurement(err: _Errors, carriers):
     n, k = err.A.shape[0], carriers.shape[0]
     H = jnp.concatenate([err.H, jnp.zeros((err.H.shape[0], k))], 1)
     d_std = err.capacitance[carriers] / 60.0  # 1 K/min of heat a priori
-    P0 = jnp.diag(jnp.concatenate([err.initial_var * 1e-4, d_std ** 2]))
+    P0 = jnp.diag(jnp.concatenate([err.initial_var, d_std ** 2]))
     return H, P0, jnp.zeros(n + k)
 
 
@@ -195,7 +195,13 @@ class _ErrorModel:
         self.R = jnp.asarray(np.asarray(model.noise)[:p] ** 2)
         self.q_x = (jnp.asarray(model.process_noise) if result.likelihood == "kalman"
                     else jnp.zeros(H.shape[1]))
-        self.initial_var = np.asarray(model.initial_std) ** 2
+        # a start the model states is known to 1 % of its std; a start estimated from the
+        # data (a free parameter per run) is known no better than its prior: the fit set it
+        # without the missing heat, so the reconstruction re-estimates it with the heat
+        # (held tight, the start's bias came back as a heat at the run's start)
+        estimated = np.array([n.initial is not None and not n.initial.fixed
+                              for n in result.lowered_spec.nodes])
+        self.initial_var = np.asarray(model.initial_std) ** 2 * np.where(estimated, 1.0, 1e-4)
         self.runs = []
         self.lengths = data.lengths
         for r, n_t in enumerate(data.lengths):
