@@ -1,7 +1,9 @@
 """The loop's checkpoint: what an investigation depends on, by content (`_inputs`),
 saved after each finished step (`_save_checkpoint`) and resumed from only for the same
 inputs (`_load_checkpoint`, which otherwise says what changed); a fresh start clears
-what an earlier run left (`_clear_earlier_run`)."""
+what an earlier run left (`_clear_earlier_run`). Beside it, each finished step's traces
+and missing heat (`_save_step_series`, `_load_step_series`): a resumed report draws the
+steps before the interruption as an uninterrupted one does."""
 
 from __future__ import annotations
 
@@ -94,6 +96,66 @@ def _load_checkpoint(out: Path, inputs: dict, spec):
     except (OSError, ValueError, KeyError) as err:
         raise InputError(f"its checkpoint names a model that cannot be read ({err}); pass "
                          "--restart to start afresh.", file=str(path)) from None
+
+
+def _atomic_npz(path: Path, arrays: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    tmp.replace(path)
+
+
+def _save_step_series(out: Path, i: int, traces: list[dict] | None, heat) -> None:
+    """Step `i`'s plot traces (`Step.traces`) and its `discovery.MissingHeat` (or None) as
+    `step<i>_traces.npz` and `step<i>_heat.npz` in `out`."""
+    if traces:
+        _atomic_npz(out / f"step{i}_traces.npz", {
+            f"{r}.{k}": np.asarray(v) for r, tr in enumerate(traces) for k, v in tr.items()})
+    if heat is not None:
+        arrays = {"nodes": np.asarray(heat.nodes, dtype=str),
+                  "carriers": np.asarray(heat.carriers, dtype=str),
+                  "intensity": np.float64(heat.intensity),
+                  "log_likelihood_gain": np.float64(heat.log_likelihood_gain)}
+        for r in range(len(heat.ts)):
+            for k in ("ts", "heat", "heat_std", "temperatures"):
+                arrays[f"{r}.{k}"] = np.asarray(getattr(heat, k)[r])
+        _atomic_npz(out / f"step{i}_heat.npz", arrays)
+
+
+def _runs_of(z) -> list[dict]:
+    runs: list[dict] = []
+    for key in z.files:
+        r, _, name = key.partition(".")
+        if r.isdigit():
+            while len(runs) <= int(r):
+                runs.append({})
+            runs[int(r)][name] = z[key]
+    return runs
+
+
+def _load_step_series(out: Path | None, n: int) -> tuple[list, list]:
+    """`(traces, heat)` per step `0 .. n-1` saved in `out` by `_save_step_series` (None
+    where a step has none or its file cannot be read: its figures are then left out)."""
+    from ..discovery import MissingHeat
+
+    traces, heat = [None] * n, [None] * n
+    for i in range(n if out is not None else 0):
+        try:
+            with np.load(out / f"step{i}_traces.npz", allow_pickle=False) as z:
+                traces[i] = [{**tr, "name": str(tr["name"])} for tr in _runs_of(z)]
+        except (OSError, ValueError, KeyError):
+            pass
+        try:
+            with np.load(out / f"step{i}_heat.npz", allow_pickle=False) as z:
+                runs = _runs_of(z)
+                heat[i] = MissingHeat(
+                    tuple(map(str, z["nodes"])), tuple(map(str, z["carriers"])),
+                    float(z["intensity"]), float(z["log_likelihood_gain"]),
+                    *([run[k] for run in runs] for k in ("ts", "heat", "heat_std",
+                                                         "temperatures")))
+        except (OSError, ValueError, KeyError):
+            pass
+    return traces, heat
 
 
 STALE = ("checkpoint.json", "step*_*", "report.json", "report.md", "model_final.toml")

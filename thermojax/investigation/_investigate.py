@@ -32,7 +32,8 @@ from pathlib import Path
 
 from ._background import _beside, score_ahead
 from ._candidates import Candidate
-from ._checkpoint import _clear_earlier_run, _inputs, _load_checkpoint, _save_checkpoint
+from ._checkpoint import (_clear_earlier_run, _inputs, _load_checkpoint, _load_step_series,
+                          _save_checkpoint, _save_step_series)
 from ._diagnose_step import diagnose_step
 from ._held_out import HeldOutFits, _choose
 from ._missing_heat_step import _network_step, record_missing_heat, record_unexplained
@@ -104,8 +105,11 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
     out = Path(out) if out is not None else None
     inputs = _inputs(spec, runs, likelihood)
     records, current = _first_step(spec, runs, likelihood, out, inputs, resume, say)
-    steps_traces = [None] * (len(records) - 1) + [current.traces]
-    heat_series = [None] * len(records)  # per step its MissingHeat, for the report's figure
+    # per step its traces and MissingHeat, for the report's figures (a resumed run reads
+    # the finished steps' from the files the interrupted one saved)
+    steps_traces, heat_series = _load_step_series(out, len(records) - 1)
+    steps_traces.append(current.traces)
+    heat_series.append(None)
     loop = _Loop(spec, runs, likelihood, max_steps, refits, fdr, white_p, holdout_check,
                  network, out, say, HeldOutFits(), PlotsAhead() if out is not None else None)
     advice = None
@@ -128,6 +132,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
             steps_traces.append(current.traces)
             heat_series.append(None)
             if out is not None:
+                _save_step_series(out, len(records) - 2, steps_traces[-2], heat_series[-2])
                 _save_checkpoint(out, inputs, records, current.spec)
             release_compiled_if_crowded()  # rejected candidates' programs are not reused
         return _finish(loop, records, stopped, advice, current, steps_traces, heat_series,
