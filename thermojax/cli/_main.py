@@ -202,6 +202,7 @@ def cmd_fit(args) -> int:
 
     from .. import io
     from ..fitting._fit import profile_interval
+    from ..fitting._implausible_fit import implausible_fit
     from ..fitting._interval_check import check_intervals
     from ..fitting._fit_report import (file_values, comparison_table, format_parameter_table,
                                        parameter_rows, write_fit_outputs)
@@ -231,6 +232,8 @@ def cmd_fit(args) -> int:
                           "this is no fit of the data. Check the start values (a "
                           "conductance or capacitance off by orders of magnitude), the "
                           "columns' units, and the model's structure.")
+        for finding in implausible_fit(spec, result.spec):
+            warnings.warn(finding)
         profiles = ({} if getattr(args, "no_interval_check", False)
                     else check_intervals(result, args.progress))
         for name in args.profile or []:
@@ -243,7 +246,8 @@ def cmd_fit(args) -> int:
         print(f"warning: {w.message}", file=sys.stderr)
     with staged_folder(out) as tmp:
         report = write_fit_outputs(result, experiments, tmp, list(args.data), profiles,
-                                   initial=spec, dropped=dropped)
+                                   initial=spec, dropped=dropped,
+                                   warnings=[str(w.message) for w in caught])
     print(format_parameter_table(parameter_rows(report, file_values(spec))))
     print()
     print(comparison_table(result))

@@ -48,13 +48,15 @@ def fit_report(result: FitResult, runs: list[str]) -> dict:
 
 def write_fit_outputs(result: FitResult, experiments, out: Path, runs: list[str],
                       profiles: dict | None = None, initial=None,
-                      dropped: list[dict] | None = None) -> dict:
+                      dropped: list[dict] | None = None,
+                      warnings: list[str] | None = None) -> dict:
     """Write model.toml, report.json, report.md, one PNG per run and (Kalman) the smoothed
     node temperatures `smoothed_run<i>.csv` into `out`; return the report.
 
     `initial`: the model as given (its file values flag parameters "at bound" and say
     whether a sensor's noise was given or estimated). `dropped`: the cells `--outliers drop`
-    left out, one dict each (`dropped_cells`)."""
+    left out, one dict each (`dropped_cells`). `warnings`: what the command warned of while
+    fitting (`warnings`, also shown at the top of report.md)."""
     from .._plots import plot_fit
     from ..measurements._telemetry import write_telemetry
 
@@ -64,6 +66,7 @@ def write_fit_outputs(result: FitResult, experiments, out: Path, runs: list[str]
     report = fit_report(result, runs)
     report.update(whiteness(result.spec.sensor_columns, experiments, result.predictions))
     report["dropped_cells"] = json_safe(dropped or [])
+    report["warnings"] = list(warnings or [])
     if profiles:
         report["profile_intervals"] = json_safe(profiles)
     for r, (mean, std) in enumerate(result.smoothed):
@@ -288,8 +291,9 @@ def write_fit_markdown(out: Path, report: dict, rows: list[dict], plots: list[st
           + (f" ({report.get('message')})" if report.get("message") not in
              (None, "converged") else "") + "."
           + (f" Nonlinear effects integrated in {report['etd2_substeps']} ETD2 step(s) per "
-             "sample period." if report.get("etd2_substeps") else ""),
-          "", "## Parameters", ""]
+             "sample period." if report.get("etd2_substeps") else ""), ""]
+    md += [f"**Warning:** {w}" for w in report.get("warnings") or []]
+    md += ([""] if report.get("warnings") else []) + ["## Parameters", ""]
     md += _md_parameter_table(rows) + [
         "", "95 % interval: profile likelihood where computed (`--profile`, and the "
         "automatic check where the curvature is weak or the model has a near-null "

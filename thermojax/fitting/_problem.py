@@ -357,10 +357,13 @@ def _check_runs(spec: ModelSpec, experiments: list[Experiment]) -> None:
             raise InputError(f"sensor column {col!r} has no readings in this run (every cell is "
                              "empty or nan); drop it from the model or use a run that measured "
                              "it.", file=e.name, field=col)
-        if e.ts[-1] - e.ts[0] < slowest:
-            warnings.warn(f"{e.name}: the run lasts {e.ts[-1] - e.ts[0]:.0f} s, {SHORT_RUN} "
-                          f"({slowest:.0f} s); the slow parameters will be poorly determined.",
-                          stacklevel=4)
+        duration = e.ts[-1] - e.ts[0]
+        if duration < slowest:  # a short test, or a clock in other units than seconds
+            warnings.warn(f"{e.name}: the run lasts {duration:.0f} s, {SHORT_RUN} "
+                          f"({slowest:.0f} s); the slow parameters will be poorly determined. "
+                          "If `time_s` counts minutes or hours, not seconds, convert it: "
+                          "the fit would otherwise make every time constant that much too "
+                          "short.", stacklevel=4)
 
 
 # ---------------------------------------------------------------------------
