@@ -98,21 +98,6 @@ conductance_b = 0.4
     assert np.abs(got.channels["T_core"] - plain.channels["T_core"]).max() > 0.5
 
 
-def test_a_viscoelastic_effect_is_refused_by_name(capsys, tmp_path):
-    model = tmp_path / "visco.toml"
-    model.write_text(RTD2_TEXT + """
-[[biases]]
-column = "gyro_x"
-[[effects]]
-kind = "viscoelastic"
-where = ["core", "gyro_x"]
-""")
-    rc, _, err = run(capsys, "simulate", "--model", model, "--profile", "shock",
-                     "--out", tmp_path / "v.csv")
-    assert rc == 2 and "Traceback" not in err
-    assert not (tmp_path / "v.csv").exists()
-
-
 RTD2 = str(CONFIGS / "rtd2.toml")
 
 

@@ -71,6 +71,7 @@ def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool,
     # the dynamics directly would simulate in float32 outside the test suite.
     from .. import ThermalNetwork  # noqa: F401
     from ..dynamics._as_written import simulate_as_written
+    from ..fitting._bias_simulation import simulated_biases
 
     ts_uniform = ts[0] + np.median(steps) * np.arange(len(ts))
     # The model as written, effects included, by the simulator `fit` uses.
@@ -78,13 +79,18 @@ def _simulate_to_csv(model_path: Path, profile_arg: str, out: Path, noise: bool,
     states, outputs = sim.states, sim.outputs
     _check_finite_simulation(spec, model_path, inputs, ts_uniform, states, outputs,
                              sim.node_names)
+    biases = simulated_biases(spec, ts_uniform, sim)  # bias columns, in their units
     measured = outputs.copy()
     if noise:
         rng = np.random.default_rng(seed)
         stds = np.array([s.noise.value if s.noise is not None else 0.01 for s in spec.sensors])
         measured = outputs + rng.standard_normal(outputs.shape) * stds[None, :]
+        for b in spec.biases:  # a bias column's noise in its own unit; none written: none
+            if b.noise is not None:
+                biases[b.column] = biases[b.column] + rng.standard_normal(len(ts)) * b.noise.value
     channels = {c: inputs[:, j] for j, c in enumerate(spec.input_columns)}
     channels.update({c: measured[:, j] for j, c in enumerate(spec.sensor_columns)})
+    channels.update(biases)
     if write_states:
         channels.update({f"state_{n}": states[:, i] for i, n in enumerate(sim.node_names)})
     comments = [f"simulated by thermojax from model '{spec.name}' ({model_path}), "

@@ -14,24 +14,21 @@ import numpy as np
 
 from .._errors import InputError
 
-# Effects that need something a simulation from inputs alone does not have.
-_NOT_SIMULATED = {
-    "viscoelastic": "it drives a bias channel ([[biases]]), which `simulate` does not write",
-}
-
-
 @dataclasses.dataclass(frozen=True)
 class AsWritten:
     """A simulation of a model as written: `states` (times, nodes) °C of every node of the
     lowered network (`node_names`, the file's nodes then the nodes effects add),
     `outputs` (times, sensors) °C in `sensor_columns` order, readings with every sensor
-    effect applied; `nonlinear`: whether ETD2 was used."""
+    effect applied; `nonlinear`: whether ETD2 was used; `model` the `ThermalModel`
+    simulated and `inputs` (times, inputs) in its (the lowered network's) column order."""
 
     states: np.ndarray
     outputs: np.ndarray
     node_names: tuple[str, ...]
     sensor_columns: tuple[str, ...]
     nonlinear: bool
+    model: object = dataclasses.field(repr=False, default=None)
+    inputs: np.ndarray | None = dataclasses.field(repr=False, default=None)
 
 
 def simulate_as_written(spec, ts: np.ndarray, inputs: np.ndarray) -> AsWritten:
@@ -43,12 +40,6 @@ def simulate_as_written(spec, ts: np.ndarray, inputs: np.ndarray) -> AsWritten:
     from ..model.effects import lower_effects
     from ._sensitivity import dataset_block_outputs
 
-    for e in spec.effects:
-        if e.kind in _NOT_SIMULATED:
-            raise InputError(f"the model's {e.kind} effect at {'-'.join(e.where)} cannot be "
-                             f"simulated: {_NOT_SIMULATED[e.kind]}. Remove it from a copy of "
-                             "the model to simulate the rest.", file=str(spec.source),
-                             field="effects")
     lowered = lower_effects(spec).spec
     missing = [c for c in lowered.input_columns if c not in spec.input_columns]
     if missing:
@@ -65,4 +56,4 @@ def simulate_as_written(spec, ts: np.ndarray, inputs: np.ndarray) -> AsWritten:
     y = y.reshape(-1, y.shape[-1])[:len(ts)]  # whole blocks -> samples
     return AsWritten(states=y[:, p:], outputs=y[:, :p], node_names=tuple(lowered.node_names),
                      sensor_columns=tuple(lowered.sensor_columns),
-                     nonlinear=bool(model.is_nonlinear))
+                     nonlinear=bool(model.is_nonlinear), model=model, inputs=u)

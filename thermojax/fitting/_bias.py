@@ -80,6 +80,43 @@ def _strain_term(ts, temps, tau) -> tuple[np.ndarray, np.ndarray]:
 # The regression problem of one bias column
 
 
+def static_design(bias: Bias, ts, temps, rates, index) -> np.ndarray:
+    """The bias's static regressors `(T, order + 1 + gradients + rates)`: the powers of
+    `(T − 25)` of its temperature node, its node differences (K) and its nodes' rates
+    (K/s). `temps` (T, nodes) °C; `rates` (T, nodes) the model's own state derivatives,
+    or None for the derivative of the sampled temperatures; `index` node name -> column."""
+    if rates is None:
+        rates = np.gradient(temps, ts, axis=0) if ts.size > 1 else np.zeros_like(temps)
+    t = temps[:, index(bias.temperature)]
+    cols = [(t - T_REF) ** p for p in range(bias.order + 1)]
+    cols += [temps[:, index(a)] - temps[:, index(b)] for a, b in bias.gradients]
+    cols += [rates[:, index(n)] for n in bias.rates]
+    return np.column_stack(cols)
+
+
+def predict_bias(bias: Bias, effects: list[Effect], ts, temps, rates, node_names) -> np.ndarray:
+    """The column a `[[biases]]` entry with `coefficients` reads on states `temps` (T,
+    nodes) °C with `rates` (T, nodes) K/s (or None), at times `ts` (s): its static terms
+    plus each viscoelastic effect's `k (T_v − ε_v)`. Raises `InputError` where the entry
+    or one of its effects lacks a value (nothing fitted yet)."""
+    if bias.coefficients is None:
+        raise InputError(f"the [[biases]] entry of column '{bias.column}' holds no "
+                         "`coefficients`, so its column cannot be computed; fit the model to "
+                         "data with that column first (`thermojax fit` writes them), or drop "
+                         "the entry from a copy of the model.", field=f"biases.{bias.column}")
+    idx = {n: i for i, n in enumerate(node_names)}
+    ts, temps = np.asarray(ts, float), np.asarray(temps, float)
+    out = static_design(bias, ts, temps, rates, idx.__getitem__) @ np.asarray(bias.coefficients)
+    for s in strains_of([bias], effects):
+        if s.time_constant is None or s.k is None:
+            raise InputError(f"the viscoelastic effect of column '{bias.column}' at node "
+                             f"'{s.node}' gives no time_constant and k to compute it with.",
+                             field="effects")
+        z, _ = _strain_term(ts, temps[:, idx[s.node]], float(s.time_constant.value))
+        out = out + float(s.k.value) * z
+    return out
+
+
 @dataclass(frozen=True)
 class Strain:
     """One viscoelastic effect: its node, bias column, starting τ and k (None: none) and
@@ -144,9 +181,6 @@ class _Problem:
                              f"runs has {len(runs)}.")
         self.strains = strains_of([bias], effects)
         self.strain_nodes = [index(s.node) for s in self.strains]
-        t_i = index(bias.temperature)
-        grads = [(index(a), index(b)) for a, b in bias.gradients]
-        rates = [index(n) for n in bias.rates]
         self.static_names = ([f"poly{p}" for p in range(bias.order + 1)]
                              + [f"gradient.{a}-{b}" for a, b in bias.gradients]
                              + [f"rate.{n}" for n in bias.rates])
@@ -168,16 +202,8 @@ class _Problem:
                 raise InputError(f"bias column '{bias.column}' has no measured sample in run {r} "
                                  "(every value is empty or NaN); drop the column from that run's "
                                  "model or record it.", field=bias.column)
-            if node_rates is not None:
-                dT = np.asarray(node_rates[r], dtype=float)
-            elif ts.size > 1:
-                dT = np.gradient(temps, ts, axis=0)
-            else:
-                dT = np.zeros_like(temps)
-            cols = [(temps[:, t_i] - T_REF) ** p for p in range(bias.order + 1)]
-            cols += [temps[:, a] - temps[:, b] for a, b in grads]
-            cols += [dT[:, n] for n in rates]
-            self.runs.append((ts, temps, np.column_stack(cols), y, mask))
+            dT = None if node_rates is None else np.asarray(node_rates[r], dtype=float)
+            self.runs.append((ts, temps, static_design(bias, ts, temps, dT, index), y, mask))
         self.y = np.concatenate([y[m] for *_, y, m in self.runs])
         self.n = self.y.size
         self.sigma_fixed = bias.noise.value if bias.noise is not None and bias.noise.fixed else None
