@@ -52,6 +52,14 @@ def test_resumed_report_is_the_uninterrupted_one(tmp_path, monkeypatch):
     _investigate.investigate(spec, runs, max_steps=1, refits=1, out=cut, progress=said.append)
     assert any(m.startswith("resuming after step 1") for m in said), said
 
+    # where the first step's time went: the phases the loop names, within its wall time
+    import json
+
+    step0 = json.loads((whole / "report.json").read_text())["steps"][0]
+    phases = step0["phase_times_s"]
+    assert {"score tests", "refits", "held-out folds"} <= set(phases), phases
+    assert sum(v for k, v in phases.items() if k != "compilation") <= step0["wall_time_s"]
+    assert 0.0 < phases["compilation"] <= step0["wall_time_s"]
     a = (whole / "report.md").read_text(encoding="utf-8")
     b = (cut / "report.md").read_text(encoding="utf-8")
     assert "step0_" in a  # the finished step's figures are in the report at all

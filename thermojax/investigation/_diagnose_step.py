@@ -13,6 +13,7 @@ import numpy as np
 
 from ._candidates import Candidate, column_role, enumerate_places, score_candidates
 from ._laws_screen import _law_adds_nothing, _law_outranked, _learned_places
+from ._phase_times import phase
 from ._physical_range import data_span, prefer_physics, reject_unphysical
 from ._refit_verdicts import duplicate_reason, rule_p_value, sample_period
 from ._refits import _refit_side_by_side, refit_best
@@ -134,27 +135,31 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     places = enumerate_places(spec, lowered, unused)
     thermal = [(k, w) for k, w in places if k != "viscoelastic"]
     ahead = step.scoring
-    data, weights, r, J, states, whiten = (
-        ahead[1].result() if ahead is not None and ahead[0] == likelihood
-        else scoring_inputs(step, runs, likelihood))
-    columns = _padded_columns(runs, set(unused) | set(spec.input_columns), data.ts.shape[1])
-    laws = _learned_places(spec, lowered, unused, column_scales(columns))
-    say(f"scoring {len(places)} candidate effects and {len(laws)} learned laws")
-    try:
-        cands = score_candidates(result, data, thermal + laws, columns, weights, r, J,
-                                 deflation=step.deflation(white_p if white_p is not None
-                                                          else 0.01), whiten=whiten,
-                                 states=states)
-    except Exception as err:  # scoring failure: no thermal candidate this step
-        say(f"scoring failed: {type(err).__name__}: {err}")
-        cands = []
-    cands += _viscoelastic_candidates(step, runs, places,
-                                      white_p if white_p is not None else 0.01)
+    with phase("score tests"):
+        data, weights, r, J, states, whiten = (
+            ahead[1].result() if ahead is not None and ahead[0] == likelihood
+            else scoring_inputs(step, runs, likelihood))
+        columns = _padded_columns(runs, set(unused) | set(spec.input_columns),
+                                  data.ts.shape[1])
+        laws = _learned_places(spec, lowered, unused, column_scales(columns))
+        say(f"scoring {len(places)} candidate effects and {len(laws)} learned laws")
+        try:
+            cands = score_candidates(result, data, thermal + laws, columns, weights, r, J,
+                                     deflation=step.deflation(white_p if white_p is not None
+                                                              else 0.01), whiten=whiten,
+                                     states=states)
+        except Exception as err:  # scoring failure: no thermal candidate this step
+            say(f"scoring failed: {type(err).__name__}: {err}")
+            cands = []
+    with phase("bias channels"):
+        cands += _viscoelastic_candidates(step, runs, places,
+                                          white_p if white_p is not None else 0.01)
     cands.sort(key=lambda c: -c.score if np.isfinite(c.score) else math.inf)
 
     def wave(w):
-        return _refit_side_by_side(w, step, runs, likelihood, set(unused), initial, say,
-                                   white_p if white_p is not None else 0.01)
+        with phase("refits"):
+            return _refit_side_by_side(w, step, runs, likelihood, set(unused), initial, say,
+                                       white_p if white_p is not None else 0.01)
 
     # The best learned law significant by its score is refitted too, beside the kinds
     # (never instead of them: a law may mimic a kind, and the kind is the simpler form),

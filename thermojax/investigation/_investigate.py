@@ -38,6 +38,7 @@ from ._diagnose_step import diagnose_step
 from ._held_out import HeldOutFits, _choose
 from ._missing_heat_step import _network_step, record_missing_heat, record_unexplained
 from ._outputs import _noise, _plot_ahead, _report, _write_outputs
+from ._phase_times import COMPILATION, phase, phases_in_words, step_phases
 from ._plots_ahead import PlotsAhead
 from ._refit_verdicts import added_effect
 from ._selection import held_out_advice
@@ -116,11 +117,17 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
     try:
         while (stopped := _stops_before(loop, records)) is None:
             t_step = time.perf_counter()
-            current = confirmed_optimum(current, runs, likelihood, say)
-            records[-1] = current.record
-            steps_traces[-1] = current.traces
-            cands, chosen, heat_series[-1] = _step_candidates(loop, current, len(records) - 1)
-            _record_candidates(current.record, cands, chosen, t_step)
+            _say_expected(loop, records)
+            with step_phases() as phases:
+                with phase("multi-start check"):
+                    current = confirmed_optimum(current, runs, likelihood, say)
+                records[-1] = current.record
+                steps_traces[-1] = current.traces
+                cands, chosen, heat_series[-1] = _step_candidates(loop, current,
+                                                                  len(records) - 1)
+            _record_candidates(current.record, cands, chosen, t_step, phases)
+            say(f"step {len(records) - 1} took "
+                + phases_in_words(phases, current.record["wall_time_s"]))
             if chosen is None:
                 record_unexplained(current, heat_series[-1], say)
                 advice = held_out_advice(cands, likelihood)
@@ -164,6 +171,21 @@ def _first_step(spec, runs, likelihood, out, inputs, resume, say) -> tuple[list[
     return records, current
 
 
+def _say_expected(loop: _Loop, records: list[dict]) -> None:
+    """Before step `i` (> 0), what the last step cost, which this one, a model one effect
+    larger scored against as many candidates, takes about as long or more: its wall time
+    and its largest phase."""
+    last = records[-2] if len(records) > 1 else None
+    if last is None or not last.get("wall_time_s"):
+        return
+    phases = last.get("phase_times_s") or {}
+    work = {k: v for k, v in phases.items() if k != COMPILATION}
+    top = max(work, key=work.get, default=None)
+    loop.say(f"step {len(records) - 1} starts; the last step took {last['wall_time_s']:.0f} s"
+             + (f" ({top} {work[top]:.0f} s)" if top else "")
+             + ": expect about as long or more (a model one effect larger, as many candidates)")
+
+
 def _stops_before(loop: _Loop, records: list[dict]) -> str | None:
     """Why the loop stops at its last step (`records[-1]`, said first): its residuals are
     white, or it is step `max_steps`; None to go on."""
@@ -196,22 +218,27 @@ def _step_candidates(loop: _Loop, current: Step, i: int) -> tuple:
         if i + 1 < loop.max_steps:  # the step it would make is scored next
             score_ahead(c.result, loop.runs, loop.likelihood)
 
-    chosen = _choose(cands, current, loop.runs, loop.likelihood, loop.holdout_check, say,
-                     loop.held_out, checking)
-    missing = missing()
+    with phase("held-out folds"):
+        chosen = _choose(cands, current, loop.runs, loop.likelihood, loop.holdout_check, say,
+                         loop.held_out, checking)
+    with phase("missing heat (waited for)"):
+        missing = missing()
     if chosen is None and loop.network and missing is not None and missing.carriers:
-        chosen = _network_step(current, loop.runs, missing, cands, loop.likelihood, loop.fdr,
-                               loop.white_p, loop.spec, loop.holdout_check, say,
-                               loop.held_out)
+        with phase("heat network"):
+            chosen = _network_step(current, loop.runs, missing, cands, loop.likelihood,
+                                   loop.fdr, loop.white_p, loop.spec, loop.holdout_check, say,
+                                   loop.held_out)
     return cands, chosen, missing
 
 
 def _record_candidates(rec: dict, cands: list[Candidate], chosen: Candidate | None,
-                       t_step: float) -> None:
-    """The step's record gets its candidates, its wall time (since `t_step`) and, where
-    the chosen candidate is tied, the advice that would separate the tie."""
+                       t_step: float, phases: dict[str, float]) -> None:
+    """The step's record gets its candidates, its wall time (since `t_step`) and where it
+    went (`phase_times_s`, `_phase_times`) and, where the chosen candidate is tied, the
+    advice that would separate the tie."""
     rec["candidates"] = [c.as_json() for c in cands]
     rec["wall_time_s"] = time.perf_counter() - t_step
+    rec["phase_times_s"] = {k: round(v, 3) for k, v in phases.items()}
     if chosen is not None and chosen.tied_with:
         rec["separation"] = separation_advice({chosen.kind, *(k for k, _ in
                                                                chosen.tied_with)})
