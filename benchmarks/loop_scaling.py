@@ -1,0 +1,101 @@
+"""How the loop's time grows with the length of a log: `investigate --likelihood kalman`
+from the one-node model on one generated building log at 15-minute sampling, at several
+lengths, with each step's wall time split by phase (`steps[i].phase_times_s`: score
+tests, refits, held-out folds, the missing heat waited for, the heat network, and the
+JAX compilation inside them), and the fitted exponent of time per step against the
+number of samples (1: linear).
+
+The data: the four-state building of the hidden suite (`tests/hidden/buildings.py`:
+interior, heating medium, envelope and an interior mass; outdoor temperature, solar and
+a PRBS heater; process and sensor noise), the same seed at every length, so each longer
+log extends the shorter one. Each length runs in a fresh process with no persistent
+cache: cold, compilation included.
+
+Usage:  python benchmarks/loop_scaling.py [--samples 2000,7000,20000] [--max-steps 4]
+        [--out results.json]
+"""
+
+from __future__ import annotations
+
+import _cold_process  # beside this script
+
+_cold_process.reexec()
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tests"))
+
+from hidden.buildings import DT, write_building_case  # noqa: E402
+
+CASE = "building_4state"
+
+
+def run_length(n_samples: int, max_steps: int, folder: Path) -> dict:
+    """One cold `investigate` on the first `n_samples` of the log: its report and wall time."""
+    files = write_building_case(CASE, folder, seed=0, days=n_samples * DT / 86400)
+    out = folder / "out"
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "thermojax", "investigate", "--likelihood",
+                           "kalman", "--model", str(files["model"]), "--data",
+                           str(files["data"][0]), "--out", str(out), "--max-steps",
+                           str(max_steps), "--no-cache"], capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"investigate failed on {n_samples} samples:\n{proc.stderr[-3000:]}")
+    report = json.loads((out / "report.json").read_text())
+    return {"samples": n_samples, "wall_s": wall, "report": report}
+
+
+def growth_exponent(samples, seconds) -> float:
+    """The slope of log time against log samples (least squares)."""
+    return float(np.polyfit(np.log(samples), np.log(seconds), 1)[0])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--samples", default="2000,7000,20000")
+    ap.add_argument("--max-steps", type=int, default=4)
+    ap.add_argument("--out", default=None, help="also write the numbers as JSON here")
+    args = ap.parse_args()
+    lengths = [int(s) for s in args.samples.split(",")]
+    results = []
+    for n in lengths:
+        with tempfile.TemporaryDirectory() as tmp:
+            r = run_length(n, args.max_steps, Path(tmp))
+        results.append(r)
+        steps = r["report"]["steps"]
+        print(f"\n{n} samples ({n * DT / 86400:.0f} days): {r['wall_s']:.0f} s in all, "
+              f"stopped: {r['report']['stopped_because']}", flush=True)
+        for i, s in enumerate(steps):
+            added = s["added"] and f"{s['added']['kind']} {'-'.join(s['added']['where'])}"
+            phases = s.get("phase_times_s") or {}
+            split = ", ".join(f"{k} {v:.0f}" for k, v in sorted(phases.items(),
+                                                                   key=lambda kv: -kv[1]))
+            print(f"  step {i} {added or 'start':<40} −log L {s['nll']:10.1f}  "
+                  f"{s.get('wall_time_s') or 0:7.0f} s  ({split})", flush=True)
+    if len(results) > 1:
+        walls = [r["wall_s"] for r in results]
+        per_step = [r["wall_s"] / max(len(r["report"]["steps"]), 1) for r in results]
+        print(f"\ngrowth exponent of the whole loop's time: "
+              f"{growth_exponent(lengths, walls):.2f}; of the time per step: "
+              f"{growth_exponent(lengths, per_step):.2f} (1 is linear)")
+    if args.out:
+        Path(args.out).write_text(json.dumps(
+            [{"samples": r["samples"], "wall_s": r["wall_s"],
+              "steps": [{"added": s["added"], "nll": s["nll"],
+                         "wall_time_s": s.get("wall_time_s"),
+                         "phase_times_s": s.get("phase_times_s")}
+                        for s in r["report"]["steps"]]} for r in results], indent=2))
+
+
+if __name__ == "__main__":
+    main()
