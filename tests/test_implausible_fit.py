@@ -5,7 +5,9 @@ in minutes), every capacitance moved the same way by a large factor."""
 from __future__ import annotations
 
 import json
+import warnings
 
+import numpy as np
 import pytest
 
 from helpers import run_cli
@@ -85,3 +87,26 @@ def test_a_log_in_minutes_is_marked_and_one_in_seconds_is_not(tmp_path, capsys, 
         assert "the fitted noise of T_block" in err and "model error" in err, err
         assert any("the fitted noise of T_block" in w for w in report["warnings"])
         assert "**Warning:** the fitted noise of T_block" in md
+
+
+def _rtd_run(core):
+    from thermojax.measurements import Telemetry
+
+    ts = np.arange(len(core), dtype=float)
+    fluid = np.linspace(25.0, 85.0, len(core))
+    return Telemetry(ts, {"T_fluid": fluid, "T_core": core}, path="log.csv")
+
+
+def test_a_sensor_in_fahrenheit_beside_boundaries_in_celsius_is_warned_of():
+    from helpers import CONFIGS
+    from thermojax import load_model
+    from thermojax.measurements import check_plausibility
+
+    spec = load_model(CONFIGS / "rtd2.toml")
+    celsius = np.linspace(25.0, 85.0, 200) - 0.5  # lags the fluid a little
+    with pytest.warns(UserWarning, match=r"column 'T_core' .* in °F, convert it"):
+        check_plausibility(spec, _rtd_run(celsius * 1.8 + 32.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # in °C: no word, heated well above the fluid too
+        check_plausibility(spec, _rtd_run(celsius))
+        check_plausibility(spec, _rtd_run(celsius + 25.0))

@@ -5,7 +5,8 @@ Two kinds of finding, each naming the file, the line and the column:
 - **Unit mistakes** (always refused): a temperature column logged in kelvin beside
   columns in °C, and `time_s` logged in milliseconds (a sample period so far beyond
   the model's time constants that the run cannot show its dynamics, while a thousandth
-  of it would).
+  of it would). A sensor column that reads as °F beside boundaries in °C is warned of
+  (not refused: a heated node can read as high).
 - **Outliers** (refused, or dropped when asked): a cell no thermal quantity of its unit
   can take (|value| ≥ 1e12; a temperature below absolute zero or above 5000 °C), or a
   cell isolated from every other value of its column (a gap above the rest of more than
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 
 import numpy as np
 
@@ -52,6 +54,10 @@ MS_FACTOR = 100.0
 # A temperature column looks like kelvin when its median, less 273.15, is within
 # max(KELVIN_TOLERANCE, half the other's range) of a °C column's median.
 KELVIN_TOLERANCE = 30.0
+# A sensor column looks like °F when it reads this many kelvin above the boundary
+# temperatures at nearly every sample and, read as °F, within this many of them.
+FAHRENHEIT_MARGIN = 10.0
+FAHRENHEIT_SLACK = 5.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,6 +114,8 @@ def check_plausibility(spec: ModelSpec, telemetry: Telemetry, outliers: str = "s
     values = {c: telemetry.column(c) for c in kinds}
     _check_milliseconds(spec, telemetry)
     _check_kelvin(telemetry, {c: v for c, v in values.items() if kinds[c] == "temperature"})
+    _warn_fahrenheit(telemetry, {c: values[c] for c in spec.boundary_columns if c in values},
+                     {c: values[c] for c in spec.sensor_columns if c in values})
     found = []
     for column, kind in kinds.items():
         found.extend(_column_outliers(spec, telemetry, column, kind, values[column]))
@@ -207,6 +215,32 @@ def _check_kelvin(telemetry: Telemetry, columns: dict[str, np.ndarray]) -> None:
                     f"above that of '{r}' ({med_r:.4g} °C). Temperatures are in °C "
                     f"(docs/formats.md §1): subtract 273.15 from '{c}'.",
                     file=telemetry.path, line=line, field=c)
+
+
+def _warn_fahrenheit(telemetry: Telemetry, boundaries: dict[str, np.ndarray],
+                     sensors: dict[str, np.ndarray]) -> None:
+    """Warn of a sensor column that reads above the file's boundary temperatures (their
+    mean at each sample) by more than `FAHRENHEIT_MARGIN` at nearly every sample while
+    its values read as °F, (v − 32)/1.8, lie on them (within `FAHRENHEIT_SLACK` at the
+    median): a log in °F. A warning, not a refusal: a heated node can read so too, if
+    its rise happens to be 32 + 0.8 T."""
+    if not boundaries:
+        return
+    b = np.mean(np.stack(list(boundaries.values())), axis=0)
+    for c, v in sensors.items():
+        ok = np.isfinite(v) & np.isfinite(b) & (np.abs(v) < ABSURD)
+        if ok.sum() < 2:
+            continue
+        raw = v[ok] - b[ok]
+        as_f = (v[ok] - 32.0) / 1.8 - b[ok]
+        if (np.percentile(raw, 5) > FAHRENHEIT_MARGIN
+                and abs(np.median(as_f)) < FAHRENHEIT_SLACK):
+            warnings.warn(
+                f"{telemetry.path or 'the data'}: column '{c}' reads {np.median(raw):.3g} K "
+                f"above the boundary temperatures ({', '.join(boundaries)}) at the median, "
+                f"and as °F it would read {np.median(as_f):+.2g} K from them: if it is "
+                "in °F, convert it, (v − 32) / 1.8. Temperatures are in °C "
+                "(docs/formats.md §1).", stacklevel=3)
 
 
 # ---------------------------------------------------------------------------
