@@ -84,7 +84,9 @@ def main() -> None:
                   f"{s.get('wall_time_s') or 0:7.0f} s  ({split})", flush=True)
     if len(results) > 1:
         walls = [r["wall_s"] for r in results]
-        per_step = [r["wall_s"] / max(len(r["report"]["steps"]), 1) for r in results]
+        # the steps that scored candidates (the last step of a `max_steps` stop did not)
+        per_step = [np.mean([s["wall_time_s"] for s in r["report"]["steps"]
+                             if s.get("wall_time_s")]) for r in results]
         print(f"\ngrowth exponent of the whole loop's time: "
               f"{growth_exponent(lengths, walls):.2f}; of the time per step: "
               f"{growth_exponent(lengths, per_step):.2f} (1 is linear)")
