@@ -1,0 +1,311 @@
+"""Output error for large networks: residuals by the exponential times a vector,
+gradients by reverse mode, steps matrix-free.
+
+A fit of a large network (many nodes, many free parameters) takes this path instead of
+the forward sensitivities (`_output_error`, whose Jacobian carries one `2n × 2n` block
+per parameter: memory like `P (2n)²`, time like `P n³`):
+
+- residuals from `dynamics._taylor_hold`: the same exact discretization, summed as the
+  exponential of the sparse generator times each sample's state (`O(T (n + e))` per
+  simulation, `e` links), each sample period checkpointed;
+- the Gauss-Newton steps matrix-free (`_matrix_free`): a forward and a reverse
+  (adjoint) product per CG iteration, so a step's cost does not grow with the number of
+  parameters and the memory is that of the states (`(runs, times, n)`), not of a
+  Jacobian;
+- the Fisher information `JᵀJ` for the standard errors and the identifiability report,
+  from the same products: `JᵀJ e_i` for every parameter, in batches (`information`),
+  `P²` numbers. Where that matrix would not fit (`MAX_INFORMATION_PARAMS`), nothing is
+  formed and the fit reports no standard errors (it says so).
+
+Which path a fit takes is `choose_path`: the measured costs of the two
+(`_size.fit_cost`, `_size.adjoint_cost`), for linear models without bias columns.
+"""
+
+from __future__ import annotations
+
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._traced_cache import stored_jit
+from ..dynamics._taylor_hold import SparsePlan, model_outputs_taylor, plan_norm, sparse_plan
+from ._matrix_free import MatrixFreeGaussNewton, matrix_free_gauss_newton
+from ._problem import _model_of, _prior, _Problem
+
+#: Parameters beyond which the information matrix (P² numbers, P products) is not formed.
+MAX_INFORMATION_PARAMS = 6000
+#: Bytes of kept series terms above which each sample period is checkpointed instead.
+_KEPT_BYTES = 2e9
+#: Directions per batch of products when the information matrix is formed.
+_BATCH = 64
+
+
+class AdjointProblem(eqx.Module):
+    """A `_Problem` with the static structure of its Taylor simulation."""
+
+    problem: _Problem
+    plan: SparsePlan = eqx.field(static=True)
+    # recompute each sample period's series in reverse mode (`taylor_states`): set where
+    # keeping every term would exceed `_KEPT_BYTES`
+    checkpoint: bool = eqx.field(static=True, default=False)
+
+
+def make_plan(problem: _Problem, theta0) -> SparsePlan:
+    """The `SparsePlan` of `problem`'s model: non-zeros at `theta0` and at a perturbed
+    point (a parameter that starts at zero still gets its entries), the norm bound with
+    room for the parameters to move (a factor 2)."""
+    rng = np.random.default_rng(0)
+    theta0 = np.asarray(theta0)
+    systems = [jax.tree.map(np.asarray, _model_of(jax.device_put(t), problem)[0]
+                            .linear_system())
+               for t in (theta0, theta0 + 0.1 * rng.standard_normal(theta0.shape))]
+    return sparse_plan(systems, float(np.max(np.asarray(problem.data.dt))))
+
+
+def adjoint_eligible(prep, likelihood: str, solver) -> bool:
+    """Whether a fit may take the adjoint path: output error with the default solver, a
+    linear model, no bias columns."""
+    return (likelihood == "output_error" and solver is None and prep.bias is None
+            and not prep.template.model.is_nonlinear)
+
+
+def adjoint_problem(problem: _Problem, theta0) -> AdjointProblem:
+    """`problem` with its `SparsePlan`, checkpointed where keeping every series term of
+    every sample would take more than `_KEPT_BYTES`."""
+    plan = make_plan(problem, theta0)
+    R, T, _ = problem.data.outputs.shape
+    kept = 8.0 * R * T * plan.substeps * plan.degree * plan.a_cols.shape[0]
+    return AdjointProblem(problem, plan, kept > _KEPT_BYTES)
+
+
+def _initial(model, system, u0, r0):
+    """A run's initial state: its estimated starts where every node has one (no solve),
+    else `ThermalModel.initial_state`."""
+    n = system.A.shape[0]
+    if len(model.initial_nodes) == n and not model.added_nodes:
+        idx = np.array(model.initial_nodes)
+        values = model.initial[idx] if r0 is None else r0
+        return jnp.zeros(n, system.A.dtype).at[idx].set(values)
+    return model.initial_state(system, u0, r0)
+
+
+def adjoint_outputs(theta, ap: AdjointProblem):
+    """Free-run sensor readings (runs, T, p) °C of every run at `theta`."""
+    problem = ap.problem
+    model, run_initial = _model_of(theta, problem)
+    system = model.linear_system()
+    data = problem.data
+    inputs = data.inputs.astype(system.A.dtype)
+
+    def one(u, dt, r0):
+        x0 = _initial(model, system, u[0], r0)
+        return model_outputs_taylor(model, system, ap.plan, x0, u, dt, ap.checkpoint)
+
+    if run_initial is None or run_initial.shape[1] == 0:
+        return jax.vmap(lambda u, dt: one(u, dt, None))(inputs, data.dt)
+    return jax.vmap(one)(inputs, data.dt, run_initial)
+
+
+def adjoint_residuals(theta, ap: AdjointProblem):
+    """Weighted data residuals (runs, T, p), zero where nothing was measured, then the
+    prior rows (free,) appended as one flat vector."""
+    problem = ap.problem
+    data = problem.data
+    y = adjoint_outputs(theta, ap)
+    r = jnp.where(data.mask, data.outputs - y, 0.0) / problem.sigma[None, None, :]
+    return jnp.concatenate([r.reshape(-1), _prior(theta, problem)])
+
+
+def _ml_weights(r, ap: AdjointProblem, estimated):
+    """Per-residual weights holding each estimated output's noise std at its ML value
+    (`_output_error._ml_weights` in this layout; the prior rows weight 1)."""
+    problem = ap.problem
+    R, T, p = problem.data.outputs.shape
+    data_r = r[:R * T * p].reshape(R, T, p)
+    counts = jnp.maximum(jnp.sum(problem.data.mask, axis=(0, 1), dtype=r.dtype), 1.0)
+    floor = counts * (1e-12 / problem.sigma) ** 2
+    w = jnp.where(estimated, jnp.sqrt(counts / jnp.maximum(jnp.sum(data_r ** 2, (0, 1)),
+                                                           floor)), 1.0)
+    return jnp.concatenate([jnp.broadcast_to(w, (R, T, p)).reshape(-1),
+                            jnp.ones(r.shape[0] - R * T * p, r.dtype)])
+
+
+@stored_jit
+def solve_adjoint(theta0, ap: AdjointProblem, V, mu, solver: MatrixFreeGaussNewton,
+                  max_steps, estimated):
+    """The matrix-free solve from `theta0`, preconditioned by the curvature `V diag(mu)
+    Vᵀ` (`information` at the start, weighted by `ap`'s stds): `(theta, steps, converged, products, evals,
+    stds (outputs,), norm)`, `stds` the weights' noise stds, `norm` the Taylor series'
+    `‖A dt‖₁` at the solution (the plan must bound it)."""
+    sol = matrix_free_gauss_newton(adjoint_residuals, theta0, ap, V, mu, solver, max_steps,
+                                   lambda r: _ml_weights(r, ap, estimated))
+    p = ap.problem.sigma.shape[0]
+    stds = ap.problem.sigma / sol.weights[:p]
+    model = _model_of(sol.value, ap.problem)[0]
+    norm = plan_norm(model.linear_system(), ap.plan, jnp.max(ap.problem.data.dt))
+    return (sol.value, sol.num_steps, sol.converged, sol.num_products, sol.num_evaluations,
+            stds, norm)
+
+
+@stored_jit
+def _evaluate(theta, ap: AdjointProblem):
+    """`(weighted data residuals (runs, T, p), predictions (runs, T, p) °C)`."""
+    problem = ap.problem
+    y = adjoint_outputs(theta, ap)
+    r = jnp.where(problem.data.mask, problem.data.outputs - y, 0.0) / problem.sigma[None, None, :]
+    return r, y
+
+
+def evaluate(theta, ap: AdjointProblem):
+    """At `theta`: the weighted data residuals and the predictions, as NumPy arrays."""
+    r, y = _evaluate(theta, ap)
+    return np.asarray(r), np.asarray(y)
+
+
+@stored_jit
+def _information_columns(theta, ap: AdjointProblem, directions):
+    """`JᵀJ V` (P, k) of the data residuals for directions `V` (P, k): one forward and
+    one reverse product per column, batched."""
+    def data_r(t):
+        return adjoint_residuals(t, ap)[:-theta.shape[0]]
+
+    _, lin = jax.linearize(data_r, theta)
+    transposed = jax.linear_transpose(lin, theta)
+    return jax.vmap(lambda v: transposed(lin(v))[0], in_axes=1, out_axes=1)(directions)
+
+
+@stored_jit
+def _column_norms(theta, ap: AdjointProblem, directions):
+    """`‖J v‖²` (k,) of the data residuals for directions `V` (P, k), batched forward
+    products."""
+    def data_r(t):
+        return adjoint_residuals(t, ap)[:-theta.shape[0]]
+
+    _, lin = jax.linearize(data_r, theta)
+    return jax.vmap(lambda v: jnp.sum(lin(v) ** 2), in_axes=1)(directions)
+
+
+def _batches(P: int):
+    """Unit directions (P, _BATCH) in batches covering `0..P-1` (the last one padded with
+    zeros: one compiled shape) and the count of real ones in each."""
+    eye = np.eye(P)
+    for start in range(0, P, _BATCH):
+        cols = eye[:, start:start + _BATCH]
+        k = cols.shape[1]
+        if k < _BATCH:
+            cols = np.concatenate([cols, np.zeros((P, _BATCH - k))], axis=1)
+        yield start, k, jax.device_put(cols)
+
+
+def jacobian_diagonal(theta, ap: AdjointProblem) -> np.ndarray:
+    """The diagonal of `JᵀJ` (P,) of the weighted data residuals: each parameter's squared
+    column norm, by batched forward products (the solve's Jacobi preconditioner)."""
+    out = np.empty(theta.shape[0])
+    for start, k, cols in _batches(theta.shape[0]):
+        out[start:start + k] = np.asarray(_column_norms(theta, ap, cols))[:k]
+    return out
+
+
+def information(theta, ap: AdjointProblem, say=None) -> np.ndarray | None:
+    """The Fisher information `JᵀJ` (P, P) of the weighted data residuals at `theta` from
+    matrix-free products (`_BATCH` directions at a time); None beyond
+    `MAX_INFORMATION_PARAMS`."""
+    P = theta.shape[0]
+    if P > MAX_INFORMATION_PARAMS:
+        return None
+    out = np.empty((P, P))
+    for start, k, cols in _batches(P):
+        out[:, start:start + k] = np.asarray(_information_columns(theta, ap, cols))[:, :k]
+    return 0.5 * (out + out.T)
+
+
+def with_plan_for(ap: AdjointProblem, norm: float) -> AdjointProblem:
+    """`ap` with a plan whose series bounds `norm` (again with a factor 2 of room)."""
+    from ..dynamics._taylor_hold import taylor_plan
+
+    plan = ap.plan
+    bigger = SparsePlan(plan.a_cols, plan.a_real, plan.c_cols, plan.c_real,
+                        *taylor_plan(2.0 * norm), 2.0 * norm, plan.offsets)
+    return AdjointProblem(ap.problem, bigger, ap.checkpoint)
+
+
+#: How the report names the path (`FitResult.method`).
+METHOD = ("adjoint: residuals by the exponential of the sparse generator times the state, "
+          "matrix-free Gauss-Newton steps (forward and reverse products inside a "
+          "preconditioned conjugate-gradient solve)")
+
+
+def fit_adjoint(prep, max_steps: int, say, solver: MatrixFreeGaussNewton | None = None):
+    """The output-error stage of a large linear network by the adjoint path: a
+    `Solution` like `_output_error.fit_output_error`'s (one start: the file's values).
+
+    The information matrix is formed at the start (the solve's preconditioner) and at the
+    solution (the standard errors), each from `P` forward and reverse products in
+    batches; beyond `MAX_INFORMATION_PARAMS` the solve is preconditioned by nothing and
+    the information is the diagonal of `JᵀJ` only: each std is then the parameter's
+    conditional std (the others held at their values), a lower bound, and the message
+    says so."""
+    from ..model._parameters import free_parameters, with_free_parameters
+    from ._likelihood import output_error_nll
+    from ._problem import FitState, Solution, _check_finite, make_problem
+
+    solver = solver or MatrixFreeGaussNewton()
+    theta0 = free_parameters(prep.template, prep.index)
+    problem = make_problem(prep.template, prep.index, prep.data, prep.sigma, theta0)
+    ap = adjoint_problem(problem, theta0)
+    P = theta0.shape[0]
+    say(f"adjoint path: {P} free parameters, {ap.plan.degree}-term series in "
+        f"{ap.plan.substeps} substep(s) per sample period"
+        + (", diagonal products" if ap.plan.offsets is not None else ""))
+    estimated = jax.device_put(np.asarray(~prep.fixed_sigma, bool))
+    mu, V = _curvature(theta0, ap, say)
+    theta, total, evals = theta0, 0, 0
+    while True:
+        theta, steps, ok, products, n_eval, stds, norm = solve_adjoint(
+            theta, ap, V, mu, solver, jax.device_put(np.asarray(max_steps)), estimated)
+        total, evals = total + int(steps), evals + int(n_eval)
+        say(f"adjoint solve: {int(steps)} steps, {int(products)} product pairs, "
+            f"{'converged' if bool(ok) else 'not converged'}")
+        if float(norm) <= ap.plan.norm:
+            break
+        say("the parameters moved past the series' bound; solving again with more terms")
+        ap = with_plan_for(ap, float(norm))
+    _check_finite(theta, theta0, prep.names)
+    sigma = np.asarray(stds)
+    final = AdjointProblem(make_problem(prep.template, prep.index, prep.data, sigma, theta0),
+                           ap.plan, ap.checkpoint)
+    r, y = evaluate(theta, final)
+    mask = prep.mask()
+    nll = output_error_nll(r * sigma, mask, sigma)
+    info = information(theta, final)
+    note = ""
+    if info is None:
+        info = np.diag(jacobian_diagonal(theta, final))
+        note = (f"; {P} free parameters: stds are conditional (each with the others held), "
+                "from the diagonal of the information only")
+    p = len(prep.spec.sensors)
+    state = with_free_parameters(prep.template, prep.index, theta)
+    state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model,
+                                 jax.device_put(np.log(sigma[:p]))), state.run_initial,
+                     state.bias_log_tau)
+    n_meas = mask.sum(axis=(0, 1))
+    names = [f"sensors.{c}.noise" for c in prep.spec.sensor_columns]
+    noise = {name: (float(sigma[j]), float(sigma[j] / np.sqrt(2 * max(n_meas[j], 1))))
+             for j, name in enumerate(names) if not prep.fixed_sigma[j]}
+    sol = Solution(final.problem, np.asarray(theta), state, prep.names, info, nll, total,
+                   bool(ok), y, noise, evals)
+    return sol, METHOD + note
+
+
+def _curvature(theta, ap: AdjointProblem, say):
+    """`(mu, V)`: the eigendecomposition of the information at `theta` (the solve's
+    preconditioner); beyond `MAX_INFORMATION_PARAMS` the diagonal's (`V = I`)."""
+    H = information(theta, ap)
+    if H is None:
+        d = jacobian_diagonal(theta, ap)
+        return jax.device_put((d, np.eye(d.shape[0])))
+    say(f"information at the start: {H.shape[0]} forward and reverse product pairs")
+    mu, V = np.linalg.eigh(H)
+    return jax.device_put((mu, V))
