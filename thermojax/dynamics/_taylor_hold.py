@@ -206,7 +206,7 @@ def period_norm(system, dt: float) -> float:
     return float(max(np.abs(np.asarray(system.A)).sum(0).max() * dt, 1.0))
 
 
-def sparse_plan(systems, dt_max: float, margin: float = 2.0) -> SparsePlan:
+def sparse_plan(systems, dt_max: float, margin: float = 1.25) -> SparsePlan:
     """The `SparsePlan` of `systems` (`LinearSystem`s of one model at several parameter
     points; NumPy values) for sample periods up to `dt_max` (s), the norm bound `margin`
     times the largest found (room for the parameters to move)."""

@@ -63,7 +63,7 @@ class MatrixFreeGaussNewton(eqx.Module):
     tol: float = 1e-4
     cg_rtol: float = 1e-3
     cg_max_steps: int = eqx.field(static=True, default=50)
-    initial_damping: float = 1e-3
+    initial_damping: float = 1e-6
     max_step: float = 1.0
     max_backtracks: int = eqx.field(static=True, default=20)
 
@@ -79,6 +79,11 @@ class MatrixFreeSolution(eqx.Module):
     num_evaluations: Int[Array, ""]  # residual evaluations at trial points
     residuals: Array  # unweighted, at `value`
     weights: Array  # `reweight`'s last weights
+
+
+# On an accepted step `λ` shrinks by at most this factor (Nielsen's rule: 1/3). The
+# preconditioned steps are good far out: on a 100-node chain 1/3 took 46 steps.
+_MIN_DAMPING_FACTOR = 0.1
 
 
 def _capped(dx, max_step):
@@ -178,7 +183,7 @@ def matrix_free_gauss_newton(fn: Callable, theta0: Float[Array, " params"], args
                                trial, t0)
         theta = jnp.where(t["ok"], theta + t["dx"], theta)
         new_lam = jnp.where(t["ok"], t["lam"] * jnp.maximum(
-            1 / 3, 1 - (2 * jnp.minimum(t["rho"], 1.0) - 1) ** 3), t["lam"])
+            _MIN_DAMPING_FACTOR, 1 - (2 * jnp.minimum(t["rho"], 1.0) - 1) ** 3), t["lam"])
         # converged: the step predicted (nearly) nothing, taken or not
         done = t["predicted"] < solver.tol
         k = c["k"] + 1
