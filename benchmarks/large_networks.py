@@ -157,7 +157,7 @@ def main() -> None:
                 return f"failed ({r['error'][:60]})"
             return f"{r['time_s']:.1f} s, {r['peak_gb']:.2f} GB"
 
-        ratio = (f"{sp['time_s'] / auto['time_s']:.1f}×" if sp and "error" not in sp
+        ratio = (f"{sp['time_s'] / auto['time_s']:.2g}×" if sp and "error" not in sp
                  and "error" not in auto else "–")
         if "error" in auto:
             print(f"| {n} | – | – | {fmt(auto)} | | | {fmt(fwd)} | {fmt(sp)} | – |", flush=True)

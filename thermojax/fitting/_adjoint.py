@@ -7,22 +7,25 @@ per parameter: memory like `P (2n)²`, time like `P n³`):
 
 - residuals from `dynamics._taylor_hold`: the same exact discretization, summed as the
   exponential of the sparse generator times each sample's state (`O(T (n + e))` per
-  simulation, `e` links), each sample period checkpointed;
+  simulation, `e` links); its series terms are kept for the products (`runs · T · d · n`
+  numbers), or, beyond `_KEPT_BYTES`, each sample period is checkpointed and recomputed
+  (one state per sample kept);
 - the Gauss-Newton steps matrix-free (`_matrix_free`): a forward and a reverse
   (adjoint) product per CG iteration, so a step's cost does not grow with the number of
-  parameters and the memory is that of the states (`(runs, times, n)`), not of a
-  Jacobian;
-- the Fisher information `JᵀJ` for the standard errors and the identifiability report,
-  from the same products: `JᵀJ e_i` for every parameter, in batches (`information`),
-  `P²` numbers. Where that matrix would not fit (`MAX_INFORMATION_PARAMS`), nothing is
-  formed and the fit reports no standard errors (it says so).
+  parameters and the memory is that of the simulation, not of a Jacobian
+  (samples × parameters);
+- the Fisher information `JᵀJ` from the same products, `JᵀJ e_i` for every parameter in
+  batches (`information`, `P²` numbers): the CG solves' preconditioner (refreshed every
+  `_REFRESH_STEPS` steps) and, at the solution, the standard errors and the
+  identifiability report. Beyond `MAX_INFORMATION_PARAMS` only its diagonal is formed
+  and the stds are conditional ones (the fit's `method` says so).
 
-Which path a fit takes is `choose_path`: the measured costs of the two
-(`_size.fit_cost`, `_size.adjoint_cost`), for linear models without bias columns.
+Which path a fit takes is `_size.choose_path` (for linear models without bias columns,
+fitted by output error with the default solver): the adjoint one where the forward
+sensitivities are predicted to take over a minute or not to fit in memory.
 """
 
 from __future__ import annotations
-
 
 import equinox as eqx
 import jax

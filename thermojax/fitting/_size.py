@@ -4,8 +4,8 @@ and refused when it cannot fit in memory.
 A fit's exact sensitivities carry one `2n × 2n` block of the augmented exponential per
 free parameter, so its memory grows like `P (2n)²` and its time like `P n³` (`n` states,
 `P` free parameters). Measured on the 2-core, 24 GiB development machine with chains of
-`n` nodes and `P = 2n + 1` free parameters, 565 samples (benchmarks/README.md, "Large
-networks"): n = 40 peaked at 0.72 GB in 32 s, n = 80 at 1.19 GB in 381 s, and a
+`n` nodes and `P = 2n + 1` free parameters, 565 samples (benchmarks/README.md,
+`large_networks.py`, the figures from before the adjoint path): n = 40 peaked at 0.72 GB in 32 s, n = 80 at 1.19 GB in 381 s, and a
 200-node chain reached 8.9 GB without a result after 7 minutes. The constants below
 fit those figures (about 0.6 GB of runtime and compiled programs, plus
 `BYTES_PER_ENTRY · P (2n)²`); the time is the machine's, a rough guide elsewhere.
@@ -35,7 +35,7 @@ MEMORY_SHARE = 0.8
 
 #: s; forward sensitivities predicted to take longer than this: the adjoint path instead.
 ADJOINT_ABOVE_S = 60.0
-# The adjoint path's constants (benchmarks/README.md, "Large networks"): runtime and
+# The adjoint path's constants (benchmarks/README.md, `large_networks.py`): runtime and
 # compiled programs, and bytes per kept series term and per information entry.
 ADJOINT_BASE_BYTES = 0.6e9
 ADJOINT_BYTES_PER_TERM = 8.0 * 3
