@@ -128,7 +128,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
                           n_samples=int(sum(prep.data.lengths)))
     if path == "adjoint":
         say(f"a large network: {len(prep.names)} free parameters of {cost.n_states} "
-            f"states, fitted by the adjoint path (about {cost.bytes / 1e9:.1f} GB)")
+            f"states, fitted by the adjoint path (about {cost.bytes / 1e9:.1f} GB and "
+            f"roughly {cost.seconds / 60:.0f} min on a 2-core machine)")
     elif cost.seconds > LONG_FIT_S:
         say(f"a large fit: {len(prep.names)} free parameters of {cost.n_states} states, "
             f"about {cost.bytes / 1e9:.1f} GB and roughly {cost.seconds / 60:.0f} min on a "

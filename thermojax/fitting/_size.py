@@ -40,7 +40,8 @@ ADJOINT_ABOVE_S = 60.0
 ADJOINT_BASE_BYTES = 0.6e9
 ADJOINT_BYTES_PER_TERM = 8.0 * 3
 ADJOINT_BYTES_PER_ENTRY = 8.0 * 4
-ADJOINT_SECONDS_PER_WORK = 4e-9  # per unit of P · T · d · n (products in batches)
+ADJOINT_BASE_S = 30.0  # compilation
+ADJOINT_SECONDS_PER_WORK = 5.4e-8  # per unit of 3 P · T · d · n (264 s at n = 200, P = 601)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,7 +69,7 @@ def adjoint_cost(n_states: int, n_free: int, n_samples: int, terms: int = 30) ->
     kept = T * terms * n
     return FitCost(n, P, ADJOINT_BASE_BYTES + ADJOINT_BYTES_PER_TERM * kept
                    + ADJOINT_BYTES_PER_ENTRY * P ** 2,
-                   ADJOINT_SECONDS_PER_WORK * 3 * P * kept)
+                   ADJOINT_BASE_S + ADJOINT_SECONDS_PER_WORK * 3 * P * kept)
 
 
 def choose_path(n_states: int, n_free: int, eligible: bool, available=None) -> str:
