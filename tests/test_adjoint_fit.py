@@ -136,3 +136,23 @@ def test_large_networks_take_the_adjoint_path_and_are_not_refused():
         _size.check_fit_size(200, 601, available=12e9)                     # forward: refused
     cost = _size.check_fit_size(200, 601, available=12e9, path="adjoint", n_samples=400)
     assert cost.bytes < 2e9
+
+
+def test_large_conductance_matrix_by_entries_equals_the_incidence_product():
+    from helpers import random_topology
+    from thermojax.model._network import _SCATTER_NODES, conductance_matrix
+
+    rng = np.random.default_rng(8)
+    topo = random_topology(rng, _SCATTER_NODES + 6)
+    g = rng.uniform(0.1, 2.0, len(topo.links))
+    gb = rng.uniform(0.1, 2.0, len(topo.boundary_nodes))
+    K = conductance_matrix(topo, jnp.asarray(g), jnp.asarray(gb))      # traced: by entries
+    # the NumPy branch is the incidence product; a sum of the same terms, roundoff only
+    np.testing.assert_allclose(np.asarray(K), conductance_matrix(topo, g, gb), rtol=0,
+                               atol=1e-14)
+
+
+def test_adjoint_path_is_refused_where_it_does_not_apply():
+    start, runs, _ = _chain_fit_data(4)
+    with pytest.raises(tj.InputError, match="jacobian='adjoint'"):
+        tj.fit(start, runs, likelihood="kalman", jacobian="adjoint")
