@@ -156,3 +156,19 @@ def test_adjoint_path_is_refused_where_it_does_not_apply():
     start, runs, _ = _chain_fit_data(4)
     with pytest.raises(tj.InputError, match="jacobian='adjoint'"):
         tj.fit(start, runs, likelihood="kalman", jacobian="adjoint")
+
+
+def test_too_many_parameters_for_the_information_report_conditional_stds(monkeypatch):
+    from thermojax.fitting import _adjoint
+
+    start, runs, _ = _chain_fit_data(6)
+    forward = tj.fit(start, runs, jacobian="forward", restart_plateaus=False)
+    monkeypatch.setattr(_adjoint, "MAX_INFORMATION_PARAMS", 5)   # 19 free: only a diagonal
+    adjoint = tj.fit(start, runs, jacobian="adjoint", restart_plateaus=False)
+    assert "conditional" in adjoint.method
+    assert adjoint.nll == pytest.approx(forward.nll, abs=1e-2)   # the same optimum
+    for name in forward.free_names:
+        f, a = forward.parameters[name], adjoint.parameters[name]
+        # a conditional std (the others held) never exceeds the marginal one; 1 % for the
+        # two information matrices' roundoff and the solvers' stopping points
+        assert a["std"] <= 1.01 * f["std"], name
