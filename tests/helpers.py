@@ -528,3 +528,15 @@ def assert_refused(rc, err, *fragments):
     assert "Traceback" not in err
     for fragment in fragments:
         assert fragment in err, (fragment, err)
+
+
+def chain_data():
+    """`benchmarks/_chain_data.py` (the large-network benchmark's generated chain and its
+    SciPy truth) as a module."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "_chain_data.py"
+    spec = importlib.util.spec_from_file_location("_chain_data", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -33,7 +33,8 @@ from ._output_error import fit_output_error, output_error_at
 from ._initial_states import start_mismatches
 from ._problem import (LIKELIHOODS, SHORT_RUN, Solution, integrated_for_output_error,
                        prepare)
-from ._size import check_fit_size
+from ._adjoint import adjoint_eligible, fit_adjoint
+from ._size import check_fit_size, choose_path
 from ._plateau import GAIN, invisible_nodes, plateau_note, visible_start
 from ._profile import profile_interval
 from ._summary import FitResult, summarize
@@ -50,7 +51,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
         seed: int = 0, progress=None, holdout: int | tuple | None = None,
         restart_plateaus: bool = True, polish: bool = True,
         nested_nll: float | None = None, smoothed: bool = False,
-        restart_unconverged: bool = True, starts: dict | None = None) -> FitResult:
+        restart_unconverged: bool = True, starts: dict | None = None,
+        jacobian: str = "auto") -> FitResult:
     """Fit the free parameters of `spec` to several runs at once.
 
     **Arguments:**
@@ -99,6 +101,13 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
       estimated, instead of their first readings (`fitting._initial_states`); a held-out
       fit passes the full fit's estimates, which data after a held-out first block
       cannot determine.
+    - `jacobian`: how the output-error fit differentiates its residuals. `"auto"`: by
+      forward sensitivities (the Jacobian formed), except for a linear network without
+      bias columns, fitted with the default solver, whose forward sensitivities would take
+      longer than a minute or not fit in memory (`fitting._size.choose_path`): that one by
+      the adjoint path (`fitting._adjoint`: reverse-mode products, matrix-free steps,
+      never a Jacobian). `"forward"` or `"adjoint"` forces one; the report's `method`
+      says which ran.
     - `smoothed`: Kalman fits whose `FitResult.smoothed` (RTS-smoothed node temperatures)
       will be read: their program is compiled beside the fit's last steps, where it
       costs no wall time on two cores. Otherwise they are computed when first read.
@@ -108,9 +117,20 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     t_start = time.perf_counter()
     say = progress or (lambda _msg: None)
     prep = prepare(spec, experiments, likelihood, holdout, starts)
-    cost = check_fit_size(prep.template.model.network.topology.n_nodes, len(prep.names),
-                          spec.source)
-    if cost.seconds > LONG_FIT_S:
+    n_states = prep.template.model.network.topology.n_nodes
+    path = choose_path(n_states, len(prep.names), adjoint_eligible(prep, likelihood, solver)
+                       and jacobian != "forward") if jacobian != "adjoint" else "adjoint"
+    if path == "adjoint" and not adjoint_eligible(prep, likelihood, solver):
+        raise InputError("`fit(jacobian='adjoint')` needs an output-error fit of a linear "
+                         "model without bias columns, with the default solver; use "
+                         "jacobian='auto'.", file=spec.source)
+    cost = check_fit_size(n_states, len(prep.names), spec.source, path=path,
+                          n_samples=int(sum(prep.data.lengths)))
+    if path == "adjoint":
+        say(f"a large network: {len(prep.names)} free parameters of {cost.n_states} "
+            f"states, fitted by the adjoint path (about {cost.bytes / 1e9:.1f} GB and "
+            f"roughly {cost.seconds / 60:.0f} min on a 2-core machine)")
+    elif cost.seconds > LONG_FIT_S:
         say(f"a large fit: {len(prep.names)} free parameters of {cost.n_states} states, "
             f"about {cost.bytes / 1e9:.1f} GB and roughly {cost.seconds / 60:.0f} min on a "
             "2-core machine (fixing parameters known from design shortens it)")
@@ -118,6 +138,11 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     if kalman:
         sol = _kalman_stages(prep, solver, max_steps, prior_log_std, n_starts, seed, say,
                              polish, nested_nll, smoothed, restart_unconverged)
+    elif path == "adjoint":
+        if n_starts > 1:
+            say("the adjoint path fits from the file's values only (one start)")
+        sol, method = fit_adjoint(prep, max_steps, say)
+        sol.method = method
     else:
         sol = fit_output_error(prep, solver, max_steps, n_starts, seed, say)
     result = summarize(prep, sol, likelihood, t_start)
@@ -126,7 +151,8 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
                               max_steps=max_steps, prior_log_std=prior_log_std,
                               n_starts=n_starts, seed=seed, holdout=holdout,
                               nested_nll=nested_nll, smoothed=smoothed,
-                              restart_unconverged=restart_unconverged, starts=starts)
+                              restart_unconverged=restart_unconverged, starts=starts,
+                              jacobian=jacobian)
         result.wall_time_s = time.perf_counter() - t_start
     say(f"fit done: -log L = {result.nll:.2f}, {result.n_params} parameters, {result.message}")
     if not kalman:  # a Kalman free run drifts with its process noise: no start check

@@ -40,6 +40,7 @@ def fit_report(result: FitResult, runs: list[str]) -> dict:
         "message": result.message,
         "dominant_samples": [d.to_json() for d in result.dominant],
         "n_steps": result.n_steps,
+        "method": result.method,
         "wall_time_s": result.wall_time_s,
         # ETD2 steps per sample period the fit integrated nonlinear effects with
         "etd2_substeps": result.model.etd2_substeps if result.model.is_nonlinear else None,
@@ -291,7 +292,8 @@ def write_fit_markdown(out: Path, report: dict, rows: list[dict], plots: list[st
           + (f" ({report.get('message')})" if report.get("message") not in
              (None, "converged") else "") + "."
           + (f" Nonlinear effects integrated in {report['etd2_substeps']} ETD2 step(s) per "
-             "sample period." if report.get("etd2_substeps") else ""), ""]
+             "sample period." if report.get("etd2_substeps") else "")
+          + (f" Solved by {report['method']}." if report.get("method") else ""), ""]
     md += [f"**Warning:** {w}" for w in report.get("warnings") or []]
     md += ([""] if report.get("warnings") else []) + ["## Parameters", ""]
     md += _md_parameter_table(rows) + [

@@ -63,6 +63,9 @@ class FitResult:
     # (`_dominance`); the fit is then not converged.
     dominant: list[DominantSample] = field(default_factory=list)
     _smoothed: list | None = field(repr=False, default=None)  # `smoothed`, once computed
+    # How the optimum and its curvature were computed, in words: forward sensitivities
+    # (the Jacobian formed) or the adjoint path of large networks (`fitting._adjoint`).
+    method: str = ""
 
     @property
     def smoothed(self) -> list[tuple[np.ndarray, np.ndarray]]:

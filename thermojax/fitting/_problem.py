@@ -100,6 +100,9 @@ class Solution:
     innovations: np.ndarray | None = None  # Kalman: standardized, (runs, times, outputs)
     # The other starts of a multi-start fit: (theta, nll) each (`_twin_optima`).
     alternatives: list = field(default_factory=list)
+    # How the optimum was found, in words for the report (`FitResult.method`); "" for the
+    # default of the likelihood.
+    method: str = ""
 
 
 # ---------------------------------------------------------------------------

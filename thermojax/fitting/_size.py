@@ -1,14 +1,22 @@
-"""How much a fit of a large network costs, said before the work and refused when it
-cannot fit in memory.
+"""How much a fit of a large network costs, which path it takes, said before the work
+and refused when it cannot fit in memory.
 
 A fit's exact sensitivities carry one `2n × 2n` block of the augmented exponential per
 free parameter, so its memory grows like `P (2n)²` and its time like `P n³` (`n` states,
 `P` free parameters). Measured on the 2-core, 24 GiB development machine with chains of
-`n` nodes and `P = 2n + 1` free parameters, 565 samples (benchmarks/README.md, "Large
-networks"): n = 40 peaked at 0.72 GB in 32 s, n = 80 at 1.19 GB in 381 s, and a
+`n` nodes and `P = 2n + 1` free parameters, 565 samples (benchmarks/README.md,
+`large_networks.py`, the figures from before the adjoint path): n = 40 peaked at 0.72 GB in 32 s, n = 80 at 1.19 GB in 381 s, and a
 200-node chain reached 8.9 GB without a result after 7 minutes. The constants below
 fit those figures (about 0.6 GB of runtime and compiled programs, plus
 `BYTES_PER_ENTRY · P (2n)²`); the time is the machine's, a rough guide elsewhere.
+
+An output-error fit of a linear network without bias columns, with the default solver,
+takes the adjoint path (`fitting._adjoint`) where the forward sensitivities are predicted
+to take longer than `ADJOINT_ABOVE_S` or not to fit in memory (`choose_path`). Its
+memory grows like the series terms it keeps (`runs · T · d · n`, `d` terms per sample
+period) plus the information matrix (`P²`), its time like `P` products of a simulation
+(`P · T · d · (n + e)`); it is refused only where that memory does not fit
+(`adjoint_cost`).
 """
 
 from __future__ import annotations
@@ -23,6 +31,17 @@ BYTES_PER_ENTRY = 146.0           # bytes per entry of the P blocks of (2n)²
 SECONDS_PER_WORK = 381.0 / (161 * 80 ** 3)   # per unit of P n³ (the n = 80 chain)
 #: Above this share of the memory available now, a fit is refused before it starts.
 MEMORY_SHARE = 0.8
+
+
+#: s; forward sensitivities predicted to take longer than this: the adjoint path instead.
+ADJOINT_ABOVE_S = 60.0
+# The adjoint path's constants (benchmarks/README.md, `large_networks.py`): runtime and
+# compiled programs, and bytes per kept series term and per information entry.
+ADJOINT_BASE_BYTES = 0.6e9
+ADJOINT_BYTES_PER_TERM = 8.0 * 3
+ADJOINT_BYTES_PER_ENTRY = 8.0 * 4
+ADJOINT_BASE_S = 30.0  # compilation
+ADJOINT_SECONDS_PER_WORK = 5.4e-8  # per unit of 3 P · T · d · n (264 s at n = 200, P = 601)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,11 +62,46 @@ def fit_cost(n_states: int, n_free: int) -> FitCost:
                    SECONDS_PER_WORK * P * n ** 3)
 
 
-def check_fit_size(n_states: int, n_free: int, source=None, available=None) -> FitCost:
-    """Refuse (`InputError`) a fit whose predicted memory exceeds `MEMORY_SHARE` of what
-    is available (`available` bytes, default now); return its `FitCost`."""
+def adjoint_cost(n_states: int, n_free: int, n_samples: int, terms: int = 30) -> FitCost:
+    """`FitCost` of the adjoint path: `n_samples` samples over all runs, `terms` series
+    terms per sample period (`dynamics._taylor_hold.taylor_plan`)."""
+    n, P, T = int(n_states), int(n_free), int(n_samples)
+    kept = T * terms * n
+    return FitCost(n, P, ADJOINT_BASE_BYTES + ADJOINT_BYTES_PER_TERM * kept
+                   + ADJOINT_BYTES_PER_ENTRY * P ** 2,
+                   ADJOINT_BASE_S + ADJOINT_SECONDS_PER_WORK * 3 * P * kept)
+
+
+def choose_path(n_states: int, n_free: int, eligible: bool, available=None) -> str:
+    """`"adjoint"` where the fit may take it (`eligible`: output error, a linear model
+    without bias columns, the default solver) and the forward sensitivities are predicted
+    to take longer than `ADJOINT_ABOVE_S` or to need more than `MEMORY_SHARE` of the
+    memory available; else `"forward"`."""
+    if not eligible:
+        return "forward"
     cost = fit_cost(n_states, n_free)
     available = available_memory() if available is None else available
+    too_big = available is not None and cost.bytes > MEMORY_SHARE * available
+    return "adjoint" if too_big or cost.seconds > ADJOINT_ABOVE_S else "forward"
+
+
+def check_fit_size(n_states: int, n_free: int, source=None, available=None,
+                   path: str = "forward", n_samples: int = 0) -> FitCost:
+    """Refuse (`InputError`) a fit whose predicted memory exceeds `MEMORY_SHARE` of what
+    is available (`available` bytes, default now); return its `FitCost`. `path`:
+    `choose_path`'s answer (`"adjoint"` costs `adjoint_cost` of `n_samples` samples)."""
+    available = available_memory() if available is None else available
+    if path == "adjoint":
+        cost = adjoint_cost(n_states, n_free, n_samples)
+        if available is not None and cost.bytes > MEMORY_SHARE * available:
+            raise InputError(
+                f"fitting {n_free} free parameters of a {n_states}-state network by the "
+                f"adjoint path needs about {cost.bytes / 1e9:.1f} GB and "
+                f"{available / 1e9:.1f} GB are available. Fix the parameters known from "
+                "design (`{ value = ..., fixed = true }`), fit fewer or shorter runs, or "
+                "run on a machine with more memory.", file=source)
+        return cost
+    cost = fit_cost(n_states, n_free)
     if available is not None and cost.bytes > MEMORY_SHARE * available:
         raise InputError(
             f"fitting {n_free} free parameters of a {n_states}-state network needs about "

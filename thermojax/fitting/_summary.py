@@ -81,7 +81,14 @@ def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) ->
         n_evaluations=sol.n_evaluations, wall_time_s=time.perf_counter() - t_start, predictions=predictions,
         innovations=sol.innovations, theta=sol.theta, problem=sol.problem,
         lowered_as={target: (scale, power) for target, scale, power in renames.values()},
-        biases=biases)
+        biases=biases, method=sol.method or _DEFAULT_METHOD[likelihood])
+
+
+_DEFAULT_METHOD = {
+    "output_error": "forward sensitivities: the Jacobian formed, truncated Gauss-Newton "
+                    "steps",
+    "kalman": "Kalman likelihood: forward sensitivities of the filter, scoring steps",
+}
 
 
 def _bias_fits(prep: Prepared, sol: Solution, likelihood: str,
