@@ -1,0 +1,134 @@
+"""`thermojax design --model M --duration D --out DIR`: the chamber profile that best
+determines the model's parameters within the chamber's limits. Edges only; the work is
+`design/`."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .._errors import InputError
+from ._arguments import _add_force, _add_quiet, _positive_float, _positive_int, _resolve_model
+
+
+def _duration(text: str) -> float:
+    """A duration: seconds (`14400`), or with a unit `s`, `min` or `h` (`4h`, `90min`)."""
+    t = text.strip().lower()
+    for unit, scale in (("min", 60.0), ("h", 3600.0), ("s", 1.0)):
+        if t.endswith(unit):
+            t, factor = t[: -len(unit)].strip(), scale
+            break
+    else:
+        factor = 1.0
+    try:
+        value = float(t) * factor
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a duration such as 14400, 4h or 90min, "
+                                         f"got {text!r}") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a finite duration > 0, got {text!r}")
+    return value
+
+
+def _pair(text: str) -> tuple[float, float]:
+    """`LOW,HIGH`: two finite numbers."""
+    parts = text.split(",")
+    try:
+        lo, hi = (float(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LOW,HIGH (two numbers), got {text!r}"
+                                         ) from None
+    return lo, hi
+
+
+def cmd_design(args) -> int:
+    from .. import io
+    from ..design import ChamberLimits, design, write_design
+    from ._outputs import check_output_folder, staged_folder
+
+    out = Path(args.out)
+    check_output_folder(out, args.force)
+    model_path = _resolve_model(args.model)
+    spec = io.load_model(model_path)
+    limits = ChamberLimits(args.temperature_range, args.ramp_rate, args.power_range,
+                           args.start, args.start_power)
+    if args.criterion == "variance" and not args.parameter:
+        raise InputError("the variance criterion needs at least one --parameter NAME (a free "
+                         "parameter's dotted name, as fit's report.json names it).",
+                         field="--parameter")
+    if args.parameter and args.criterion != "variance":
+        raise InputError("--parameter names the parameters of the variance criterion; add "
+                         "--criterion variance.", field="--parameter")
+    result = design(spec, args.duration, limits=limits, dt=args.dt, criterion=args.criterion,
+                    parameters=args.parameter, n_starts=args.starts,
+                    temperature_segments=args.knots, power_segments=args.power_steps,
+                    noise=args.noise, progress=args.progress)
+    with staged_folder(out) as tmp:
+        report = write_design(result, tmp, str(args.model))
+    refs = list(report["references"])
+    print(f"{'parameter':<44} {'designed':>10} " + " ".join(f"{r:>12}" for r in refs))
+    for p, s in report["designed"]["stds"].items():
+        cells = [_pct(s["relative_std"])] + [
+            _pct(report["references"][r]["stds"][p]["relative_std"]) for r in refs]
+        print(f"{p:<44} {cells[0]:>10} " + " ".join(f"{c:>12}" for c in cells[1:]))
+    ratios = report["std_ratios"]
+    print("relative stds predicted at the stated noise; geometric mean of designed / "
+          "reference: " + ", ".join(
+              f"{r} {ratios[r]['geometric_mean']:.3g}" if ratios[r]["geometric_mean"]
+              is not None else f"{r} –" for r in refs))
+    print(f"wrote {out / 'profile.csv'}, {out / 'report.json'} and {out / 'report.md'}")
+    return 0
+
+
+def _pct(x) -> str:
+    return "–" if x is None else f"{100 * x:.3g} %"
+
+
+def add_design(sub) -> None:
+    p = sub.add_parser(
+        "design", help="design the chamber profile that best determines a model",
+        description="Design a chamber profile (chamber temperature through knots joined by "
+        "ramps, heat-input power in equal steps) that maximizes the Fisher information of "
+        "the model's free parameters within the chamber's limits: D-optimal by default, or "
+        "the variance of named parameters. Writes DIR/profile.csv (the model's input "
+        "columns: `simulate --profile` and a chamber controller read it), DIR/report.json "
+        "and DIR/report.md with each parameter's predicted std beside those of a PRBS and "
+        "of the calibration schedule compressed to the same length.")
+    p.add_argument("--model", required=True, help="model TOML file or built-in model name")
+    p.add_argument("--duration", required=True, type=_duration,
+                   help="profile length: seconds, or with a unit (4h, 90min)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--dt", type=_positive_float, default=1.0,
+                   help="sample period, s (default 1); the duration must be a whole number "
+                   "of them")
+    p.add_argument("--temperature-range", type=_pair, default=(-40.0, 85.0),
+                   metavar="LOW,HIGH", help="chamber temperature limits, °C (default -40,85)")
+    p.add_argument("--ramp-rate", type=_positive_float, default=10.0, metavar="C_PER_MIN",
+                   help="fastest chamber change, °C/min (default 10)")
+    p.add_argument("--power-range", type=_pair, default=(0.0, 1.0), metavar="LOW,HIGH",
+                   help="power limits of every heat input, W (default 0,1)")
+    p.add_argument("--start", type=float, default=25.0,
+                   help="chamber temperature at the start, °C; the unit starts at rest there "
+                   "(default 25)")
+    p.add_argument("--start-power", type=float, default=None,
+                   help="power over the first sample period, W (default the low power limit)")
+    p.add_argument("--criterion", choices=("d", "variance"), default="d",
+                   help="d (default): D-optimal, the joint confidence region of all free "
+                   "parameters as small as possible; variance: the variances of the "
+                   "parameters named by --parameter")
+    p.add_argument("--parameter", action="append", default=None, metavar="NAME",
+                   help="a free parameter's dotted name (nodes.pcb.capacitance) for "
+                   "--criterion variance; repeat for several")
+    p.add_argument("--noise", type=_positive_float, default=None,
+                   help="sensor noise std, °C, for every sensor (default each sensor's "
+                   "`noise`, 0.01 °C unset)")
+    p.add_argument("--knots", type=_positive_int, default=None,
+                   help="chamber ramps between equally spaced temperature knots (default one "
+                   "per 10 min)")
+    p.add_argument("--power-steps", type=_positive_int, default=None,
+                   help="power levels, equal in length (default one per minute)")
+    p.add_argument("--starts", type=_positive_int, default=4,
+                   help="searches from different schedules; the best is kept (default 4)")
+    _add_force(p, "an existing --out folder")
+    _add_quiet(p)
+    p.set_defaults(func=cmd_design)

@@ -1,0 +1,145 @@
+"""What `design` writes: the profile file a chamber and `simulate` read, and the report
+(JSON and Markdown): the criterion, and each parameter's predicted std beside those of the
+reference profiles of the same length."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .._json import json_safe
+from ..fitting._problem import _is_log
+from ._design import Design
+
+
+def parameter_values(design: Design) -> dict[str, float]:
+    """Each judged parameter's value at which the design is linearized (J/K, W/K, ...)."""
+    prob = design.problem
+    return {n: float(np.exp(t)) if _is_log(n) else float(t)
+            for n, t, nui in zip(prob.names, prob.theta, prob.nuisance) if not nui}
+
+
+def std_ratios(design: Design) -> dict[str, dict]:
+    """Per reference: the design's std over the reference's per parameter, and their
+    geometric mean over the parameters both determine (the D-criterion's own measure)."""
+    out = {}
+    for name, ref in design.references.items():
+        ratios = {}
+        for p, s in design.designed.stds.items():
+            r = ref.stds.get(p)
+            ratios[p] = None if s is None or r is None or r == 0 else s / r
+        finite = [v for v in ratios.values() if v is not None and v > 0]
+        gm = math.exp(sum(math.log(v) for v in finite) / len(finite)) if finite else None
+        out[name] = {"per_parameter": ratios, "geometric_mean": gm}
+    return out
+
+
+def design_report(design: Design, model: str) -> dict:
+    """The `report.json` of `thermojax design`."""
+    from .. import __version__
+
+    values = parameter_values(design)
+    judged = list(design.designed.stds)
+
+    def stds(ev):
+        return {p: {"relative_std": ev.stds[p],
+                    "std": None if ev.stds[p] is None else (
+                        ev.stds[p] * values[p] if _is_log(p) else ev.stds[p])}
+                for p in judged}
+
+    sch = design.schedule
+    return json_safe({
+        "schema": 1,
+        "thermojax_version": __version__,
+        "command": "design",
+        "model": model,
+        "profile": "profile.csv",
+        "duration_s": sch.duration_s,
+        "dt_s": sch.dt,
+        "limits": sch.limits.to_json(),
+        "criterion": {"kind": design.criterion, "parameters": design.targets,
+                      "prior_log_std": 1.0, "value": design.designed.loss},
+        "noise": design.noise,
+        "schedule": sch.describe(design.params),
+        "parameters": {p: {"value": values[p]} for p in judged},
+        "designed": {"criterion_value": design.designed.loss, "stds": stds(design.designed),
+                     "limits_kept": not design.designed.violations},
+        "references": {name: {"criterion_value": ev.loss, "stds": stds(ev),
+                              "limits_kept": not ev.violations, "violations": ev.violations}
+                       for name, ev in design.references.items()},
+        "std_ratios": std_ratios(design),
+        "search": {"starts": len(design.start_losses), "criterion_values": design.start_losses,
+                   "wall_time_s": design.wall_time_s},
+    })
+
+
+def write_design(design: Design, out: Path, model: str) -> dict:
+    """Write `profile.csv`, `report.json` and `report.md` into the folder `out`."""
+    from ..measurements._inputs import profile_inputs
+    from ..measurements._telemetry import write_telemetry
+
+    out = Path(out)
+    u = profile_inputs(design.spec, design.profile())
+    write_telemetry(out / "profile.csv", design.ts,
+                    {c: u[:, j] for j, c in enumerate(design.spec.input_columns)},
+                    comments=[f"designed by thermojax design for model '{design.spec.name}' "
+                              f"({model}): {design.criterion}-optimal, "
+                              f"{design.schedule.duration_s:g} s at {design.schedule.dt:g} s"])
+    report = design_report(design, model)
+    (out / "report.json").write_text(json.dumps(report, indent=2), encoding="utf-8")
+    (out / "report.md").write_text(markdown(report), encoding="utf-8")
+    return report
+
+
+def _pct(x) -> str:
+    return "–" if x is None else f"{100 * x:.3g} %"
+
+
+def markdown(report: dict) -> str:
+    """`report.md` from `report.json`'s content."""
+    lim = report["limits"]
+    crit = report["criterion"]
+    what = ("D-optimal: the volume of the parameters' joint confidence region, as small as "
+            "the limits allow" if crit["kind"] == "d" else
+            "the variance of " + ", ".join(crit["parameters"]) + ", as small as the limits allow")
+    refs = list(report["references"])
+    md = [f"# Experiment design for {report['model']}", "",
+          f"A chamber profile of {report['duration_s'] / 3600:.3g} h at {report['dt_s']:g} s "
+          f"samples (`{report['profile']}`, the model's input columns), within "
+          f"{lim['temperature_c'][0]:g}..{lim['temperature_c'][1]:g} °C, "
+          f"{lim['ramp_c_per_min']:g} °C/min and {lim['power_w'][0]:g}..{lim['power_w'][1]:g} W, "
+          f"starting at rest at {lim['start_c']:g} °C.", "",
+          f"Criterion: {what} (a prior of a factor e on every parameter keeps it finite); "
+          f"value {crit['value']:.6g} (lower is better), best of {report['search']['starts']} "
+          f"searches in {report['search']['wall_time_s']:.1f} s.",
+          "Sensor noise: " + ", ".join(f"{c} {s:g} °C" for c, s in report["noise"].items())
+          + ".", "",
+          "## Predicted standard errors (relative)", "",
+          "| parameter | value | designed | " + " | ".join(refs) + " | "
+          + " | ".join(f"designed / {r}" for r in refs) + " |",
+          "|---|---:|---:|" + "---:|" * (2 * len(refs))]
+    ratios = report["std_ratios"]
+    for p, v in report["parameters"].items():
+        row = [p, f"{v['value']:.4g}", _pct(report["designed"]["stds"][p]["relative_std"])]
+        row += [_pct(report["references"][r]["stds"][p]["relative_std"]) for r in refs]
+        row += ["–" if ratios[r]["per_parameter"][p] is None
+                else f"{ratios[r]['per_parameter'][p]:.3g}" for r in refs]
+        md.append("| " + " | ".join(row) + " |")
+    md += ["", "Geometric mean of the std ratios: " + ", ".join(
+        f"{r} {'–' if ratios[r]['geometric_mean'] is None else format(ratios[r]['geometric_mean'], '.3g')}"
+        for r in refs) + ".", "",
+        "References: `prbs`, 60 s bits of power between the power limits at the start "
+        "temperature; `calibration`, the packaged calibration schedule compressed in time to "
+        "the same length, the power at the middle of its limits."]
+    for r in refs:
+        if report["references"][r]["violations"]:
+            md.append(f"The `{r}` reference leaves the design's limits ("
+                      + "; ".join(report["references"][r]["violations"])
+                      + "), which can only favour it.")
+    md += ["", "The profile starts at rest; simulate it with `thermojax simulate --model M "
+           f"--profile {report['profile']} --noise --out run.csv`, then fit the run to see "
+           "the stds achieved."]
+    return "\n".join(md) + "\n"
