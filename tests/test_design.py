@@ -189,7 +189,7 @@ def test_design_refuses_bad_requests(capsys, tmp_path):
                          "--out", tmp_path / "a", "--temperature-range", "50,20")
     assert_refused(rc, err, "--temperature-range", "LOW < HIGH")
     rc, _, err = run_cli(capsys, "design", "--model", CHAIN3, "--duration", "1h",
-                         "--out", tmp_path / "a", "--temperature-range", "-80,20")
+                         "--out", tmp_path / "a", "--temperature-range=-80,20")
     assert_refused(rc, err, "envelope")
     rc, _, err = run_cli(capsys, "design", "--model", CHAIN3, "--duration", "1h",
                          "--out", tmp_path / "a", "--criterion", "variance")

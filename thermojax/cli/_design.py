@@ -102,7 +102,8 @@ def add_design(sub) -> None:
                    help="sample period, s (default 1); the duration must be a whole number "
                    "of them")
     p.add_argument("--temperature-range", type=_pair, default=(-40.0, 85.0),
-                   metavar="LOW,HIGH", help="chamber temperature limits, °C (default -40,85)")
+                   metavar="LOW,HIGH", help="chamber temperature limits, °C (default -40,85; a "
+                   "negative LOW is written --temperature-range=-40,85)")
     p.add_argument("--ramp-rate", type=_positive_float, default=10.0, metavar="C_PER_MIN",
                    help="fastest chamber change, °C/min (default 10)")
     p.add_argument("--power-range", type=_pair, default=(0.0, 1.0), metavar="LOW,HIGH",
