@@ -59,8 +59,10 @@ def cmd_design(args) -> int:
     if args.parameter and args.criterion != "variance":
         raise InputError("--parameter names the parameters of the variance criterion; add "
                          "--criterion variance.", field="--parameter")
+    if args.rivals:
+        return _discriminate(args, spec, limits, out)
     result = design(spec, args.duration, limits=limits, dt=args.dt, criterion=args.criterion,
-                    parameters=args.parameter, n_starts=args.starts,
+                    parameters=args.parameter, n_starts=args.starts or 4,
                     temperature_segments=args.knots, power_segments=args.power_steps,
                     noise=args.noise, progress=args.progress)
     with staged_folder(out) as tmp:
@@ -80,6 +82,41 @@ def cmd_design(args) -> int:
     return 0
 
 
+def _discriminate(args, spec, limits, out) -> int:
+    from .. import io
+    from ..design._discrimination import discriminate
+    from ..design._report import write_discrimination
+    from ._outputs import staged_folder
+
+    if args.criterion != "d" or args.parameter:
+        raise InputError("--rivals designs to tell models apart; --criterion and --parameter "
+                         "are for a design of one model's parameters.", field="--rivals")
+    specs = [(Path(str(args.model)).stem, spec)]
+    for r in args.rivals:
+        rival = io.load_model(_resolve_model(r))
+        name = Path(r).stem
+        while name in [n for n, _ in specs]:
+            name += "'"
+        specs.append((name, rival))
+    result = discriminate(specs, args.duration, limits=limits, dt=args.dt,
+                          n_starts=args.starts or 1, temperature_segments=args.knots,
+                          power_segments=args.power_steps, noise=args.noise,
+                          progress=args.progress)
+    with staged_folder(out) as tmp:
+        report = write_discrimination(result, spec, tmp, str(args.model))
+    print(f"{'true':<16} {'refitted':<16} {'profile':<12} {'2 log LR':>12} {'P(decisive)':>12}")
+    rows = [("designed", report["designed"]["pairs"])] + [
+        (n, r["pairs"]) for n, r in report["references"].items()]
+    for name, pairs in rows:
+        for p in pairs:
+            print(f"{p['true']:<16} {p['refitted']:<16} {name:<12} "
+                  f"{p['expected_2log_lr']:>12.4g} {p['p_decisive']:>12.3f}")
+    print("expected log-likelihood-ratio statistic of one run at the stated noise, the "
+          "refitted model's parameters free; decisive: a likelihood ratio over 100")
+    print(f"wrote {out / 'profile.csv'}, {out / 'report.json'} and {out / 'report.md'}")
+    return 0
+
+
 def _pct(x) -> str:
     return "–" if x is None else f"{100 * x:.3g} %"
 
@@ -93,7 +130,10 @@ def add_design(sub) -> None:
         "the variance of named parameters. Writes DIR/profile.csv (the model's input "
         "columns: `simulate --profile` and a chamber controller read it), DIR/report.json "
         "and DIR/report.md with each parameter's predicted std beside those of a PRBS and "
-        "of the calibration schedule compressed to the same length.")
+        "of the calibration schedule compressed to the same length. With --rivals, the "
+        "profile instead maximizes the expected log-likelihood ratio between the model and "
+        "its rivals, each refitted to the others' readings, and the report gives that ratio "
+        "and the probability that one run decides.")
     p.add_argument("--model", required=True, help="model TOML file or built-in model name")
     p.add_argument("--duration", required=True, type=_duration,
                    help="profile length: seconds, or with a unit (4h, 90min)")
@@ -120,6 +160,10 @@ def add_design(sub) -> None:
     p.add_argument("--parameter", action="append", default=None, metavar="NAME",
                    help="a free parameter's dotted name (nodes.pcb.capacitance) for "
                    "--criterion variance; repeat for several")
+    p.add_argument("--rivals", nargs="+", default=None, metavar="R.toml",
+                   help="rival model files (or built-in names) reading the same sensors: "
+                   "design the profile that best tells --model and them apart instead, each "
+                   "refitted to the others' readings")
     p.add_argument("--noise", type=_positive_float, default=None,
                    help="sensor noise std, °C, for every sensor (default each sensor's "
                    "`noise`, 0.01 °C unset)")
@@ -128,8 +172,9 @@ def add_design(sub) -> None:
                    "per 10 min)")
     p.add_argument("--power-steps", type=_positive_int, default=None,
                    help="power levels, equal in length (default one per minute)")
-    p.add_argument("--starts", type=_positive_int, default=4,
-                   help="searches from different schedules; the best is kept (default 4)")
+    p.add_argument("--starts", type=_positive_int, default=None,
+                   help="searches from different schedules; the best is kept (default 4, "
+                   "with --rivals 1)")
     _add_force(p, "an existing --out folder")
     _add_quiet(p)
     p.set_defaults(func=cmd_design)

@@ -73,6 +73,8 @@ class Design:
     noise: dict[str, float]
     wall_time_s: float
     problem: InformationProblem = field(repr=False, default=None)
+    n_iterations: int = 0  # L-BFGS-B iterations, all starts together
+    n_evaluations: int = 0  # criterion and gradient evaluations, all starts together
 
     @property
     def ts(self) -> np.ndarray:
@@ -143,7 +145,7 @@ def design(spec: ModelSpec, duration_s: float, *, limits: ChamberLimits | None =
     rng = np.random.default_rng(seed)
     n = schedule.n_parameters
     starts = [np.zeros(n)] + [rng.normal(0.0, 2.0, n) for _ in range(max(n_starts, 1) - 1)]
-    ends = []
+    ends, n_it, n_ev = [], 0, 0
     for i, z0 in enumerate(starts):
         say(f"search {i + 1}/{len(starts)} over {n} schedule numbers")
         if n == 0:
@@ -153,6 +155,7 @@ def design(spec: ModelSpec, duration_s: float, *, limits: ChamberLimits | None =
                                       bounds=[(-_Z_BOUND, _Z_BOUND)] * n,
                                       options={"maxiter": max_steps})
         ends.append((float(res.fun), np.asarray(res.x)))
+        n_it, n_ev = n_it + int(res.nit), n_ev + int(res.nfev)
     ends.sort(key=lambda e: e[0])
     best_loss, best = ends[0]
     wall = time.perf_counter() - t0
@@ -178,7 +181,7 @@ def design(spec: ModelSpec, duration_s: float, *, limits: ChamberLimits | None =
     noise_by_column = dict(zip(problem.spec.sensor_columns, problem.sigma.tolist()))
     return Design(spec, schedule, best, T, P, criterion,
                   [judged[i] for i in targets] if targets is not None else [], designed, refs,
-                  [e[0] for e in ends], noise_by_column, wall, problem)
+                  [e[0] for e in ends], noise_by_column, wall, problem, n_it, n_ev)
 
 
 def _evaluate_reference(spec, schedule, T, P, noise, criterion, targets) -> Evaluated:

@@ -143,3 +143,73 @@ def markdown(report: dict) -> str:
            f"--profile {report['profile']} --noise --out run.csv`, then fit the run to see "
            "the stds achieved."]
     return "\n".join(md) + "\n"
+
+
+def discrimination_report(disc, model: str) -> dict:
+    """The `report.json` of `thermojax design --rivals`."""
+    from .. import __version__
+    from ._discrimination import DECISIVE
+
+    sch = disc.schedule
+
+    def pairs(p):
+        return [{"true": a, "refitted": b, **v} for (a, b), v in p.items()]
+
+    return json_safe({
+        "schema": 1,
+        "thermojax_version": __version__,
+        "command": "design",
+        "model": model,
+        "profile": "profile.csv",
+        "duration_s": sch.duration_s,
+        "dt_s": sch.dt,
+        "limits": sch.limits.to_json(),
+        "criterion": {"kind": "discrimination", "hypotheses": disc.names,
+                      "decisive_2log_lr": DECISIVE},
+        "noise": dict(zip(disc.columns, disc.sigma.tolist())),
+        "schedule": sch.describe(disc.params),
+        "designed": {"pairs": pairs(disc.pairs), "limits_kept": not disc.violations},
+        "references": {name: {"pairs": pairs(p)} for name, p in disc.references.items()},
+        "search": {"wall_time_s": disc.wall_time_s},
+    })
+
+
+def write_discrimination(disc, spec, out: Path, model: str) -> dict:
+    """Write `profile.csv`, `report.json` and `report.md` of a discriminating design."""
+    from ..measurements._inputs import profile_inputs
+    from ..measurements._profiles import Profile
+    from ..measurements._telemetry import write_telemetry
+
+    out = Path(out)
+    u = profile_inputs(spec, Profile(ts=disc.ts, temperature=disc.temperature, power=disc.power))
+    write_telemetry(out / "profile.csv", disc.ts,
+                    {c: u[:, j] for j, c in enumerate(spec.input_columns)},
+                    comments=[f"designed by thermojax design to tell apart "
+                              f"{', '.join(disc.names)}: {disc.schedule.duration_s:g} s at "
+                              f"{disc.schedule.dt:g} s"])
+    report = discrimination_report(disc, model)
+    (out / "report.json").write_text(json.dumps(report, indent=2), encoding="utf-8")
+    lim = report["limits"]
+    md = [f"# A profile that tells {', '.join(f'`{n}`' for n in disc.names)} apart", "",
+          f"{report['duration_s'] / 3600:.3g} h at {report['dt_s']:g} s samples "
+          f"(`profile.csv`), within {lim['temperature_c'][0]:g}..{lim['temperature_c'][1]:g} °C, "
+          f"{lim['ramp_c_per_min']:g} °C/min and {lim['power_w'][0]:g}..{lim['power_w'][1]:g} W.",
+          "",
+          "For each model taken as true, the other is refitted to its readings (its "
+          "parameters and starts), so a difference its parameters can absorb does not count. "
+          "`2 log LR` is the expected log-likelihood-ratio statistic of one run at the stated "
+          "noise (" + ", ".join(f"{c} {s:g} °C" for c, s in report["noise"].items())
+          + f"); a run is decisive when it exceeds {report['criterion']['decisive_2log_lr']:.3g} "
+          "(a likelihood ratio of 100), with the probability shown.", "",
+          "| true | refitted | profile | expected 2 log LR | P(decisive) |",
+          "|---|---|---|---:|---:|"]
+    rows = [("designed", report["designed"]["pairs"])] + [
+        (name, r["pairs"]) for name, r in report["references"].items()]
+    for name, ps in rows:
+        for p in ps:
+            md.append(f"| {p['true']} | {p['refitted']} | {name} | "
+                      f"{p['expected_2log_lr']:.4g} | {p['p_decisive']:.3f} |")
+    md += ["", "Run it (`thermojax simulate --profile profile.csv`, or the chamber), then fit "
+           "each model to the run: the one with the lower −log L is chosen."]
+    (out / "report.md").write_text("\n".join(md) + "\n", encoding="utf-8")
+    return report
