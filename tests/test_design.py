@@ -206,3 +206,43 @@ def test_design_refuses_bad_requests(capsys, tmp_path):
                          "--start", "30", "--temperature-range", "0,20", "--out", tmp_path / "a")
     assert_refused(rc, err, "--start")
     assert not (tmp_path / "a").exists()
+
+
+def test_shortest_profile_for_a_target_std():
+    from thermojax.design._target import shortest_design
+
+    spec = load_model(CHAIN3)
+    name = "nodes.pcb.capacitance"
+    target = 0.008  # twice what 1800 s of designed profile predicts (0.42 %)
+    search = shortest_design(spec, 1800.0, {name: target}, dt=10.0, steps=4, n_starts=1,
+                             references=())
+    assert search.met, search.tried
+    length = search.design.schedule.duration_s
+    assert search.design.designed.stds[name] <= target
+    tried = {d: m for d, m, _ in search.tried}
+    assert tried[length] and length == min(d for d, m in tried.items() if m)
+    shorter = [d for d in tried if d < length]
+    # bisection stopped at the first length that meets it: one shorter one was tried and missed
+    assert length == 450.0 or (shorter and not tried[max(shorter)])
+    # and a target no length reaches is reported as missed, with the longest profile
+    miss = shortest_design(spec, 900.0, {name: 1e-6}, dt=10.0, steps=2, n_starts=1,
+                           references=())
+    assert not miss.met and miss.design.schedule.duration_s == 900.0
+
+
+def test_design_command_writes_its_folder(capsys, tmp_path):
+    out = tmp_path / "designed"
+    rc, stdout, err = run_cli(capsys, "design", "--model", CHAIN3, "--duration", "10min",
+                              "--dt", "10", "--starts", "1", "--power-range", "0,0.5",
+                              "--out", out, "--quiet")
+    assert rc == 0, err
+    report = json.loads((out / "report.json").read_text())
+    assert report["limits"]["power_w"] == [0.0, 0.5] and report["duration_s"] == 600.0
+    assert (out / ".thermojax").exists() and (out / "report.md").exists()
+    rows = np.loadtxt(out / "profile.csv", delimiter=",", comments="#", skiprows=2)
+    assert rows.shape == (61, 3) and rows[:, 2].max() <= 0.5
+    assert "nodes.pcb.capacitance" in stdout and "geometric mean" in stdout
+    # its own folder is replaced on a second run without --force
+    rc, _, err = run_cli(capsys, "design", "--model", CHAIN3, "--duration", "600", "--dt", "10",
+                         "--starts", "1", "--out", out, "--quiet")
+    assert rc == 0, err

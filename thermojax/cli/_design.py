@@ -52,6 +52,9 @@ def cmd_design(args) -> int:
     spec = io.load_model(model_path)
     limits = ChamberLimits(args.temperature_range, args.ramp_rate, args.power_range,
                            args.start, args.start_power)
+    if args.target_std:
+        return _shortest(args, spec, limits, out)
+    args.criterion = args.criterion or "d"
     if args.criterion == "variance" and not args.parameter:
         raise InputError("the variance criterion needs at least one --parameter NAME (a free "
                          "parameter's dotted name, as fit's report.json names it).",
@@ -82,13 +85,59 @@ def cmd_design(args) -> int:
     return 0
 
 
+def _target(text: str) -> tuple[str, float]:
+    """`NAME=STD`: a relative std as a fraction (0.01) or a percentage (1%)."""
+    name, sep, value = text.partition("=")
+    if not sep or not name.strip():
+        raise argparse.ArgumentTypeError(f"expected NAME=STD (nodes.pcb.capacitance=1%), got "
+                                         f"{text!r}")
+    v = value.strip()
+    try:
+        std = float(v[:-1]) / 100.0 if v.endswith("%") else float(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a relative std such as 0.01 or 1%, got "
+                                         f"{value!r}") from None
+    if not (std > 0 and std < float("inf")):
+        raise argparse.ArgumentTypeError(f"the target std must be > 0, got {value!r}")
+    return name.strip(), std
+
+
+def _shortest(args, spec, limits, out) -> int:
+    from ..design import write_design
+    from ..design._target import shortest_design
+    from ._outputs import staged_folder
+
+    if args.parameter:
+        raise InputError("--target-std names its own parameters; drop --parameter.",
+                         field="--parameter")
+    search = shortest_design(spec, args.duration, dict(args.target_std), dt=args.dt,
+                             criterion=args.criterion, limits=limits,
+                             n_starts=args.starts or 4, temperature_segments=args.knots,
+                             power_segments=args.power_steps, noise=args.noise,
+                             progress=args.progress)
+    with staged_folder(out) as tmp:
+        write_design(search.design, tmp, str(args.model), target=search)
+    for length, met, stds in search.tried:
+        print(f"{length:>10g} s  {'meets' if met else 'misses'} the targets: " + ", ".join(
+            f"{n} {_pct(s)}" for n, s in stds.items()))
+    d = search.design.schedule.duration_s
+    print(f"shortest length meeting the targets: {d:g} s" if search.met else
+          f"the targets are not met even at {d:g} s, the longest allowed (--duration); the "
+          "profile of that length is written")
+    print(f"wrote {out / 'profile.csv'}, {out / 'report.json'} and {out / 'report.md'}")
+    return 0
+
+
 def _discriminate(args, spec, limits, out) -> int:
     from .. import io
     from ..design._discrimination import discriminate
     from ..design._report import write_discrimination
     from ._outputs import staged_folder
 
-    if args.criterion != "d" or args.parameter:
+    if args.target_std:
+        raise InputError("--target-std asks for one model's parameters; --rivals for telling "
+                         "models apart: give one of them.", field="--target-std")
+    if args.criterion not in (None, "d") or args.parameter:
         raise InputError("--rivals designs to tell models apart; --criterion and --parameter "
                          "are for a design of one model's parameters.", field="--rivals")
     specs = [(Path(str(args.model)).stem, spec)]
@@ -153,13 +202,18 @@ def add_design(sub) -> None:
                    "(default 25)")
     p.add_argument("--start-power", type=float, default=None,
                    help="power over the first sample period, W (default the low power limit)")
-    p.add_argument("--criterion", choices=("d", "variance"), default="d",
+    p.add_argument("--criterion", choices=("d", "variance"), default=None,
                    help="d (default): D-optimal, the joint confidence region of all free "
                    "parameters as small as possible; variance: the variances of the "
-                   "parameters named by --parameter")
+                   "parameters named by --parameter (the default with --target-std)")
     p.add_argument("--parameter", action="append", default=None, metavar="NAME",
                    help="a free parameter's dotted name (nodes.pcb.capacitance) for "
                    "--criterion variance; repeat for several")
+    p.add_argument("--target-std", action="append", type=_target, default=None,
+                   metavar="NAME=STD",
+                   help="find the shortest profile, up to --duration, whose predicted "
+                   "relative std of the named parameter is at most STD (0.01 or 1%%); repeat "
+                   "for several")
     p.add_argument("--rivals", nargs="+", default=None, metavar="R.toml",
                    help="rival model files (or built-in names) reading the same sensors: "
                    "design the profile that best tells --model and them apart instead, each "

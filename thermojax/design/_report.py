@@ -76,8 +76,9 @@ def design_report(design: Design, model: str) -> dict:
     })
 
 
-def write_design(design: Design, out: Path, model: str) -> dict:
-    """Write `profile.csv`, `report.json` and `report.md` into the folder `out`."""
+def write_design(design: Design, out: Path, model: str, target=None) -> dict:
+    """Write `profile.csv`, `report.json` and `report.md` into the folder `out`; `target`:
+    the `TargetSearch` that chose the length, when one did."""
     from ..measurements._inputs import profile_inputs
     from ..measurements._telemetry import write_telemetry
 
@@ -89,6 +90,11 @@ def write_design(design: Design, out: Path, model: str) -> dict:
                               f"({model}): {design.criterion}-optimal, "
                               f"{design.schedule.duration_s:g} s at {design.schedule.dt:g} s"])
     report = design_report(design, model)
+    if target is not None:
+        report["target"] = json_safe({
+            "relative_stds": target.targets, "met": target.met,
+            "tried": [{"duration_s": d, "met": m, "relative_stds": s}
+                      for d, m, s in target.tried]})
     (out / "report.json").write_text(json.dumps(report, indent=2), encoding="utf-8")
     (out / "report.md").write_text(markdown(report), encoding="utf-8")
     return report
@@ -139,6 +145,20 @@ def markdown(report: dict) -> str:
             md.append(f"The `{r}` reference leaves the design's limits ("
                       + "; ".join(report["references"][r]["violations"])
                       + "), which can only favour it.")
+    if "target" in report:
+        t = report["target"]
+        wanted = ", ".join(f"{n} {_pct(v)}" for n, v in t["relative_stds"].items())
+        md += ["", "## Shortest length for the target stds", "",
+               (f"Targets {wanted}: met at {report['duration_s']:g} s, the shortest length "
+                "tried that meets them." if t["met"] else
+                f"Targets {wanted}: not met even at {report['duration_s']:g} s, the longest "
+                "allowed; the profile of that length is written."), "",
+               "| length, s | met | " + " | ".join(t["relative_stds"]) + " |",
+               "|---:|---|" + "---:|" * len(t["relative_stds"])]
+        for row in t["tried"]:
+            md.append(f"| {row['duration_s']:g} | {'yes' if row['met'] else 'no'} | "
+                      + " | ".join(_pct(row["relative_stds"][n]) for n in t["relative_stds"])
+                      + " |")
     md += ["", "The profile starts at rest; simulate it with `thermojax simulate --model M "
            f"--profile {report['profile']} --noise --out run.csv`, then fit the run to see "
            "the stds achieved."]
