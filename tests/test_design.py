@@ -110,7 +110,7 @@ def test_information_matches_finite_differences_of_an_independent_simulator():
     T, P = (np.asarray(a) for a in sch.sampled(jnp.asarray(z)))
     prob = information_problem(spec, sch.ts, lim.start_c, lim.start_power_w)
     F = np.asarray(prob.information(prob.inputs(jnp.asarray(T), jnp.asarray(P))))
-    predicted = predicted_stds(F, prob)
+    predicted, _ = predicted_stds(F, prob)
     want, _ = _truth_information(CHAIN3, sch.ts, T, P, 0.01)
     got = np.array(list(predicted.values()))
     # central differences of step 1e-5 in the log: truncation ~1e-10, roundoff ~1e-9
@@ -246,3 +246,27 @@ def test_design_command_writes_its_folder(capsys, tmp_path):
     rc, _, err = run_cli(capsys, "design", "--model", CHAIN3, "--duration", "600", "--dt", "10",
                          "--starts", "1", "--out", out, "--quiet")
     assert rc == 0, err
+
+
+def test_effect_parameters_by_their_own_names_and_undetermined_ones_said(tmp_path):
+    base = CHAIN3.read_text()
+    lag = load_model_text(base + '\n[[effects]]\nkind = "sensor_lag"\nwhere = ["T_die"]\n'
+                          'time_constant = 8.0\n', tmp_path / "lag.toml")
+    name = "effects.sensor_lag.T_die.time_constant"
+    d = design(lag, 600.0, dt=10.0, criterion="variance", parameters=[name], n_starts=1,
+               references=("prbs",))
+    assert name in d.designed.stds and d.designed.stds[name] is not None
+    report = write_design(d, tmp_path, "lag")
+    assert report["parameters"][name]["value"] == pytest.approx(8.0, rel=1e-9)
+    s = report["designed"]["stds"][name]
+    assert s["std"] == pytest.approx(8.0 * s["relative_std"], rel=1e-9)
+    # without power the common scale of every C and G is left open: said, not a number
+    rtd2 = load_model(ROOT / "thermojax" / "data" / "rtd2.toml")
+    d = design(rtd2, 600.0, dt=10.0, n_starts=1, references=())
+    assert all(v is None for v in d.designed.stds.values())
+    assert d.designed.undetermined and "heat input" in " ".join(d.designed.undetermined)
+
+
+def load_model_text(text, path):
+    path.write_text(text)
+    return load_model(path)

@@ -45,6 +45,7 @@ class Evaluated:
     loss: float
     stds: dict[str, float | None]
     violations: list[str] = field(default_factory=list)
+    undetermined: list[str] = field(default_factory=list)  # what is not determined, and why
 
 
 @dataclass
@@ -123,7 +124,7 @@ def design(spec: ModelSpec, duration_s: float, *, limits: ChamberLimits | None =
     say("linearizing the model over the profile's samples (compiles the sensitivities)")
     problem = information_problem(spec, schedule.ts, limits.start_c, limits.start_power_w,
                                   noise)
-    judged = [n for n, nui in zip(problem.names, problem.nuisance) if not nui]
+    judged = problem.judged
     targets = target_indices(judged, parameters, criterion, spec.source)
 
     def loss_of_inputs(u):
@@ -167,7 +168,8 @@ def design(spec: ModelSpec, duration_s: float, *, limits: ChamberLimits | None =
         u = problem.inputs(jnp.asarray(T), jnp.asarray(P))
         F = np.asarray(judge(u))
         value = float(loss_of_inputs(u))
-        return Evaluated(value, predicted_stds(F, problem), limits.violations(schedule.ts, T, P))
+        stds, why = predicted_stds(F, problem)
+        return Evaluated(value, stds, limits.violations(schedule.ts, T, P), why)
 
     designed = evaluate(T, P)
     refs = {}
@@ -191,5 +193,5 @@ def _evaluate_reference(spec, schedule, T, P, noise, criterion, targets) -> Eval
     u = prob.inputs(jnp.asarray(T), jnp.asarray(P))
     F = jax.jit(prob.information)(u)
     loss = criterion_loss(marginal_information(F, prob.nuisance), criterion, targets)
-    return Evaluated(float(loss), predicted_stds(np.asarray(F), prob),
-                     schedule.limits.violations(schedule.ts, T, P))
+    stds, why = predicted_stds(np.asarray(F), prob)
+    return Evaluated(float(loss), stds, schedule.limits.violations(schedule.ts, T, P), why)

@@ -59,6 +59,15 @@ class InformationProblem:
     dz0: jax.Array
     doffset: jax.Array
     chamber: tuple[bool, ...]
+    # lowered name -> (effect parameter's name, scale, power): value = scale * lowered ** power
+    renames: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def judged(self) -> list[str]:
+        """The judged parameters' names as a model file and `fit`'s report give them (an
+        effect's parameter by its own name, not its lowered entry's)."""
+        return [self.renames.get(n, (n,))[0] for n, nui in zip(self.names, self.nuisance)
+                if not nui]
 
     def inputs(self, temperature, power):
         """The input matrix (times, inputs) of a chamber temperature (times,), °C, and
@@ -106,6 +115,7 @@ class Prepared:
     data: object
     sigma: np.ndarray
     chamber: tuple[bool, ...]
+    renames: dict = dataclasses.field(default_factory=dict)
 
     def inputs(self, temperature, power):
         """The input matrix (times, inputs) of a chamber temperature and a power (times,)."""
@@ -169,7 +179,7 @@ def prepare_profiles(spec: ModelSpec, ts: np.ndarray, start_c: float, start_powe
     chamber = tuple(c in lowered_boundary for c in prep.spec.input_columns)
     theta = np.asarray(free_parameters(prep.template, prep.index))
     return Prepared(prep.spec, tuple(prep.names), prep.template, prep.index, theta, prep.data,
-                    sigma, chamber)
+                    sigma, chamber, prep.lowered.renames())
 
 
 def information_problem(spec: ModelSpec, ts: np.ndarray, start_c: float, start_power_w: float,
@@ -179,7 +189,7 @@ def information_problem(spec: ModelSpec, ts: np.ndarray, start_c: float, start_p
     (maps, z0, offset), (dmaps, dz0, doffset) = _tangent_maps(jnp.asarray(p.theta), p.template,
                                                               p.index, p.data)
     return InformationProblem(p.spec, p.names, p.sigma, len(ts), p.theta, maps, z0, dmaps, dz0,
-                              doffset, p.chamber)
+                              doffset, p.chamber, p.renames)
 
 
 def _tangent_maps(theta, template, index, data):
@@ -215,14 +225,19 @@ def marginal_information(F, nuisance: np.ndarray):
     return F_ll - (F_ln / d[None, :]) @ X
 
 
-def predicted_stds(F: np.ndarray, problem: InformationProblem) -> dict[str, float | None]:
+def predicted_stds(F: np.ndarray, problem: InformationProblem
+                   ) -> tuple[dict[str, float | None], list[str]]:
     """Each judged parameter's predicted std, in the fit's units (relative for logs of
     positive parameters), by the fit's own identifiability analysis (None where a
-    direction is not determined)."""
+    direction is not determined), by the names `fit` reports; and that analysis's
+    messages saying what is undetermined and why."""
     from ..fitting._identifiability import identifiability
 
     ident = identifiability(np.asarray(F), list(problem.names), problem.spec)
-    return {n: (float(s) if np.isfinite(s) else None)
-            for n, s, nui in zip(problem.names, ident.stds, problem.nuisance) if not nui}
-
-
+    out = {}
+    for n, s, nui in zip(problem.names, ident.stds, problem.nuisance):
+        if nui:
+            continue
+        target, _, power = problem.renames.get(n, (n, 1.0, 1.0))
+        out[target] = float(abs(power) * s) if np.isfinite(s) else None
+    return out, [m for m in ident.messages if ".initial " not in m]

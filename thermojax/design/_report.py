@@ -16,10 +16,25 @@ from ._design import Design
 
 
 def parameter_values(design: Design) -> dict[str, float]:
-    """Each judged parameter's value at which the design is linearized (J/K, W/K, ...)."""
+    """Each judged parameter's value at which the design is linearized (J/K, W/K, s, ...),
+    by the names `fit` reports (an effect's parameter by its own name)."""
     prob = design.problem
-    return {n: float(np.exp(t)) if _is_log(n) else float(t)
-            for n, t, nui in zip(prob.names, prob.theta, prob.nuisance) if not nui}
+    out = {}
+    for n, t, nui in zip(prob.names, prob.theta, prob.nuisance):
+        if nui:
+            continue
+        v = float(np.exp(t)) if _is_log(n) else float(t)
+        target, scale, power = prob.renames.get(n, (n, 1.0, 1.0))
+        out[target] = scale * v ** power
+    return out
+
+
+def _positive(design: Design) -> dict[str, bool]:
+    """Whether each judged parameter (by its reported name) is a log in the search (its std
+    relative)."""
+    prob = design.problem
+    return {prob.renames.get(n, (n,))[0]: _is_log(n)
+            for n, nui in zip(prob.names, prob.nuisance) if not nui}
 
 
 def std_ratios(design: Design) -> dict[str, dict]:
@@ -42,12 +57,13 @@ def design_report(design: Design, model: str) -> dict:
     from .. import __version__
 
     values = parameter_values(design)
+    positive = _positive(design)
     judged = list(design.designed.stds)
 
     def stds(ev):
         return {p: {"relative_std": ev.stds[p],
                     "std": None if ev.stds[p] is None else (
-                        ev.stds[p] * values[p] if _is_log(p) else ev.stds[p])}
+                        ev.stds[p] * abs(values[p]) if positive[p] else ev.stds[p])}
                 for p in judged}
 
     sch = design.schedule
@@ -66,9 +82,11 @@ def design_report(design: Design, model: str) -> dict:
         "schedule": sch.describe(design.params),
         "parameters": {p: {"value": values[p]} for p in judged},
         "designed": {"criterion_value": design.designed.loss, "stds": stds(design.designed),
-                     "limits_kept": not design.designed.violations},
+                     "limits_kept": not design.designed.violations,
+                     "undetermined": design.designed.undetermined},
         "references": {name: {"criterion_value": ev.loss, "stds": stds(ev),
-                              "limits_kept": not ev.violations, "violations": ev.violations}
+                              "limits_kept": not ev.violations, "violations": ev.violations,
+                              "undetermined": ev.undetermined}
                        for name, ev in design.references.items()},
         "std_ratios": std_ratios(design),
         "search": {"starts": len(design.start_losses), "criterion_values": design.start_losses,
@@ -140,6 +158,9 @@ def markdown(report: dict) -> str:
         "References: `prbs`, 60 s bits of power between the power limits at the start "
         "temperature; `calibration`, the packaged calibration schedule compressed in time to "
         "the same length, the power at the middle of its limits."]
+    if report["designed"]["undetermined"]:
+        md += ["", "Not determined by the designed profile (`–`), as `fit` would report it:", ""]
+        md += [f"- {m}" for m in report["designed"]["undetermined"]]
     for r in refs:
         if report["references"][r]["violations"]:
             md.append(f"The `{r}` reference leaves the design's limits ("
