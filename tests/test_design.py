@@ -270,3 +270,21 @@ def test_effect_parameters_by_their_own_names_and_undetermined_ones_said(tmp_pat
 def load_model_text(text, path):
     path.write_text(text)
     return load_model(path)
+
+
+def test_chamber_settling_is_a_first_order_lag_of_the_setpoint():
+    import scipy.signal
+
+    lim = ChamberLimits(ramp_c_per_min=5.0, settling_s=90.0)
+    sch = ProfileSchedule(3600.0, 5.0, lim, temperature_segments=6, power_segments=4)
+    for z in (np.random.default_rng(1).normal(0, 1.5, sch.n_parameters),
+              np.full(sch.n_parameters, 20.0)):
+        z = jnp.asarray(z)
+        setpoint = np.asarray(sch.setpoint(z))
+        air, _ = (np.asarray(a) for a in sch.sampled(z))
+        # lsim interpolates the input linearly between samples: exact for the setpoint
+        _, want, _ = scipy.signal.lsim(([1.0], [90.0, 1.0]), setpoint, sch.ts,
+                                       X0=[setpoint[0] * 90.0])
+        np.testing.assert_allclose(air, want, atol=1e-9)  # float64 roundoff
+        _limits_kept(lim, sch.ts, air, np.zeros_like(air))
+        assert np.max(np.abs(air - setpoint)) > 1.0  # the lag is there

@@ -51,7 +51,7 @@ def cmd_design(args) -> int:
     model_path = _resolve_model(args.model)
     spec = io.load_model(model_path)
     limits = ChamberLimits(args.temperature_range, args.ramp_rate, args.power_range,
-                           args.start, args.start_power)
+                           args.start, args.start_power, args.chamber_settling)
     if args.target_std:
         return _shortest(args, spec, limits, out)
     args.criterion = args.criterion or "d"
@@ -197,6 +197,10 @@ def add_design(sub) -> None:
                    help="fastest chamber change, °C/min (default 10)")
     p.add_argument("--power-range", type=_pair, default=(0.0, 1.0), metavar="LOW,HIGH",
                    help="power limits of every heat input, W (default 0,1)")
+    p.add_argument("--chamber-settling", type=float, default=0.0, metavar="S",
+                   help="the chamber's own time constant, s: the air follows the programmed "
+                   "setpoint through a first-order lag (default 0: the air is the setpoint); "
+                   "profile.csv holds the air, the report the setpoints")
     p.add_argument("--start", type=float, default=25.0,
                    help="chamber temperature at the start, °C; the unit starts at rest there "
                    "(default 25)")

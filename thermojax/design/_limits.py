@@ -24,6 +24,8 @@ class ChamberLimits:
       the unit starts at rest there.
     - `start_power_w`: power over the first sample period, W (inside `power_w`; default
       `power_w[0]`).
+    - `settling_s`: the chamber's own time constant, s (>= 0): the air follows the
+      programmed setpoint through a first-order lag (0: the air is the setpoint).
     """
 
     temperature_c: tuple[float, float] = (-40.0, 85.0)
@@ -31,6 +33,7 @@ class ChamberLimits:
     power_w: tuple[float, float] = (0.0, 1.0)
     start_c: float = 25.0
     start_power_w: float | None = None
+    settling_s: float = 0.0
 
     def __post_init__(self):
         lo, hi = (float(v) for v in self.temperature_c)
@@ -57,6 +60,11 @@ class ChamberLimits:
         if not (math.isfinite(p0) and plo <= p0 <= phi):
             raise InputError(f"the start power {p0:g} W is outside the power range "
                              f"{plo:g}..{phi:g} W.", field="--start-power")
+        settling = float(self.settling_s)
+        if not (math.isfinite(settling) and settling >= 0):
+            raise InputError(f"the chamber settling time {settling:g} s must be a finite "
+                             "number >= 0.", field="--chamber-settling")
+        object.__setattr__(self, "settling_s", settling)
         object.__setattr__(self, "temperature_c", (lo, hi))
         object.__setattr__(self, "ramp_c_per_min", rate)
         object.__setattr__(self, "power_w", (plo, phi))
@@ -66,7 +74,7 @@ class ChamberLimits:
     def to_json(self) -> dict:
         return {"temperature_c": list(self.temperature_c), "ramp_c_per_min": self.ramp_c_per_min,
                 "power_w": list(self.power_w), "start_c": self.start_c,
-                "start_power_w": self.start_power_w}
+                "start_power_w": self.start_power_w, "settling_s": self.settling_s}
 
     def violations(self, ts, temperature, power, tolerance: float = 1e-9) -> list[str]:
         """Where a sampled profile (`ts` s, `temperature` °C, `power` W, each (times,))

@@ -29,7 +29,19 @@ PRBS_BIT_S = 60.0
 
 def reference_profile(name: str, schedule: ProfileSchedule) -> tuple[np.ndarray, np.ndarray]:
     """`(chamber °C, power W)` (times,) each, of the named reference on the schedule's
-    samples."""
+    samples; the chamber air through the chamber's settling (`ChamberLimits.settling_s`),
+    as the design's."""
+    T, P = _programmed(name, schedule)
+    if schedule.limits.settling_s > 0:
+        import jax.numpy as jnp
+
+        from ._schedule import settle
+
+        T = np.asarray(settle(jnp.asarray(T), schedule.dt, schedule.limits.settling_s))
+    return T, P
+
+
+def _programmed(name: str, schedule: ProfileSchedule) -> tuple[np.ndarray, np.ndarray]:
     ts, lim = schedule.ts, schedule.limits
     plo, phi = lim.power_w
     if name == "prbs":

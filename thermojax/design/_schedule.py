@@ -16,6 +16,16 @@ differ by at most `r · dt`. Power is piecewise constant over `M` equal segments
 first sample period keeps the start power, so the unit's start, at rest at the first
 sample's inputs, is the same for every design. The map from `(z, w)` to the sampled
 inputs is smooth, and JAX differentiates through it.
+
+A chamber that settles with its own time constant `τ` (`ChamberLimits.settling_s`) is
+programmed with that line as its setpoint; the air the unit sees follows it through a
+first-order lag, exactly for a setpoint linear between samples,
+
+    T_air[k+1] = a T_air[k] + (1 − a) T_set[k] + s_k (dt − τ (1 − a)),   a = e^(−dt/τ),
+
+`s_k` the setpoint's slope, from rest at the start. The lag's impulse response is
+positive with unit area, so the air stays inside the range and within the ramp rate
+that the setpoint keeps.
 """
 
 from __future__ import annotations
@@ -108,14 +118,22 @@ class ProfileSchedule:
         levels = plo + (phi - plo) * jax.nn.sigmoid(params[K:])
         return knots, levels
 
-    def sampled(self, params):
-        """Chamber temperature (times,), °C, and power (times,), W, of `params` (K + M,)."""
-        knots, levels = self.knots(params)
+    def setpoint(self, params):
+        """The programmed chamber temperature (times,), °C, of `params` (K + M,)."""
+        knots, _ = self.knots(params)
         ts = jnp.asarray(self.ts, params.dtype)
         if self.temperature_segments:
-            temperature = jnp.interp(ts, jnp.asarray(self.knot_times, params.dtype), knots)
-        else:
-            temperature = jnp.full(ts.shape, self.limits.start_c, params.dtype)
+            return jnp.interp(ts, jnp.asarray(self.knot_times, params.dtype), knots)
+        return jnp.full(ts.shape, self.limits.start_c, params.dtype)
+
+    def sampled(self, params):
+        """Chamber air temperature (times,), °C, and power (times,), W, of `params` (K + M,)."""
+        knots, levels = self.knots(params)
+        ts = jnp.asarray(self.ts, params.dtype)
+        temperature = self.setpoint(params)
+        tau = self.limits.settling_s
+        if tau > 0:
+            temperature = settle(temperature, self.dt, tau)
         if self.power_segments:
             seg = np.clip(np.floor(self.ts / (self.duration_s / self.power_segments) + 1e-9),
                           0, self.power_segments - 1).astype(int)
@@ -131,9 +149,26 @@ class ProfileSchedule:
         pt = self.power_times
         return {"temperature_knots": [[float(t), float(T)] for t, T in
                                       zip(self.knot_times, knots)],
+                "knots_are": ("setpoints, the air following with the chamber's settling time"
+                              if self.limits.settling_s > 0 else "the air temperature"),
                 "power_segments": [[float(pt[j]), float(pt[j + 1]), float(levels[j])]
                                    for j in range(self.power_segments)],
                 "start_power_w": self.limits.start_power_w}
 
 
 ProfileSchedule.__init__.__doc__ = ProfileSchedule.__doc__
+
+
+def settle(setpoint, dt: float, tau: float):
+    """The air temperature (times,) of a chamber with time constant `tau` (s) following
+    `setpoint` (times,), °C, linear between samples `dt` apart, from rest at the first."""
+    a = float(np.exp(-dt / tau))
+    slopes = jnp.diff(setpoint) / dt
+
+    def step(y, inputs):
+        u, s = inputs
+        y = a * y + (1.0 - a) * u + s * (dt - tau * (1.0 - a))
+        return y, y
+
+    _, rest = jax.lax.scan(step, setpoint[0], (setpoint[:-1], slopes))
+    return jnp.concatenate([setpoint[:1], rest])
