@@ -108,3 +108,32 @@ def test_rivals_reading_other_sensors_are_refused(tmp_path, capsys):
                          "--out", tmp_path / "d")
     assert_refused(rc, err, "other.toml", "same sensors")
     assert not (tmp_path / "d").exists()
+
+
+def test_rivals_from_an_investigation_folder(tmp_path, capsys):
+    """A folder as `investigate` writes it (report.json, step models), made by hand: the
+    near-tie the loop named becomes the rivals."""
+    import json
+
+    from helpers import assert_refused
+    from thermojax.design._from_investigation import rivals_from_investigation
+
+    (tmp_path / "step0_model.toml").write_text(BASE)
+    (tmp_path / "step1_model.toml").write_text(LAG)
+    steps = [{"added": None, "candidates": [
+        {"kind": "sensor_lag", "where": ["T_die"], "tied_with": [["extra_node", ["pcb", "die"]]]},
+        {"kind": "sensor_offset", "where": ["T_die"], "tied_with": []}]},
+        {"added": {"kind": "sensor_lag", "where": ["T_die"],
+                   "parameters": {"time_constant": 8.0}}, "candidates": []}]
+    (tmp_path / "report.json").write_text(json.dumps({"steps": steps}))
+    specs = rivals_from_investigation(tmp_path)
+    assert [n for n, _ in specs] == ["sensor_lag(T_die)", "extra_node(pcb-die)"]
+    assert specs[0][1].effects[0].parameters["time_constant"].value == 8.0  # as fitted
+    added = specs[1][1].effects[-1]
+    assert added.kind == "extra_node" and added.where == ("pcb", "die")
+    # no near-tie: refused, naming the file
+    steps[0]["candidates"][0]["tied_with"] = []
+    (tmp_path / "report.json").write_text(json.dumps({"steps": steps}))
+    rc, _, err = run_cli(capsys, "design", "--from-investigation", tmp_path, "--duration", "600",
+                         "--out", tmp_path / "d")
+    assert_refused(rc, err, "report.json", "no near-tie")

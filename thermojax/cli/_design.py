@@ -43,15 +43,21 @@ def _pair(text: str) -> tuple[float, float]:
 
 def cmd_design(args) -> int:
     from .. import io
-    from ..design import ChamberLimits, design, write_design
+    from ..design import design, write_design
     from ._outputs import check_output_folder, staged_folder
 
     out = Path(args.out)
     check_output_folder(out, args.force)
+    if args.from_investigation:
+        if args.rivals:
+            raise InputError("--from-investigation takes its rivals from the investigation; "
+                             "drop --rivals.", field="--rivals")
+        return _discriminate(args, None, _limits(args), out)
+    if args.model is None:
+        raise InputError("--model is required (or --from-investigation DIR).", field="--model")
     model_path = _resolve_model(args.model)
     spec = io.load_model(model_path)
-    limits = ChamberLimits(args.temperature_range, args.ramp_rate, args.power_range,
-                           args.start, args.start_power, args.chamber_settling)
+    limits = _limits(args)
     if args.target_std:
         return _shortest(args, spec, limits, out)
     args.criterion = args.criterion or "d"
@@ -83,6 +89,13 @@ def cmd_design(args) -> int:
               is not None else f"{r} –" for r in refs))
     print(f"wrote {out / 'profile.csv'}, {out / 'report.json'} and {out / 'report.md'}")
     return 0
+
+
+def _limits(args):
+    from ..design import ChamberLimits
+
+    return ChamberLimits(args.temperature_range, args.ramp_rate, args.power_range, args.start,
+                         args.start_power, args.chamber_settling)
 
 
 def _target(text: str) -> tuple[str, float]:
@@ -140,25 +153,35 @@ def _discriminate(args, spec, limits, out) -> int:
     if args.criterion not in (None, "d") or args.parameter:
         raise InputError("--rivals designs to tell models apart; --criterion and --parameter "
                          "are for a design of one model's parameters.", field="--rivals")
-    specs = [(Path(str(args.model)).stem, spec)]
-    for r in args.rivals:
-        rival = io.load_model(_resolve_model(r))
-        name = Path(r).stem
-        while name in [n for n, _ in specs]:
-            name += "'"
-        specs.append((name, rival))
+    if args.from_investigation:
+        from ..design._from_investigation import rivals_from_investigation
+
+        specs = rivals_from_investigation(args.from_investigation)
+        spec = specs[0][1]
+        args.model = str(Path(args.from_investigation))
+    else:
+        specs = [(Path(str(args.model)).stem, spec)]
+        for r in args.rivals:
+            rival = io.load_model(_resolve_model(r))
+            name = Path(r).stem
+            while name in [n for n, _ in specs]:
+                name += "'"
+            specs.append((name, rival))
+    args.progress("telling apart " + ", ".join(n for n, _ in specs))
     result = discriminate(specs, args.duration, limits=limits, dt=args.dt,
                           n_starts=args.starts or 1, temperature_segments=args.knots,
                           power_segments=args.power_steps, noise=args.noise,
                           progress=args.progress)
     with staged_folder(out) as tmp:
         report = write_discrimination(result, spec, tmp, str(args.model))
-    print(f"{'true':<16} {'refitted':<16} {'profile':<12} {'2 log LR':>12} {'P(decisive)':>12}")
+    w = max(16, *(len(n) for n, _ in specs)) + 1
+    print(f"{'true':<{w}} {'refitted':<{w}} {'profile':<12} {'2 log LR':>12} "
+          f"{'P(decisive)':>12}")
     rows = [("designed", report["designed"]["pairs"])] + [
         (n, r["pairs"]) for n, r in report["references"].items()]
     for name, pairs in rows:
         for p in pairs:
-            print(f"{p['true']:<16} {p['refitted']:<16} {name:<12} "
+            print(f"{p['true']:<{w}} {p['refitted']:<{w}} {name:<12} "
                   f"{p['expected_2log_lr']:>12.4g} {p['p_decisive']:>12.3f}")
     print("expected log-likelihood-ratio statistic of one run at the stated noise, the "
           "refitted model's parameters free; decisive: a likelihood ratio over 100")
@@ -183,7 +206,9 @@ def add_design(sub) -> None:
         "profile instead maximizes the expected log-likelihood ratio between the model and "
         "its rivals, each refitted to the others' readings, and the report gives that ratio "
         "and the probability that one run decides.")
-    p.add_argument("--model", required=True, help="model TOML file or built-in model name")
+    p.add_argument("--model", default=None,
+                   help="model TOML file or built-in model name (required unless "
+                   "--from-investigation)")
     p.add_argument("--duration", required=True, type=_duration,
                    help="profile length: seconds, or with a unit (4h, 90min)")
     p.add_argument("--out", required=True, help="output folder")
@@ -222,6 +247,9 @@ def add_design(sub) -> None:
                    help="rival model files (or built-in names) reading the same sensors: "
                    "design the profile that best tells --model and them apart instead, each "
                    "refitted to the others' readings")
+    p.add_argument("--from-investigation", default=None, metavar="DIR",
+                   help="a folder `thermojax investigate` wrote: tell apart the candidates of "
+                   "the last near-tie it named, each added to that step's model")
     p.add_argument("--noise", type=_positive_float, default=None,
                    help="sensor noise std, °C, for every sensor (default each sensor's "
                    "`noise`, 0.01 °C unset)")

@@ -12,7 +12,8 @@ the design cannot win by the rival's parameters alone. `Λ_ab` is normal with me
 `Φ((λ_ab − 2 log 100) / (2 √λ_ab))`.
 
 The search maximizes `Σ log λ_ab` over the ordered pairs of hypotheses (every pair told
-apart, whichever is true). Each round refits every rival to every other hypothesis's
+apart, whichever is true), the first start from the reference PRBS (power bits, the
+chamber still), the others from random schedules. Each round refits every rival to every other hypothesis's
 readings on the current profile (Levenberg–Marquardt on exact Jacobians), then improves
 the profile with the refits linearized, `λ_ab ≈ ‖d‖² − dᵀJ(JᵀJ)⁻¹Jᵀd` (`J` the rival's
 sensitivities: the rival may still move along them), by L-BFGS-B on the exact gradient;
@@ -43,6 +44,20 @@ from ._schedule import ProfileSchedule
 DECISIVE = 2.0 * math.log(100.0)
 
 _Z_BOUND = 8.0
+
+
+def _prbs_start(schedule: ProfileSchedule) -> np.ndarray:
+    """Schedule numbers of the reference PRBS: the chamber still, each power level at the
+    PRBS's bit at its middle (within 0.25 % of a power limit). The search then starts where
+    the PRBS reference is, and ends no worse in its own criterion."""
+    z = np.zeros(schedule.n_parameters)
+    M = schedule.power_segments
+    if M:
+        _, P = reference_profile("prbs", schedule)
+        mid = 0.5 * (schedule.power_times[:-1] + schedule.power_times[1:])
+        on = np.interp(mid, schedule.ts, P) > 0.5 * sum(schedule.limits.power_w)
+        z[schedule.temperature_segments:] = np.where(on, 6.0, -6.0)
+    return z
 
 
 def decisive_probability(lam: float) -> float:
@@ -297,7 +312,7 @@ def discriminate(specs: list[tuple[str, ModelSpec]], duration_s: float, *,
     n = schedule.n_parameters
     best = None
     for i in range(max(n_starts, 1)):
-        z = np.zeros(n) if i == 0 else rng.normal(0.0, 2.0, n)
+        z = _prbs_start(schedule) if i == 0 else rng.normal(0.0, 2.0, n)
         fitted = None
         for r in range(max(rounds, 1)):
             say(f"search {i + 1}/{n_starts}, round {r + 1}/{rounds}: refitting the rivals "

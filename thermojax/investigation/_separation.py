@@ -17,9 +17,10 @@ SEPARATION = {
 
 
 # Every piece of advice ends by naming the command that designs the separating run.
-DESIGN_RUN = ("; `thermojax design --model M --rivals R.toml` designs the chamber run that "
-              "tells them apart within the chamber's limits (each model written with one of "
-              "the candidates)")
+DESIGN_RUN = ("; `thermojax design --from-investigation DIR --duration D --out RUN` (or "
+              "`thermojax design --model M --rivals R.toml ...`, each model written with one of "
+              "the candidates) designs the chamber run that tells them apart within the "
+              "chamber's limits")
 
 
 def separation_advice(kinds) -> str:
