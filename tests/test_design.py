@@ -198,7 +198,16 @@ def test_design_refuses_bad_requests(capsys, tmp_path):
                          "--out", tmp_path / "a", "--criterion", "variance", "--parameter",
                          "nodes.nowhere.capacitance", "--starts", "1", "--knots", "2",
                          "--power-steps", "2", "--dt", "60")
-    assert_refused(rc, err, "nodes.nowhere.capacitance", "free ones are")
+    assert_refused(rc, err, "nodes.nowhere.capacitance", "free ones are", "--parameter")
+    rc, _, err = run_cli(capsys, "design", "--model", CHAIN3, "--duration", "1h",
+                         "--out", tmp_path / "a", "--target-std", "nodes.die.capacitanse=1%")
+    assert_refused(rc, err, "nodes.die.capacitanse", "--target-std")
+    rc, _, err = run_cli(capsys, "design", "--model", CHAIN3, "--duration", "1h",
+                         "--out", tmp_path / "a", "--target-std", "nodes.die.capacitance=-1%")
+    assert_refused(rc, err, "--target-std", "must be > 0")
+    rc, _, err = run_cli(capsys, "design", "--model", CHAIN3, "--duration", "1h",
+                         "--out", tmp_path / "a", "--chamber-settling", "-5")
+    assert_refused(rc, err, "--chamber-settling")
     rc, _, err = run_cli(capsys, "design", "--model", CHAIN3, "--duration", "1000",
                          "--dt", "3", "--out", tmp_path / "a")
     assert_refused(rc, err, "--duration", "whole number")

@@ -58,6 +58,8 @@ def cmd_design(args) -> int:
     model_path = _resolve_model(args.model)
     spec = io.load_model(model_path)
     limits = _limits(args)
+    _check_names(spec, [(n, "--parameter") for n in args.parameter or []]
+                 + [(n, "--target-std") for n, _ in args.target_std or []])
     if args.target_std:
         return _shortest(args, spec, limits, out)
     args.criterion = args.criterion or "d"
@@ -89,6 +91,22 @@ def cmd_design(args) -> int:
               is not None else f"{r} –" for r in refs))
     print(f"wrote {out / 'profile.csv'}, {out / 'report.json'} and {out / 'report.md'}")
     return 0
+
+
+def _check_names(spec, names: list[tuple[str, str]]) -> None:
+    """Every name of `--parameter` and `--target-std` (`(name, flag)`) a free parameter,
+    before any work."""
+    if not names:
+        return
+    from ..model import spec_parameters
+
+    free = [n for n, p in spec_parameters(spec).items() if not p.fixed
+            and not n.startswith("sensors.") and not n.endswith((".process_noise", ".initial",
+                                                                ".initial_std"))]
+    for name, flag in names:
+        if name not in free:
+            raise InputError(f"'{name}' is not a free parameter of the model; free ones are "
+                             f"{', '.join(free)}.", file=str(spec.source), field=flag)
 
 
 def _limits(args):
