@@ -143,6 +143,8 @@ def test_design_beats_references_and_fits_achieve_the_predicted_stds(chain3_desi
     assert not d.designed.violations
     # the best search is kept, and the searches were compared
     assert d.start_losses == sorted(d.start_losses) and len(d.start_losses) == 2
+    # the first search starts at the PRBS: the design is no worse by the criterion
+    assert d.designed.loss <= d.references["prbs"].loss
     pred = d.designed.stds
     for name, ref in d.references.items():
         ratios = [pred[p] / ref.stds[p] for p in pred]

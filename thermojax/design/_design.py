@@ -24,7 +24,7 @@ from ._criterion import criterion_loss, target_indices
 from ._information import (InformationProblem, information_problem, marginal_information,
                            predicted_stds)
 from ._limits import ChamberLimits
-from ._references import REFERENCES, reference_profile
+from ._references import REFERENCES, prbs_start, reference_profile
 from ._schedule import ProfileSchedule
 
 #: s, default spacing of the temperature knots (10 min).
@@ -100,8 +100,9 @@ def design(spec: ModelSpec, duration_s: float, *, limits: ChamberLimits | None =
     - `duration_s`: profile length, s; `dt`: sample period, s.
     - `limits`: the `ChamberLimits` (default: −40..85 °C, 10 °C/min, 0..1 W, start 25 °C).
     - `criterion`: `"d"` (D-optimal) or `"variance"` (the `parameters` named).
-    - `n_starts`: searches, the first from a still chamber at half power, the others
-      from random schedules (`seed`).
+    - `n_starts`: searches, the first from the reference PRBS (so the design ends no
+      worse than it by the criterion), the second from a still chamber at half power, the
+      others from random schedules (`seed`).
     - `temperature_segments`, `power_segments`: the schedule's `K` and `M` (default one
       ramp per `KNOT_S` and one power level per `POWER_STEP_S`, at least one each; set to 0
       where the model has no boundary or no heat input).
@@ -145,7 +146,9 @@ def design(spec: ModelSpec, duration_s: float, *, limits: ChamberLimits | None =
 
     rng = np.random.default_rng(seed)
     n = schedule.n_parameters
-    starts = [np.zeros(n)] + [rng.normal(0.0, 2.0, n) for _ in range(max(n_starts, 1) - 1)]
+    starts = ([prbs_start(schedule)] if M else []) + [np.zeros(n)]
+    starts = (starts + [rng.normal(0.0, 2.0, n) for _ in range(max(n_starts, 1))]
+              )[:max(n_starts, 1)]
     ends, n_it, n_ev = [], 0, 0
     for i, z0 in enumerate(starts):
         say(f"search {i + 1}/{len(starts)} over {n} schedule numbers")

@@ -37,27 +37,13 @@ from .._errors import InputError
 from ..model._spec import ModelSpec
 from ._information import Prepared, prepare_profiles
 from ._limits import ChamberLimits
-from ._references import REFERENCES, reference_profile
+from ._references import REFERENCES, prbs_start, reference_profile
 from ._schedule import ProfileSchedule
 
 #: The statistic `2 log (L_a / L_b)` a decisive run exceeds: a likelihood ratio of 100.
 DECISIVE = 2.0 * math.log(100.0)
 
 _Z_BOUND = 8.0
-
-
-def _prbs_start(schedule: ProfileSchedule) -> np.ndarray:
-    """Schedule numbers of the reference PRBS: the chamber still, each power level at the
-    PRBS's bit at its middle (within 0.25 % of a power limit). The search then starts where
-    the PRBS reference is, and ends no worse in its own criterion."""
-    z = np.zeros(schedule.n_parameters)
-    M = schedule.power_segments
-    if M:
-        _, P = reference_profile("prbs", schedule)
-        mid = 0.5 * (schedule.power_times[:-1] + schedule.power_times[1:])
-        on = np.interp(mid, schedule.ts, P) > 0.5 * sum(schedule.limits.power_w)
-        z[schedule.temperature_segments:] = np.where(on, 6.0, -6.0)
-    return z
 
 
 def decisive_probability(lam: float) -> float:
@@ -312,7 +298,7 @@ def discriminate(specs: list[tuple[str, ModelSpec]], duration_s: float, *,
     n = schedule.n_parameters
     best = None
     for i in range(max(n_starts, 1)):
-        z = _prbs_start(schedule) if i == 0 else rng.normal(0.0, 2.0, n)
+        z = prbs_start(schedule) if i == 0 else rng.normal(0.0, 2.0, n)
         fitted = None
         for r in range(max(rounds, 1)):
             say(f"search {i + 1}/{n_starts}, round {r + 1}/{rounds}: refitting the rivals "

@@ -58,3 +58,19 @@ def _programmed(name: str, schedule: ProfileSchedule) -> tuple[np.ndarray, np.nd
         T = np.clip(np.interp(ts * scale, cal.ts, cal.temperature), lo, hi)
         return T, np.full(ts.shape, 0.5 * (plo + phi))
     raise ValueError(f"unknown reference {name!r}; expected one of {REFERENCES}.")
+
+
+def prbs_start(schedule: ProfileSchedule) -> np.ndarray:
+    """Schedule numbers (K + M,) of the reference PRBS: the chamber still, each power level
+    at the PRBS's bit at its middle (within 0.25 % of a power limit). A search started here
+    ends no worse than the PRBS by its own criterion (to that 0.25 %, when the power levels
+    are as long as its bits)."""
+    z = np.zeros(schedule.n_parameters)
+    M = schedule.power_segments
+    if M:
+        _, P = reference_profile("prbs", schedule)
+        mid = 0.5 * (schedule.power_times[:-1] + schedule.power_times[1:])
+        held = P[np.clip(np.searchsorted(schedule.ts, mid, side="right") - 1, 0, len(P) - 1)]
+        on = held > 0.5 * sum(schedule.limits.power_w)
+        z[schedule.temperature_segments:] = np.where(on, 6.0, -6.0)
+    return z

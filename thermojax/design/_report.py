@@ -105,7 +105,7 @@ def write_design(design: Design, out: Path, model: str, target=None) -> dict:
     write_telemetry(out / "profile.csv", design.ts,
                     {c: u[:, j] for j, c in enumerate(design.spec.input_columns)},
                     comments=[f"designed by thermojax design for model '{design.spec.name}' "
-                              f"({model}): {design.criterion}-optimal, "
+                              f"({model}): {'D-optimal' if design.criterion == 'd' else 'least variance'}, "
                               f"{design.schedule.duration_s:g} s at {design.schedule.dt:g} s"])
     report = design_report(design, model)
     if target is not None:

@@ -172,3 +172,4 @@ def settle(setpoint, dt: float, tau: float):
 
     _, rest = jax.lax.scan(step, setpoint[0], (setpoint[:-1], slopes))
     return jnp.concatenate([setpoint[:1], rest])
+
