@@ -21,6 +21,7 @@ from ._progress import Progress
 from ._checked_runs import fit_dropping, load_runs
 from ._checked_runs import plausible as _plausible, read_runs as _read_runs
 from ._compensate import add_compensate
+from ._design import add_design
 from ._export import add_export
 from ._playback import add_playback
 from ._rate import add_rate
@@ -585,6 +586,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_calibrate(sub)
     add_trim(sub)
     add_montecarlo(sub)
+    add_design(sub)
     return parser
 
 
@@ -598,7 +600,7 @@ _STAGED = ("nothing was written: the output is put in place only when complete; 
            "command again to start over")
 _INTERRUPTED = {
     "simulate": _STAGED, "resample": _STAGED, "fit": _STAGED, "diagnose": _STAGED,
-    "export": _STAGED, "calibrate": _STAGED, "compensate": _STAGED,
+    "export": _STAGED, "calibrate": _STAGED, "compensate": _STAGED, "design": _STAGED,
     "investigate": "the finished steps are kept in the output folder; started again with "
                    "the same model and data it resumes after the last one (--restart starts "
                    "afresh)",

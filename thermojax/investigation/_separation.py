@@ -16,7 +16,18 @@ SEPARATION = {
 }
 
 
+# Every piece of advice ends by naming the command that designs the separating run.
+DESIGN_RUN = ("; `thermojax design --from-investigation DIR --duration D --out RUN` (or "
+              "`thermojax design --model M --rivals R.toml ...`, each model written with one of "
+              "the candidates) designs the chamber run that tells them apart within the "
+              "chamber's limits")
+
+
 def separation_advice(kinds) -> str:
+    return _advice(kinds) + DESIGN_RUN
+
+
+def _advice(kinds) -> str:
     kinds = frozenset(kinds)
     for pair, text in SEPARATION.items():
         if pair <= kinds or (len(kinds) == 1 and kinds <= pair):
