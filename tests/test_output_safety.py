@@ -303,7 +303,11 @@ def test_a_disk_that_fills_while_fit_writes_leaves_no_partial_folder(capsys, mon
 
     import types
 
-    fitted = types.SimpleNamespace(likelihood="output_error", problem=None, dominant=[])
+    from thermojax import load_model
+
+    # a fit that ends where it started: nothing to warn of, then the disk fills
+    fitted = types.SimpleNamespace(likelihood="output_error", problem=None, dominant=[],
+                                   spec=load_model(RTD2))
     monkeypatch.setattr(fit_module, "fit", lambda *a, **k: fitted)
 
     def write_fit_outputs(result, experiments, folder, *args, **kwargs):
