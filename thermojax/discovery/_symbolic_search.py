@@ -89,6 +89,10 @@ class SymbolicFront:
     seconds: float
     stopped: str  # "budget", "seconds", "exhausted", "generations", "interrupted"
     n_samples: int = 0
+    # the best law of each complexity, on the front or not (simplest first): the laws a
+    # caller may judge by other evidence than the fit to the target (the loop's score
+    # test through the dynamics)
+    leaders: list[FoundLaw] = field(default_factory=list)
 
     def best(self, k: int = 3) -> list[FoundLaw]:
         """The `k` laws of the front most worth refitting, simplest first: the simplest
@@ -162,20 +166,24 @@ class _Search:
                                              self.w, self.Zw, self.rng)):
                 self.done[t] = got
 
-    def front(self) -> list[Tree]:
-        """The Pareto front of the laws fitted so far, simplest first: the best law of
-        each complexity whose cost is `FRONT_GAIN` below every simpler one's."""
+    def leaders(self) -> list[Tree]:
+        """The best law of each complexity, simplest first."""
         best: dict[int, Tree] = {}
         for t, (cost, _, _) in self.done.items():
             k = complexity(t)
-            if np.isfinite(cost) and (k not in best or cost < self.done[best[k]][0]
-                                      or (cost == self.done[best[k]][0] and t < best[k])):
+            if np.isfinite(cost) and (k not in best or (cost, t) < (self.done[best[k]][0],
+                                                                    best[k])):
                 best[k] = t
+        return [best[k] for k in sorted(best)]
+
+    def front(self) -> list[Tree]:
+        """The Pareto front of the laws fitted so far, simplest first: the best law of
+        each complexity whose cost is `FRONT_GAIN` below every simpler one's."""
         out, floor = [], math.inf
-        for k in sorted(best):
-            cost = self.done[best[k]][0]
+        for t in self.leaders():
+            cost = self.done[t][0]
             if cost < floor * (1.0 - FRONT_GAIN):
-                out.append(best[k])
+                out.append(t)
                 floor = cost
         return out
 
@@ -286,14 +294,16 @@ def symbolic_search(variables: list[Variable], target, target_std, *, nuisance=N
                 pool = [pool[i] for i in np.sort(s.rng.choice(len(pool), size, replace=False))]
             s.evaluate(pool)
             say(_progress(s, gen, t0))
-        else:
-            gen = generations
+            if len(s.done) >= evaluations:
+                stopped = "budget"
+                break
     except KeyboardInterrupt:
         stopped = "interrupted"
         say(f"symbolic search interrupted after {len(s.done)} laws: the front so far is kept")
-    front = [_found(s, t, taken) for t in s.front()]
-    return SymbolicFront(front, len(s.done), gen, time.perf_counter() - t0, stopped,
-                         len(s.y))
+    front = {t: _found(s, t, taken) for t in s.front()}
+    leaders = [front.get(t) or _found(s, t, taken) for t in s.leaders()]
+    return SymbolicFront(list(front.values()), len(s.done), gen, time.perf_counter() - t0,
+                         stopped, len(s.y), leaders)
 
 
 def _progress(s: _Search, gen: int, t0: float) -> str:
