@@ -49,7 +49,8 @@ ADEQUATE = 0.05  # `SymbolicFront.best`: a cost within this share of the lowest 
 @dataclass(frozen=True)
 class FoundLaw:
     """One law the search fitted: its tree, complexity, weighted sum of squares `cost`
-    and R² against the target, its expression over the variables' names with its
+    and R² against the target (the share it explains of the weighted sum of squares the
+    nuisance heats leave), its expression over the variables' names with its
     parameter values (`parameters`, name -> value, in the expression's order), its
     expression as a library template (`template`, placeholders `{a}`, `{b}`, `{u}`) and
     what it reads (`far`: the far end of its difference, `column`, `scale`)."""
@@ -141,7 +142,13 @@ class _Search:
             np.asarray(nuisance, float).reshape(-1, np.shape(nuisance)[-1])[keep]
         self.Zw = Z * self.w[:, None]
         self.yw = self.y * self.w
-        self.total = float(np.sum((self.yw - np.average(self.yw)) ** 2)) or 1.0
+        # R² is the share the law explains of what the nuisance heats leave (of the
+        # target's spread without them)
+        if self.Zw.shape[1]:
+            beta = np.linalg.lstsq(self.Zw, self.yw, rcond=None)[0]
+            self.total = float(np.sum((self.yw - self.Zw @ beta) ** 2)) or 1.0
+        else:
+            self.total = float(np.sum((self.yw - np.average(self.yw)) ** 2)) or 1.0
         self.rng = np.random.default_rng(seed)
         self.max_terms, self.max_factors = max_terms, max_factors
         self.max_complexity = max_complexity

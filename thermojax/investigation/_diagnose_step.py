@@ -16,7 +16,7 @@ from ._laws_screen import _law_adds_nothing, _law_outranked, _learned_places
 from ._physical_range import data_span, prefer_physics, reject_unphysical
 from ._refit_verdicts import duplicate_reason, rule_p_value, sample_period
 from ._refits import _refit_side_by_side, refit_best
-from ._selection import judge, prefer_vocabulary
+from ._selection import judge, prefer_simpler_laws, prefer_vocabulary
 from ._separation import separation_advice
 from ._step import Step, _bias_runs, _experiments
 from ._symbolic_step import SearchSettings, mark_proposed, new_laws, search_laws
@@ -184,6 +184,7 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
                               -c.score if np.isfinite(c.score) else math.inf))
     judge(cands, fdr, separation_advice)
     prefer_vocabulary(cands)
+    prefer_simpler_laws(cands)
     reject_unphysical(cands, data_span(spec, runs))
     prefer_physics(cands, separation_advice)
     return cands

@@ -62,7 +62,9 @@ def search_laws(step, runs, mh, roles: dict[str, str], settings: SearchSettings,
     spec = step.result.lowered_spec
     nodes = list(mh.nodes)
     paths = conduction_paths(spec)
-    near = [b for a, b in paths if a == node] + [a for a, b in paths if b == node]
+    # its conduction neighbours, and every boundary temperature (a path the model lacks)
+    linked = [b for a, b in paths if a == node] + [a for a, b in paths if b == node]
+    near = linked + list(spec.boundary_columns)
     near = [b for b in dict.fromkeys(near) if b in nodes or b in runs[0].names]
     cols = {}
     for c in [b for b in near if b not in nodes] + [c for c, r in roles.items()
@@ -78,7 +80,8 @@ def search_laws(step, runs, mh, roles: dict[str, str], settings: SearchSettings,
     # reported by none
     rate = np.concatenate([np.gradient(x[:, at], ts) if len(ts) > 1 else np.zeros(len(ts))
                            for x, ts in zip(mh.temperatures, mh.ts)])
-    nuisance = np.stack([rate] + [v.values for v in variables if v.kind == "difference"], 1)
+    nuisance = np.stack([rate] + [v.values for v in variables
+                                  if v.kind == "difference" and v.far in linked], 1)
     say(f"symbolic search at {node} over {', '.join(v.name for v in variables)}")
     front = symbolic_search(variables, target, target_std, nuisance=nuisance,
                             evaluations=settings.evaluations, seconds=settings.seconds,
