@@ -61,7 +61,7 @@ def main():
 
         front = symbolic_search(variables, q + NOISE * rng.standard_normal(q.size),
                                 np.full(q.size, NOISE), evaluations=args.evaluations,
-                                generations=args.generations, say=say, seed=0)
+                                generations=args.generations, say=say, random_state=0)
         found = [law for law in front.front if law.tree == canonical(truth)]
         print(f"\n{name}: {front.evaluated} laws in {front.seconds:.1f} s "
               f"({front.generations} generations, stopped: {front.stopped})")

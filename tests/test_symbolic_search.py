@@ -13,7 +13,7 @@ from thermojax.discovery._symbolic_grammar import PRIMITIVE_INDEX, canonical
 from thermojax.model._expression import evaluate_numpy, parse, resolve
 
 NOISE = 0.01  # W, the std of the generated heat
-BUDGET = dict(evaluations=600, generations=2, population=256, seed=0)
+BUDGET = dict(evaluations=600, generations=2, population=256, random_state=0)
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +135,7 @@ def test_the_library_is_the_first_generation(data):
     assert law.template == "c * {u}^n * exp(k * ({a} - 25))"  # the same form
 
 
-def test_same_seed_same_front_and_the_budget_holds(data):
+def test_same_random_state_same_front_and_the_budget_holds(data):
     variables, T, d, u, noise = data
     q = 0.3 * d / (1.0 + 0.15 * np.abs(d)) + noise
     lines = []

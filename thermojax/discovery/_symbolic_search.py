@@ -20,7 +20,7 @@ It stops at its budget (`evaluations` laws or `seconds`), when a generation brin
 new law, or at `generations`; it says its progress through `say`, and an interruption
 (Ctrl-C) returns the front found so far. The random choices (which variations are
 tried when there are more than `population`, which starts of the constants) come from
-`seed`: the same data and seed give the same front.
+`random_state`: the same data and `random_state` give the same front.
 """
 
 from __future__ import annotations
@@ -127,7 +127,7 @@ class _Search:
     """The state of one search: the data, every law fitted so far (tree -> (cost, θ,
     β)), and the budget."""
 
-    def __init__(self, variables, y, std, nuisance, seed, max_terms, max_factors,
+    def __init__(self, variables, y, std, nuisance, random_state, max_terms, max_factors,
                  max_complexity):
         keep = _subsample(len(y), MAX_SAMPLES)
         self.variables = [Variable(v.name, v.kind, np.asarray(v.values, float)[keep],
@@ -149,7 +149,7 @@ class _Search:
             self.total = float(np.sum((self.yw - self.Zw @ beta) ** 2)) or 1.0
         else:
             self.total = float(np.sum((self.yw - np.average(self.yw)) ** 2)) or 1.0
-        self.rng = np.random.default_rng(seed)
+        self.rng = np.random.default_rng(random_state)
         self.max_terms, self.max_factors = max_terms, max_factors
         self.max_complexity = max_complexity
         self.done: dict[Tree, tuple] = {}
@@ -253,7 +253,7 @@ def library_forms(variables) -> list[Tree]:
 def symbolic_search(variables: list[Variable], target, target_std, *, nuisance=None,
                     evaluations: int = 3000, seconds: float | None = None,
                     generations: int = 6, population: int = 256, max_terms: int = 2,
-                    max_factors: int = 3, max_complexity: int = 24, seed: int = 0,
+                    max_factors: int = 3, max_complexity: int = 24, random_state: int = 0,
                     say: Callable[[str], None] | None = None,
                     taken: tuple[str, ...] = ()) -> SymbolicFront:
     """Search laws `q(variables)` for a heat `target` (samples,) W with std `target_std`
@@ -269,7 +269,8 @@ def symbolic_search(variables: list[Variable], target, target_std, *, nuisance=N
     - `generations`, `population`: at most that many generations of at most that many
       new laws each (after generation 0).
     - `max_terms`, `max_factors`, `max_complexity`: the largest law considered.
-    - `seed`: the random choices; the same data and seed give the same front.
+    - `random_state`: the random choices; the same data and `random_state` give the same
+      front.
     - `say`: progress, a line per generation.
     - `taken`: names a parameter must not take (the model's nodes and columns).
 
@@ -277,7 +278,7 @@ def symbolic_search(variables: list[Variable], target, target_std, *, nuisance=N
     """
     say = say or (lambda _m: None)
     t0 = time.perf_counter()
-    s = _Search(variables, target, target_std, nuisance, seed, max_terms, max_factors,
+    s = _Search(variables, target, target_std, nuisance, random_state, max_terms, max_factors,
                 max_complexity)
     stopped, gen = "generations", 0
     try:

@@ -21,12 +21,12 @@ from ..model.effects._base import conduction_paths
 @dataclass(frozen=True)
 class SearchSettings:
     """The search's budget in a step: at most `evaluations` laws fitted and `seconds`
-    (None: no limit), its random choices from `seed`, and at most `refits` of its laws
+    (None: no limit), its random choices from `random_state`, and at most `refits` of its laws
     refitted through the dynamics."""
 
     evaluations: int = 1500
     seconds: float | None = 60.0
-    seed: int = 0
+    random_state: int = 0
     refits: int = 2
 
 
@@ -85,7 +85,7 @@ def search_laws(step, runs, mh, roles: dict[str, str], settings: SearchSettings,
     say(f"symbolic search at {node} over {', '.join(v.name for v in variables)}")
     front = symbolic_search(variables, target, target_std, nuisance=nuisance,
                             evaluations=settings.evaluations, seconds=settings.seconds,
-                            seed=settings.seed, say=say,
+                            random_state=settings.random_state, say=say,
                             taken=(*spec.node_names, *runs[0].names))
     entry = {"node": node, **front.as_json(),
              "front": [{**law.as_json(), "on_front": law in front.front}
