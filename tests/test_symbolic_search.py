@@ -66,7 +66,7 @@ def test_arrhenius_law_in_kelvin_is_found_with_its_constants(data):
                                         _index(variables, "kelvin(pcb)"))]]))
     assert law in front.best(3)
     # written with its heat at 25 °C: c exp(-E (1/T - 1/298.15)) = c0 exp(-E/T)
-    _within_three_stds(law, {"c": c0 * np.exp(-E / 298.15), "E": E})
+    _within_three_stds(law, {"c": c0 * np.exp(-E / 298.15), "E": E / 1000.0})  # in kK
     assert law.r2 > 0.999
 
 
@@ -107,7 +107,7 @@ def test_the_written_law_computes_the_truth(data):
     front = _search(variables, 2.0e6 * np.exp(-5000.0 / (T + 273.15)), generations=0)
     law = _on_front(front, canonical([[(PRIMITIVE_INDEX["arrh"],
                                         _index(variables, "kelvin(pcb)"))]]))
-    truth = {"c": 2.0e6 * np.exp(-5000.0 / 298.15), "E": 5000.0}
+    truth = {"c": 2.0e6 * np.exp(-5000.0 / 298.15), "E": 5.0}  # kK
     np.testing.assert_allclose(law_values(law, variables, truth),
                                2.0e6 * np.exp(-5000.0 / (T + 273.15)), rtol=1e-12)
     # as a candidate of the loop: the library's form, `c` its coefficient

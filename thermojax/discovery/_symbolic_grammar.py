@@ -18,7 +18,7 @@ of `model._expression` and holding at most one constant of its own:
 | `pow`     | `x^n`                            | exponent n (x ≥ 0)          |
 | `spow`    | `abs(x)^n * x`                   | exponent n (an odd power)   |
 | `exp`     | `exp(k * (x - 25))`, `exp(k * x)`| rate k (1/K or per unit)    |
-| `arrh`    | `exp(-E * (1 / x - 1 / 298.15))` | E (K), x in kelvin          |
+| `arrh`    | `exp(-E * (1000 / x - 1000 / 298.15))` | E (kK), x in kelvin   |
 | `sat`     | `x / (1 + b * abs(x))`           | saturation b (1/unit)       |
 | `rat`     | `x / (1 + b * x)`                | b (x > 0)                   |
 | `log`     | `log(x)`                         | (x > 0)                     |
@@ -30,7 +30,8 @@ for every value of the primitives' constants). The **complexity** of a law is th
 number of nodes of its tree as written, each variable one leaf: `c * exp(k * x)` is 6,
 `c * abs(d)^n * d` 8, a sum `c₁ f + c₂ g` adds one `+` and a coefficient. A shift
 such as `- 25` or `- 1 / 298.15` is not counted: it only moves the coefficient to a
-value at 25 °C, which keeps the refit well conditioned.
+value at 25 °C, which keeps the refit well conditioned; likewise the `1000 /`, which
+states E in kK.
 """
 
 from __future__ import annotations
@@ -60,6 +61,9 @@ class Primitive:
     # `saturation`) or as they are (`exponent`)
     starts: tuple[float, ...] = ()
     start_unit: str = "one"
+    # the constant as written is the fitted one times this (E in kK: a constant of
+    # thousands on its own scale looks unidentifiable beside the logs of C and G)
+    written: float = 1.0
 
 
 PRIMITIVES: tuple[Primitive, ...] = (
@@ -68,8 +72,8 @@ PRIMITIVES: tuple[Primitive, ...] = (
     Primitive("spow", "abs({x})^{k} * {x}", 6, "n", "signed", (-0.5, 0.25, 1.0)),
     Primitive("exp", "exp({k} * {x})", 4, "k", "not_kelvin", (-2.0, -0.5, 0.5, 2.0),
               "rate"),
-    Primitive("arrh", "exp(-{k} * (1 / {x} - 1 / 298.15))", 4, "E", "kelvin",
-              (10.0, 3.0, 1.0, -3.0), "inverse_rate"),
+    Primitive("arrh", "exp(-{k} * (1000 / {x} - 1000 / 298.15))", 4, "E", "kelvin",
+              (10.0, 3.0, 1.0, -3.0), "inverse_rate", 1e-3),
     Primitive("sat", "{x} / (1 + {k} * abs({x}))", 8, "b", "signed", (0.1, 1.0, 5.0),
               "saturation"),
     Primitive("rat", "{x} / (1 + {k} * {x})", 7, "b", "positive", (0.1, 1.0, 5.0),

@@ -329,7 +329,7 @@ def _found(s: _Search, tree: Tree, taken) -> FoundLaw:
     text, order = tree_text(tree, s.variables, taken=taken)
     coefs = [float(b) for b in beta[:len(tree)]]
     flat = [f for term in tree for f in term]  # θ is per factor, term by term
-    const_vals = [float(theta[i]) for i, (p, _) in enumerate(flat)
+    const_vals = [float(theta[i]) * PRIMITIVES[p].written for i, (p, _) in enumerate(flat)
                   if PRIMITIVES[p].constant is not None]
     c = coefs[0]
     ratios = [b / c if c != 0 else 0.0 for b in coefs[1:]]
