@@ -114,7 +114,7 @@ class _Network:
         # Truth-only laws outside the vocabulary (`[[truth.laws]]`, see `_law_heat`).
         self.laws = [dict(law) for law in doc.get("laws", [])]
         for law in self.laws:
-            if law["law"] not in ("power_law", "quadratic_exp"):
+            if law["law"] not in ("power_law", "quadratic_exp", "arrhenius", "saturating"):
                 raise ValueError(f"unknown law {law['law']!r}")
         self._compile()
 
@@ -254,7 +254,7 @@ class _Network:
 
         for law in self.laws:
             far = law.get("column", law.get("b"))
-            if far not in idx:
+            if far is not None and far not in idx:
                 col(far)
         # Conduction: links and boundaries as one list of paths a→(node b | column b).
         paths = [(idx[lk["a"]], idx[lk["b"]], -1, lk) for lk in self.links] + \
@@ -346,14 +346,26 @@ class _Network:
     def _law_heat(self, T, u):
         """Heat (W) into each node from the truth-only laws, and its Jacobian in T:
         `power_law`: `h |Tb − Ta|^n (Tb − Ta)` into a, out of node b;
+        `saturating`: `h (Tb − Ta) / (1 + s |Tb − Ta|)` likewise;
+        `arrhenius`: `c exp(−E / (Ta + 273.15))` into a (E in kelvin);
         `quadratic_exp`: `c · column² · exp(k (Ta − 25 °C))` into a."""
         q, J = np.zeros(self.n), np.zeros((self.n, self.n))
         for law in self.laws:
             a = self.idx[law["a"]]
-            if law["law"] == "power_law":
+            if law["law"] == "arrhenius":
+                Tk = T[a] + KELVIN
+                flow = law["c"] * np.exp(-law["E"] / Tk)
+                q[a] += flow
+                J[a, a] += flow * law["E"] / Tk ** 2
+                continue
+            if law["law"] in ("power_law", "saturating"):
                 d = self._end(law["b"], T, u) - T[a]
-                flow = law["h"] * abs(d) ** law["n"] * d
-                slope = law["h"] * (law["n"] + 1) * abs(d) ** law["n"]  # d flow / d d
+                if law["law"] == "power_law":
+                    flow = law["h"] * abs(d) ** law["n"] * d
+                    slope = law["h"] * (law["n"] + 1) * abs(d) ** law["n"]  # d flow / d d
+                else:
+                    flow = law["h"] * d / (1.0 + law["s"] * abs(d))
+                    slope = law["h"] / (1.0 + law["s"] * abs(d)) ** 2
                 q[a] += flow
                 J[a, a] -= slope
                 if law["b"] in self.idx:
@@ -731,8 +743,16 @@ def chamber_inputs(ts, kind: str = "ramp5", seed=0, *, top: float = 85.0, bottom
 
 
 def law_case_names() -> list[str]:
-    """Cases whose truth holds `[[truth.laws]]`: physics outside the vocabulary."""
-    return [c for c in case_names() if load_case(c)["truth"].get("laws")]
+    """Cases whose truth holds `[[truth.laws]]` of the function library's forms: physics
+    outside the vocabulary."""
+    return [c for c in case_names() if load_case(c)["truth"].get("laws")
+            and not load_case(c).get("symbolic")]
+
+
+def symbolic_case_names() -> list[str]:
+    """Cases whose truth holds laws outside the function library's forms too
+    (`symbolic = true`): the symbolic search's to find."""
+    return [c for c in case_names() if load_case(c).get("symbolic")]
 
 
 def case_names() -> list[str]:

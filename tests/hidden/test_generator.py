@@ -720,7 +720,7 @@ def test_lag_vs_mass_tie_is_exact():
     assert np.sqrt(np.mean((believed - truth) ** 2)) > 10 * case["noise"]
 
 
-@pytest.mark.parametrize("name", g.law_case_names())
+@pytest.mark.parametrize("name", g.law_case_names() + g.symbolic_case_names())
 def test_law_heat_jacobian_matches_finite_differences(name):
     """The truth-only laws' analytic Jacobian (which Radau uses) against central
     differences of their heat, at a state with every temperature different."""

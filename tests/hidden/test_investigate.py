@@ -25,7 +25,8 @@ HORIZON_S = 2400.0
 # Cases with their own checks in `test_new_cases.py` run there only (one run each).
 OWN_TESTS = ("bias_unmeasured_node", "kalman_zero_process_noise", "foh_power_and_mass")
 EFFECT_CASES = [c for c in g.case_names()
-                if c not in ("null", "out_of_vocabulary", *OWN_TESTS, *g.law_case_names())]
+                if c not in ("null", "out_of_vocabulary", *OWN_TESTS, *g.law_case_names(),
+                             *g.symbolic_case_names())]
 
 
 def _run(case, tmp_path, likelihood="output_error", max_steps=3):

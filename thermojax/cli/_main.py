@@ -387,6 +387,7 @@ def cmd_diagnose(args) -> int:
 def cmd_investigate(args) -> int:
     from .. import io
     from ..investigation._investigate import investigate
+    from ..investigation._symbolic_step import SearchSettings
 
     out = Path(args.out)
     check_output_folder(out, args.force, in_place=True)
@@ -396,7 +397,9 @@ def cmd_investigate(args) -> int:
     mark_own(out)  # finished steps are kept here; a rerun resumes from them
     report = investigate(spec, runs, likelihood=args.likelihood, out=out,
                          max_steps=args.max_steps, resume=not args.restart,
-                         progress=args.progress, network=not args.no_network)
+                         progress=args.progress, network=not args.no_network,
+                         search=(SearchSettings(args.search_laws, max(args.search_seconds, 0.0) or None)
+                                 if args.search_laws else None))
     _print_story(report)
     print(f"wrote {out / 'report.json'}, {out / 'model_final.toml'} and {out / 'report.md'}")
     return 0
@@ -460,6 +463,15 @@ def _add_investigate(sub):
     p.add_argument("--no-network", action="store_true",
                    help="stop where nothing is supported, without first training a heat "
                    "network at the node missing most heat (about a minute per such step)")
+    p.add_argument("--search-laws", type=_nonnegative_int, default=0, metavar="N",
+                   help="at every step whose residuals are not white, search expression "
+                   "trees for the missing heat at the node missing most, fitting at most N "
+                   "laws (1500 is a good start: about a minute a step); its best are "
+                   "candidates beside the others (default 0: no search, the library's "
+                   "laws only)")
+    p.add_argument("--search-seconds", type=float, default=60.0, metavar="S",
+                   help="stop that search after S seconds with the laws found so far "
+                   "(default 60; 0: no limit but --search-laws)")
     p.set_defaults(func=cmd_investigate)
 
 

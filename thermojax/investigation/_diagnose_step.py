@@ -17,9 +17,10 @@ from ._phase_times import phase
 from ._physical_range import data_span, prefer_physics, reject_unphysical
 from ._refit_verdicts import duplicate_reason, rule_p_value, sample_period
 from ._refits import _refit_side_by_side, refit_best
-from ._selection import judge, prefer_vocabulary
+from ._selection import judge, prefer_simpler_laws, prefer_vocabulary
 from ._separation import separation_advice
 from ._step import Step, _bias_runs, _experiments
+from ._symbolic_step import SearchSettings, mark_proposed, new_laws, search_laws
 from ..discovery import column_scales
 from ..fitting._bias import viscoelastic_candidate
 from ..fitting._fit import FitResult, output_error_at
@@ -115,7 +116,8 @@ def innovation_directions(result: FitResult, data):
 
 def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits: int = 3,
                   fdr: float = 0.05, say=print, white_p: float | None = None,
-                  initial: ModelSpec | None = None) -> list[Candidate]:
+                  initial: ModelSpec | None = None, missing=None,
+                  search: SearchSettings | None = None) -> list[Candidate]:
     """Rank every candidate effect for the model of `step` (which it leaves unchanged).
 
     Thermal candidates are score-tested, the best `refits` of them refitted (see
@@ -169,7 +171,15 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     if not (refits and best_law and not _law_outranked(best_law[0], cands) and
             not _law_adds_nothing(best_law[0], cands, fdr, lowered)):
         best_law = []
-    refit_best([c for c in cands if c.learned is None], refits, wave, beside=best_law)
+    found = []
+    if refits and search is not None and missing is not None:
+        found = _searched(step, runs, missing, cands, unused, (data, weights, r, J, states,
+                                                               whiten), columns, search,
+                          fdr, say)
+    refit_best([c for c in cands if c.learned is None], refits, wave,
+               beside=best_law + found)
+    for c in found:
+        c.add_note("proposed by the symbolic search", first=True)
     if best_law:
         # the kind the law reduces to (a column's heat_source), refitted too if it was
         # not: the law must beat the simpler form it nests (`prefer_vocabulary`)
@@ -179,9 +189,41 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
                               -c.score if np.isfinite(c.score) else math.inf))
     judge(cands, fdr, separation_advice)
     prefer_vocabulary(cands)
+    prefer_simpler_laws(cands)
     reject_unphysical(cands, data_span(spec, runs))
     prefer_physics(cands, separation_advice)
     return cands
+
+
+def _searched(step: Step, runs, missing, cands: list[Candidate], unused, scoring,
+              columns, search: SearchSettings, fdr: float, say) -> list[Candidate]:
+    """The symbolic search's laws (`_symbolic_step.search_laws`) on the step's missing
+    heat, score-tested like the library's and added to `cands`; returns those to refit
+    (the `search.refits` best by their score among the significant ones). The front goes into the
+    step's record (`symbolic_search`); a search that cannot run is a note there."""
+    from ._candidates import score_candidates
+
+    mh = missing()
+    if mh is None or not mh.carriers:
+        return []
+    data, weights, r, J, states, whiten = scoring
+    roles = {**unused, **{h.input: "power" for h in step.spec.heat_inputs}}
+    try:
+        laws, entry = search_laws(step, runs, mh, roles, search, say)
+        laws = new_laws(laws, cands)
+        scored = score_candidates(step.result, data, laws, columns, weights, r, J,
+                                  deflation=step.deflation(0.01), whiten=whiten,
+                                  states=states) if laws else []
+    except Exception as err:  # the search's failure must not end the loop
+        step.record["symbolic_search"] = {
+            "verdict": f"the symbolic search could not run: {type(err).__name__}: {err}"[:300]}
+        say(step.record["symbolic_search"]["verdict"])
+        return []
+    cands += scored
+    best = sorted((c for c in scored if c.p_value < fdr), key=lambda c: -c.score)
+    mark_proposed(entry, best[:search.refits])
+    step.record["symbolic_search"] = entry
+    return best[:search.refits]
 
 
 def scoring_inputs(step: Step, runs: list[Telemetry], likelihood: str) -> tuple:

@@ -25,6 +25,7 @@ and what is written (`_outputs`).
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -44,6 +45,7 @@ from ._refit_verdicts import added_effect
 from ._selection import held_out_advice
 from ._separation import separation_advice
 from ._step import Step, confirmed_optimum, evaluate
+from ._symbolic_step import SearchSettings, record_evidence
 from .._blas_threads import one_blas_thread
 from .._json import json_safe
 from .._memory import release_compiled_if_crowded
@@ -88,19 +90,23 @@ class _Loop:
     say: Callable[[str], None]
     held_out: HeldOutFits
     plots: PlotsAhead | None
+    search: SearchSettings | None = None
 
 
 @one_blas_thread()  # XLA's pool and the fits' threads use the cores (`_blas_threads`)
 def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "output_error",
                 max_steps: int = 4, refits: int = 3, fdr: float = 0.05,
                 white_p: float = 0.01, out: Path | None = None, progress=None,
-                resume: bool = True, holdout_check: bool = True, network: bool = True
-                ) -> dict:
+                resume: bool = True, holdout_check: bool = True, network: bool = True,
+                search: SearchSettings | None = None) -> dict:
     """Run the loop; returns the `report.json` dict (docs/formats.md §5). With `out`, writes the
     report, every step's model, `model_final.toml`, the Markdown report and its plots,
     and a checkpoint after each finished step, from which a rerun resumes. With
     `network`, a step that finds nothing supported while heat is missing asks a heat
-    network before it stops (`_network_step`)."""
+    network before it stops (`_network_step`). With `search` (its budget, e.g.
+    `SearchSettings()`; None, the default: none), a step whose residuals are not white
+    searches laws of its missing heat, whose best are candidates beside the others
+    (`_symbolic_step`)."""
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
     out = Path(out) if out is not None else None
@@ -112,7 +118,8 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
     steps_traces.append(current.traces)
     heat_series.append(None)
     loop = _Loop(spec, runs, likelihood, max_steps, refits, fdr, white_p, holdout_check,
-                 network, out, say, HeldOutFits(), PlotsAhead() if out is not None else None)
+                 network, out, say, HeldOutFits(), PlotsAhead() if out is not None else None,
+                 search)
     advice = None
     try:
         while (stopped := _stops_before(loop, records)) is None:
@@ -209,9 +216,11 @@ def _step_candidates(loop: _Loop, current: Step, i: int) -> tuple:
     _plot_ahead(loop.plots, out, i, current)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-    missing = _beside(record_missing_heat, current, out, i, loop.white_p, say=say)
+    missing = functools.cache(_beside(record_missing_heat, current, out, i, loop.white_p,
+                                      say=say))
     cands = diagnose_step(current, loop.runs, loop.likelihood, refits=loop.refits,
-                          fdr=loop.fdr, say=say, white_p=loop.white_p, initial=loop.spec)
+                          fdr=loop.fdr, say=say, white_p=loop.white_p, initial=loop.spec,
+                          missing=missing, search=loop.search)
 
     def checking(c):  # while a candidate's held-out folds are fitted
         _plot_ahead(loop.plots, out, i + 1, c.result, _added(c))
@@ -228,6 +237,8 @@ def _step_candidates(loop: _Loop, current: Step, i: int) -> tuple:
             chosen = _network_step(current, loop.runs, missing, cands, loop.likelihood,
                                    loop.fdr, loop.white_p, loop.spec, loop.holdout_check, say,
                                    loop.held_out)
+    if "front" in current.record.get("symbolic_search", {}):
+        record_evidence(current.record["symbolic_search"], cands)
     return cands, chosen, missing
 
 

@@ -428,7 +428,37 @@ def _step_section(i: int, steps: list[dict], report: dict, columns, plots, diagn
             md += [f"What would separate the tied candidates: {_sentence(s['separation'])}", ""]
     else:
         md += ["No candidate was evaluated at this step.", ""]
+    md += _front_table(s.get("symbolic_search"))
     return md
+
+
+def _front_table(entry: dict | None) -> list[str]:
+    """`### Laws searched`: the symbolic search's front at the step (simplest first),
+    each law's complexity, fit to the missing heat and, where refitted, its evidence."""
+    if not entry:
+        return []
+    md = ["### Laws searched", ""]
+    if "front" not in entry:
+        return md + [_sentence(entry.get("verdict", "no search")), ""]
+    md += [f"A search over expression trees fitted {entry['evaluated']} laws to the missing "
+           f"heat at {entry['node']} in {entry['seconds']:.1f} s ({entry['generations']} "
+           f"generations, stopped: {entry['stopped']}). The front: the best fit at each "
+           "complexity (tree nodes as written), each kept only where it fits better than "
+           "every simpler law (on the front: yes; the others are the best of their "
+           "complexity). Every law was score-tested through the dynamics, the best "
+           "significant ones refitted and judged by the same rule as every candidate.",
+           "", "| complexity | law | R² on the missing heat | on the front | score test "
+           "| refitted | likelihood ratio | Δ BIC | held-out gain | supported |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    for row in entry["front"]:
+        ev = row.get("evidence") or {}
+        refit = ev.get("method") == "refit"
+        md.append(f"| {row['complexity']} | `{row['expression']}` | {_num(row['r2'], '.5f')} "
+                  f"| {_yes_no(row.get('on_front'))} | {_num(ev.get('score_test'))} "
+                  f"| {_yes_no(refit)} | {_num(ev.get('likelihood_ratio'))} "
+                  f"| {_num(ev.get('delta_bic'))} | {_num(ev.get('holdout_gain'))} "
+                  f"| {_yes_no(ev.get('supported')) if refit else '–'} |")
+    return md + [""]
 
 
 def write_investigation_report(out_dir, report: dict, step_traces: list, columns: list[str],

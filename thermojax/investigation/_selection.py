@@ -123,6 +123,28 @@ def prefer_vocabulary(cands: list[Candidate]) -> None:
                 break
 
 
+def prefer_simpler_laws(cands: list[Candidate]) -> None:
+    """Among learned laws (the library's and the symbolic search's), one stays supported
+    only if its deflated Δ BIC is at least `MIN_BIC_DROP` below that of every supported
+    law with fewer parameters: a second term or a free exponent that fits a little of the
+    noise is not a better law (the rule `prefer_vocabulary` states between a law and a
+    kind, here between laws)."""
+    dbic = deflated_delta_bic
+    laws = [c for c in cands if c.learned is not None and c.supported]
+    for c in laws:
+        for k in laws:
+            if k is c or not k.supported or \
+                    len(k.learned.term.shape) >= len(c.learned.term.shape):
+                continue
+            d = max(c.lr_deflation, k.lr_deflation, 1.0)
+            if dbic(c, d) > dbic(k, d) - MIN_BIC_DROP:
+                c.supported = False
+                c.add_note(f"the simpler law {k.expression} explains as much (deflated "
+                           f"Δ BIC {dbic(k, d):.1f} against {dbic(c, d):.1f}): it is kept",
+                           first=True)
+                break
+
+
 @dataclass
 class FoldVote:
     """One held-out fold: its gain (−log L of the held-out samples without the effect
