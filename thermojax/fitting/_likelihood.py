@@ -284,8 +284,8 @@ def _extended_transition(model, system, dt, substeps=None):
     The substeps run as a loop, never written out: under the fit's forward derivatives
     the written-out steps' programs took longer to compile than they saved in calls
     (PRBS1's loop, whose last two steps fit nonlinear models in 4-8 substeps: 80.9 s
-    against 86.8 s, two runs each, the same likelihoods; at 16 substeps session 33
-    measured the scoring program's compilation at 16 s against 30 s)."""
+    against 86.8 s, two runs each, the same likelihoods; at 16 substeps the scoring
+    program's compilation measured 16 s against 30 s)."""
     step = etd2_step(model, system, dt, unroll=False, substeps=substeps)
 
     def f(m, u_k, u_k1):

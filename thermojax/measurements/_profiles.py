@@ -42,7 +42,7 @@ Real: TypeAlias = float | int
 
 PHASE_KINDS = ("dwell", "heating_ramp", "cooling_ramp", "step", "power_step", "power_sweep")
 
-# Chamber envelope of the seed's calibration rig, °C.
+# Chamber envelope of the tactical-IMU calibration rig, °C.
 CHAMBER_MIN_C = -55.0
 CHAMBER_MAX_C = 105.0
 
