@@ -27,7 +27,8 @@ TOLERANCE = {"radiation": 2e-4, "conductance_temperature": 2e-4,
              # the lag's sensing element keeps 1e-6 of the smallest capacitance
              "sensor_lag": 1e-5}
 THERMAL_CASES = [c for c in g.case_names()
-                 if c not in ("null", "viscoelastic", *g.law_case_names())]
+                 if c not in ("null", "viscoelastic", *g.law_case_names(),
+                              *g.symbolic_case_names())]
 
 
 def _truth_spec(case):
