@@ -30,6 +30,7 @@ from ._bias_residuals import bias_residuals, pushed_forward
 from ._problem import (FitState, Prepared, Solution, _check_finite, _model_of, _perturbed_starts,
                        _prior, _Problem, _state, dataset, make_problem, template_at)
 from ._side_by_side import side_by_side
+from ._stationarity import escape, violations
 from ._integration import fewest_substeps, integration_tolerance, shared_substeps, with_substeps
 from ._solver import TruncatedGaussNewton, _flat_rows, _grams, gauss_newton, traced_settings
 from ..model._parameters import free_parameters, with_free_parameters
@@ -330,6 +331,9 @@ def fit_output_error(prep: Prepared, solver, max_steps: int, n_starts: int, seed
         if best is None or (np.isfinite(run.nll) and run.nll < best.nll):
             best = run
     _check_finite(best.theta, theta0, prep.names)
+    not_stationary = ""
+    if isinstance(solver, TruncatedGaussNewton):
+        best, not_stationary = _first_order(best, prep, theta0, solver, max_steps, say)
     if prep.template.model.is_nonlinear:
         best, prep = _accurate_at_solution(best, prep, theta0, solver, max_steps, say)
     sigma = best.sigma
@@ -352,7 +356,51 @@ def fit_output_error(prep: Prepared, solver, max_steps: int, n_starts: int, seed
                     best.converged, np.asarray(best.evaluation.predictions), noise,
                     best.n_evaluations,
                     alternatives=[(np.asarray(r.theta), float(r.nll)) for r in passes
-                                  if r is not best])
+                                  if r is not best],
+                    not_stationary=not_stationary)
+
+
+def _first_order(best: _Pass, prep: Prepared, theta0, solver: TruncatedGaussNewton,
+                 max_steps: int, say) -> tuple[_Pass, str]:
+    """`(best, why)`: `best` checked by the first-order conditions along the directions
+    its solve left out (`_stationarity`); where they fail, walked out along them and
+    solved again from there, the better kept. `why` words a direction that still fails
+    ("" where none does): the fit is then not converged."""
+    n_free = len(prep.names)
+
+    def remaining(run: _Pass):
+        return violations(np.asarray(run.evaluation.jacobian).reshape(-1, n_free),
+                          np.asarray(run.evaluation.residuals).reshape(-1), prep.names,
+                          solver.min_singular_value, solver.max_step)
+
+    if n_free == 0 or best.evaluation.jacobian is None or not remaining(best):
+        return best, ""
+    problem = make_problem(prep.template, prep.index, prep.data, best.sigma, theta0,
+                           bias=prep.bias)
+    estimated, mask = ~prep.fixed_sigma, prep.mask()
+
+    def at(theta):
+        """−log L (noise stds at their ML values), weighted Jacobian and residuals: one
+        evaluation of the solve's own program (one Jacobian, no step)."""
+        _, _, _, evaluation, used = _solve_oe(jax.device_put(theta), problem, solver, 1,
+                                              estimated)
+        weighted = np.asarray(evaluation.residuals)
+        r = weighted * np.asarray(used)
+        sigma = np.where(estimated, np.maximum(ml_sigma(r, mask), 1e-12), np.asarray(used))
+        return (output_error_nll(r, mask, sigma),
+                np.asarray(evaluation.jacobian).reshape(-1, n_free), weighted.reshape(-1))
+
+    theta, taken = escape(np.asarray(best.theta), at, prep.names, solver.min_singular_value,
+                          solver.max_step, say)
+    if taken:
+        again = _reweighted(jax.device_put(theta), prep, theta0, solver, max_steps, say)
+        if np.isfinite(again.nll) and again.nll < best.nll:
+            say(f"after {taken} step(s) along it and a new solve: -log L {best.nll:.2f} -> "
+                f"{again.nll:.2f}")
+            best = dataclasses.replace(again, n_steps=best.n_steps + taken + again.n_steps,
+                                       n_evaluations=best.n_evaluations + again.n_evaluations)
+    found = remaining(best)
+    return best, found[0].describe() if found else ""
 
 
 def _accurate_at_solution(best: _Pass, prep: Prepared, theta0, solver, max_steps: int, say

@@ -103,6 +103,9 @@ class Solution:
     # How the optimum was found, in words for the report (`FitResult.method`); "" for the
     # default of the likelihood.
     method: str = ""
+    # Words for a direction along which the likelihood still falls (`_stationarity`): the
+    # solve stopped short of a stationary point, not converged. "" where none.
+    not_stationary: str = ""
 
 
 # ---------------------------------------------------------------------------

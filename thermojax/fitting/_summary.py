@@ -62,8 +62,11 @@ def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) ->
         np.asarray(data.mask)[r, :e.n_times], e.outputs, np.nan))
         for r, e in enumerate(prep.experiments)]  # a held-out run counts no sample
     dominant = dominant_samples(spec.sensor_columns, in_fit, predictions)
-    converged = sol.converged and not dominant
-    message = (dominance_message(dominant) if dominant else "converged" if sol.converged
+    converged = sol.converged and not dominant and not sol.not_stationary
+    # short of a stationary point, samples that seem to dominate are a symptom of it
+    message = (f"not converged: {sol.not_stationary}" if sol.not_stationary
+               else dominance_message(dominant) if dominant
+               else "converged" if sol.converged
                else f"stopped after {sol.n_steps} steps without converging")
     raised = raise_effects(prep.lowered, fitted_spec)
     for b in biases.values():
