@@ -110,7 +110,7 @@ def main() -> None:
                     "persistent cache")
     args = ap.parse_args()
     if args.cache_dir:
-        from thermojax._cache import enable_compilation_cache
+        from thermojax.compilation._cache import enable_compilation_cache
 
         enable_compilation_cache(args.cache_dir)
     if args.imu6:

@@ -159,7 +159,7 @@ def test_a_damaged_cache_entry_is_removed_and_recompiled(tmp_path, monkeypatch):
     removed with a warning, and the program runs."""
     import jax.numpy as jnp
 
-    from thermojax import _traced_cache as tc
+    from thermojax.compilation import _traced_cache as tc
 
     monkeypatch.setattr(tc, "_folder", lambda: tmp_path / "traced")
 
@@ -206,7 +206,7 @@ def test_a_damaged_jax_cache_entry_is_removed_and_recompiled(tmp_path):
 
     script = (
         "import sys, jax, jax.numpy as jnp\n"
-        "from thermojax._cache import enable_compilation_cache\n"
+        "from thermojax.compilation._cache import enable_compilation_cache\n"
         "jax.config.update('jax_enable_x64', True)\n"
         "enable_compilation_cache(sys.argv[1])\n"
         "jax.config.update('jax_persistent_cache_min_compile_time_secs', 0.0)\n"

@@ -10,7 +10,7 @@ import re
 
 import numpy as np
 
-from thermojax._residual_analysis import ljung_box
+from thermojax.fitting._residual_analysis import ljung_box
 from thermojax.discovery import describe
 from thermojax.investigation._investigation_report import write_investigation_report
 

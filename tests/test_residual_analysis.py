@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from thermojax._residual_analysis import (PHASES, cross_correlation, cumulated_periodogram,
+from thermojax.fitting._residual_analysis import (PHASES, cross_correlation, cumulated_periodogram,
                                           label_phases, ljung_box, residuals_by_phase)
 
 

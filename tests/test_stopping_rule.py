@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from thermojax._residual_analysis import long_run_variance_ratio
+from thermojax.fitting._residual_analysis import long_run_variance_ratio
 from thermojax.investigation._diagnostics import davies_p_value, davies_variation
 
 from hidden import generator as g

@@ -1,4 +1,4 @@
-"""The traced-program store (`thermojax._traced_cache.stored_jit`): the same answers as
+"""The traced-program store (`compilation._traced_cache.stored_jit`): the same answers as
 NumPy with and without a cache folder, one trace per program and process, entries read
 back by a fresh process without tracing, and a new entry for any change of what the
 trace depends on."""
@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from thermojax import _traced_cache
-from thermojax._traced_cache import forget_programs, stored_jit
+from thermojax.compilation import _traced_cache
+from thermojax.compilation._traced_cache import forget_programs, stored_jit
 
 TRACES = {"n": 0}
 
@@ -240,7 +240,7 @@ def test_compiled_ahead_on_a_thread_the_call_neither_traces_nor_compiles_again(
 MODULE = """
 import jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
-from thermojax._traced_cache import stored_jit
+from thermojax.compilation._traced_cache import stored_jit
 TRACES = [0]
 
 @stored_jit

@@ -37,7 +37,7 @@ _STAGES = {
 }
 _LAZY = {name: "." + stage for stage, names in _STAGES.items() for name in names}
 _LAZY["InputError"] = "._errors"
-_LAZY["enable_compilation_cache"] = "._cache"
+_LAZY["enable_compilation_cache"] = ".compilation._cache"
 _SUBMODULES = {"io", *_STAGES}
 
 __all__ = sorted(_LAZY)

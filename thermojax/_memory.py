@@ -30,7 +30,7 @@ def release_compiled_if_crowded(limit: int = MAPPINGS_LIMIT) -> bool:
         return False
     import jax
 
-    from ._traced_cache import forget_programs
+    from .compilation._traced_cache import forget_programs
 
     forget_programs()
     jax.clear_caches()

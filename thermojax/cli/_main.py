@@ -658,7 +658,7 @@ def main(argv: list[str] | None = None) -> int:
     args.progress = Progress(args.command, quiet=getattr(args, "quiet", False))
     if hasattr(args, "no_cache") and not args.no_cache and not os.environ.get(
             "THERMOJAX_NO_CACHE"):
-        from .._cache import enable_compilation_cache
+        from ..compilation._cache import enable_compilation_cache
 
         enable_compilation_cache()
     try:

@@ -4,7 +4,7 @@ operation they compiled a hundred small programs for every model of an investiga
 
 from __future__ import annotations
 
-from .._traced_cache import stored_jit
+from ..compilation._traced_cache import stored_jit
 from ._nonlinear import dataset_states_nonlinear
 
 

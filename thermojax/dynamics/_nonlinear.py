@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._discretize import discretize, sample_period
-from .._traced_cache import stored_jit
+from ..compilation._traced_cache import stored_jit
 from ..model._system import LinearSystem
 
 

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._traced_cache import stored_jit
+from ..compilation._traced_cache import stored_jit
 from ..dynamics._taylor_hold import SparsePlan, model_outputs_taylor, plan_norm, sparse_plan
 from ._matrix_free import MatrixFreeGaussNewton, matrix_free_gauss_newton
 from ._problem import _model_of, _prior, _Problem

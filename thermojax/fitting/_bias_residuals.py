@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._traced_cache import stored_jit
+from ..compilation._traced_cache import stored_jit
 from ..dynamics._blocked import pad_to_blocks
 from ..dynamics._sensitivity import dataset_block_outputs
 from ..model._spec import ModelSpec

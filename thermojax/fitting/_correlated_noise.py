@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._residual_analysis import newey_west_lags, pooled_autocorrelation
+from ._residual_analysis import newey_west_lags, pooled_autocorrelation
 
 
 def hac_covariance(scores: np.ndarray, bread: np.ndarray, lags: int) -> np.ndarray:

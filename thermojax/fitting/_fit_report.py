@@ -106,7 +106,7 @@ def _noise_given(spec) -> dict:
 
 def whiteness(columns, experiments, predictions) -> dict:
     """Ljung-Box p-value of each column's free-run residual, runs pooled."""
-    from .._residual_analysis import ljung_box
+    from ._residual_analysis import ljung_box
 
     out, lags = {}, None
     for j, c in enumerate(columns):

@@ -25,7 +25,7 @@ from ._likelihood import kalman_nll, kalman_runs, simulate_dataset
 from ._newton import TruncatedNewton, newton
 from ._problem import Prepared, Solution, _check_finite, _prior, _state, make_problem
 from ._smoothed import kalman_smoothed
-from .._traced_cache import stored_jit
+from ..compilation._traced_cache import stored_jit
 from ..model._parameters import free_parameters, with_free_parameters
 
 if TYPE_CHECKING:

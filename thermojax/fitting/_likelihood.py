@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._traced_cache import stored_jit
+from ..compilation._traced_cache import stored_jit
 from ..measurements._data import Dataset
 from ..dynamics._discretize import discretize, discretize_process_noise, sample_period
 from ..model._model import ThermalModel

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._traced_cache import stored_jit
+from ..compilation._traced_cache import stored_jit
 from ..dynamics._sensitivity import (block_outputs_and_states, dataset_block_outputs,
                                      output_sensitivity_parts, pad_to_blocks)
 from ._likelihood import ml_sigma, output_error_nll

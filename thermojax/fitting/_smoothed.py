@@ -6,7 +6,7 @@ it ahead (`_kalman_fit`) both import it without importing each other.
 
 from __future__ import annotations
 
-from .._traced_cache import stored_jit
+from ..compilation._traced_cache import stored_jit
 from ._likelihood import kalman_runs, rts_smoother
 
 

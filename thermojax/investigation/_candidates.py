@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import stats
 
-from .._traced_cache import stored_jit
+from ..compilation._traced_cache import stored_jit
 from ..dynamics._lag import first_order_lag
 from ..dynamics._model_arrays import free_run_states, linear_parts
 from ..measurements._data import Dataset

@@ -24,7 +24,7 @@ from ._symbolic_step import SearchSettings, mark_proposed, new_laws, search_laws
 from ..discovery import column_scales
 from ..fitting._bias import viscoelastic_candidate
 from ..fitting._fit import FitResult, output_error_at
-from .._residual_analysis import ljung_box, long_run_variance_ratio
+from ..fitting._residual_analysis import ljung_box, long_run_variance_ratio
 from ..measurements._telemetry import Telemetry
 from ..model._spec import ModelSpec
 

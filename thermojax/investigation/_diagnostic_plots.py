@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .._plots import WIDTH_IN, new_figure, save_figure
-from .._residual_analysis import (PHASES, cross_correlation, cumulated_periodogram,
+from ..fitting._residual_analysis import (PHASES, cross_correlation, cumulated_periodogram,
                                  ljung_box, pooled_autocorrelation, residuals_by_phase)
 from ._diagnostics import (_check_runs, _dt, _label, _phases, _signals, _split_inputs,
                            lag_span, slowest_time_constant)

@@ -21,7 +21,7 @@ from scipy import stats
 
 from .._json import json_safe
 from ..fitting._metrics import fit_percent, rmse
-from .._residual_analysis import (PHASES, PhaseLabels, cross_correlation, cumulated_periodogram,
+from ..fitting._residual_analysis import (PHASES, PhaseLabels, cross_correlation, cumulated_periodogram,
                                  label_phases, ljung_box, pooled_autocorrelation,
                                  residuals_by_phase)
 

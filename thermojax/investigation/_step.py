@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..fitting._fit import FitResult, fit, standardized_innovations
-from .._residual_analysis import ljung_box, long_run_variance_ratio
+from ..fitting._residual_analysis import ljung_box, long_run_variance_ratio
 from ..measurements._data import Experiment
 from ..measurements._telemetry import Telemetry
 from ..model._spec import ModelSpec

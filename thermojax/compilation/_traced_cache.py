@@ -118,7 +118,7 @@ def _key(name: str, treedef, leaves, dynamic) -> str:
 @functools.cache
 def _source_digest() -> str:
     """SHA-256 of every thermojax module's source: any change to the code is a new key."""
-    root = Path(__file__).resolve().parent
+    root = Path(__file__).resolve().parents[1]  # the thermojax package
     h = hashlib.sha256()
     for path in sorted(root.rglob("*.py")):
         h.update(str(path.relative_to(root)).encode())
