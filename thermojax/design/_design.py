@@ -24,7 +24,7 @@ from ._criterion import criterion_loss, target_indices
 from ._information import (InformationProblem, information_problem, marginal_information,
                            predicted_stds)
 from ._limits import ChamberLimits
-from ._references import REFERENCES, prbs_start, reference_profile
+from ._references import REFERENCES, prbs_start, reference_inputs
 from ._schedule import ProfileSchedule
 
 #: s, default spacing of the temperature knots (10 min).
@@ -177,11 +177,7 @@ def design(spec: ModelSpec, duration_s: float, *, limits: ChamberLimits | None =
     designed = evaluate(T, P)
     refs = {}
     for name in references:
-        rT, rP = reference_profile(name, schedule)
-        if not spec.boundary_columns:
-            rT = np.full_like(rT, limits.start_c)
-        if not spec.heat_columns:
-            rP = np.full_like(rP, limits.start_power_w)
+        rT, rP = reference_inputs(name, schedule, spec)
         refs[name] = _evaluate_reference(spec, schedule, rT, rP, noise, criterion, targets)
     noise_by_column = dict(zip(problem.spec.sensor_columns, problem.sigma.tolist()))
     return Design(spec, schedule, best, T, P, criterion,

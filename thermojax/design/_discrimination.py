@@ -37,7 +37,7 @@ from .._errors import InputError
 from ..model._spec import ModelSpec
 from ._information import Prepared, prepare_profiles
 from ._limits import ChamberLimits
-from ._references import REFERENCES, prbs_start, reference_profile
+from ._references import REFERENCES, prbs_start, reference_inputs
 from ._schedule import ProfileSchedule
 
 #: The statistic `2 log (L_a / L_b)` a decisive run exceeds: a likelihood ratio of 100.
@@ -335,11 +335,7 @@ def discriminate(specs: list[tuple[str, ModelSpec]], duration_s: float, *,
     refs = {}
     say(f"judging the references ({time.perf_counter() - t0:.0f} s)")
     for name in references:
-        rT, rP = reference_profile(name, schedule)
-        if not spec0.boundary_columns:
-            rT = np.full_like(rT, limits.start_c)
-        if not spec0.heat_columns:
-            rP = np.full_like(rP, limits.start_power_w)
+        rT, rP = reference_inputs(name, schedule, spec0)
         # a reference starts where the design does only if its first sample does
         if rT[0] != limits.start_c or rP[0] != limits.start_power_w:
             lim = ChamberLimits(limits.temperature_c, limits.ramp_c_per_min, limits.power_w,

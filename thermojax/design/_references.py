@@ -41,6 +41,19 @@ def reference_profile(name: str, schedule: ProfileSchedule) -> tuple[np.ndarray,
     return T, P
 
 
+def reference_inputs(name: str, schedule: ProfileSchedule, spec) -> tuple[np.ndarray,
+                                                                         np.ndarray]:
+    """`reference_profile` for a model `spec`: a column the model does not have is held at
+    the start (the chamber at `start_c` without a boundary, the power at
+    `start_power_w` without a heat input)."""
+    T, P = reference_profile(name, schedule)
+    if not spec.boundary_columns:
+        T = np.full_like(T, schedule.limits.start_c)
+    if not spec.heat_columns:
+        P = np.full_like(P, schedule.limits.start_power_w)
+    return T, P
+
+
 def _programmed(name: str, schedule: ProfileSchedule) -> tuple[np.ndarray, np.ndarray]:
     ts, lim = schedule.ts, schedule.limits
     plo, phi = lim.power_w

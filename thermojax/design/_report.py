@@ -52,10 +52,19 @@ def std_ratios(design: Design) -> dict[str, dict]:
     return out
 
 
-def design_report(design: Design, model: str) -> dict:
-    """The `report.json` of `thermojax design`."""
+def _header(schedule, model: str) -> dict:
+    """The keys every `report.json` of `thermojax design` starts with: the command, the
+    model, the profile file and the schedule's duration (s), sample period (s) and
+    limits."""
     from .. import __version__
 
+    return {"schema": 1, "thermojax_version": __version__, "command": "design",
+            "model": model, "profile": "profile.csv", "duration_s": schedule.duration_s,
+            "dt_s": schedule.dt, "limits": schedule.limits.to_json()}
+
+
+def design_report(design: Design, model: str) -> dict:
+    """The `report.json` of `thermojax design`."""
     values = parameter_values(design)
     positive = _positive(design)
     judged = list(design.designed.stds)
@@ -66,20 +75,12 @@ def design_report(design: Design, model: str) -> dict:
                         ev.stds[p] * abs(values[p]) if positive[p] else ev.stds[p])}
                 for p in judged}
 
-    sch = design.schedule
     return json_safe({
-        "schema": 1,
-        "thermojax_version": __version__,
-        "command": "design",
-        "model": model,
-        "profile": "profile.csv",
-        "duration_s": sch.duration_s,
-        "dt_s": sch.dt,
-        "limits": sch.limits.to_json(),
+        **_header(design.schedule, model),
         "criterion": {"kind": design.criterion, "parameters": design.targets,
                       "prior_log_std": 1.0, "value": design.designed.loss},
         "noise": design.noise,
-        "schedule": sch.describe(design.params),
+        "schedule": design.schedule.describe(design.params),
         "parameters": {p: {"value": values[p]} for p in judged},
         "designed": {"criterion_value": design.designed.loss, "stds": stds(design.designed),
                      "limits_kept": not design.designed.violations,
@@ -188,27 +189,17 @@ def markdown(report: dict) -> str:
 
 def discrimination_report(disc, model: str) -> dict:
     """The `report.json` of `thermojax design --rivals`."""
-    from .. import __version__
     from ._discrimination import DECISIVE
-
-    sch = disc.schedule
 
     def pairs(p):
         return [{"true": a, "refitted": b, **v} for (a, b), v in p.items()]
 
     return json_safe({
-        "schema": 1,
-        "thermojax_version": __version__,
-        "command": "design",
-        "model": model,
-        "profile": "profile.csv",
-        "duration_s": sch.duration_s,
-        "dt_s": sch.dt,
-        "limits": sch.limits.to_json(),
+        **_header(disc.schedule, model),
         "criterion": {"kind": "discrimination", "hypotheses": disc.names,
                       "decisive_2log_lr": DECISIVE},
         "noise": dict(zip(disc.columns, disc.sigma.tolist())),
-        "schedule": sch.describe(disc.params),
+        "schedule": disc.schedule.describe(disc.params),
         "designed": {"pairs": pairs(disc.pairs), "limits_kept": not disc.violations},
         "references": {name: {"pairs": pairs(p)} for name, p in disc.references.items()},
         "search": {"wall_time_s": disc.wall_time_s},
