@@ -87,11 +87,22 @@ def static_design(bias: Bias, ts, temps, rates, index) -> np.ndarray:
     or None for the derivative of the sampled temperatures; `index` node name -> column."""
     if rates is None:
         rates = np.gradient(temps, ts, axis=0) if ts.size > 1 else np.zeros_like(temps)
-    t = temps[:, index(bias.temperature)]
-    cols = [(t - T_REF) ** p for p in range(bias.order + 1)]
-    cols += [temps[:, index(a)] - temps[:, index(b)] for a, b in bias.gradients]
-    cols += [rates[:, index(n)] for n in bias.rates]
-    return np.column_stack(cols)
+    return np.column_stack(static_columns(
+        temps, rates, index(bias.temperature), bias.order,
+        [(index(a), index(b)) for a, b in bias.gradients], [index(n) for n in bias.rates]))
+
+
+def static_columns(x, xdot, temperature: int, order: int, gradients, rates) -> list:
+    """The static regressors of a bias column, each (...) as `x[..., 0]`: the powers 0 to
+    `order` of `(T − 25)` of node `temperature`, the differences of the node pairs
+    `gradients` (K) and the rates of the nodes `rates` (K/s). `x` node temperatures
+    (..., nodes) °C and `xdot` their rates (..., nodes) K/s, NumPy or JAX arrays alike
+    (the fit's traced design and the written column's are this one function)."""
+    t = x[..., temperature] - T_REF
+    cols = [t ** p for p in range(order + 1)]
+    cols += [x[..., a] - x[..., b] for a, b in gradients]
+    cols += [xdot[..., n] for n in rates]
+    return cols
 
 
 def predict_bias(bias: Bias, effects: list[Effect], ts, temps, rates, node_names) -> np.ndarray:

@@ -28,7 +28,7 @@ from ..compilation._traced_cache import stored_jit
 from ..dynamics._blocked import pad_to_blocks
 from ..dynamics._sensitivity import dataset_block_outputs
 from ..model._spec import ModelSpec
-from ._bias import T_REF, Strain, strains_of
+from ._bias import Strain, static_columns, strains_of
 
 _RIDGE = 1e-10  # relative Tikhonov term of the scaled normal equations (rank-safe)
 
@@ -139,11 +139,8 @@ def design_matrices(model, log_tau, x, inputs, dt, bias: BiasColumns):
     xdot = state_derivative(model, x, inputs)
     out = []
     for d in bias.designs:
-        T = x[..., d.temperature] - T_REF
-        cols = [T ** p for p in range(d.order + 1)]
-        cols += [x[..., a] - x[..., b] for a, b in d.gradients]
-        cols += [xdot[..., n] for n in d.rates]
-        fixed = jnp.zeros_like(T)
+        cols = static_columns(x, xdot, d.temperature, d.order, d.gradients, d.rates)
+        fixed = jnp.zeros_like(cols[0])
         for s, node, k in zip(d.strains, d.strain_nodes, d.fixed_k):
             z = _strain(x[..., node], dt, log_tau[s])
             if k is None:
