@@ -67,7 +67,8 @@ def test_a_log_in_minutes_is_marked_and_one_in_seconds_is_not(tmp_path, capsys, 
     """The heater block of `own_data` (time constants 20 s and 164 s, 2 s samples for
     20 min, sensor noise 0.02 °C written in the model): logged with `time_s` in seconds
     it fits to its noise with no warning; with `time_s` in minutes the run seems to last
-    20 s, and both the clock and the noise the fit needs are named, in the report too."""
+    20 s: the fit reaches the data with every capacitance 60× too small, and both the
+    run's length and the capacitances name the clock, in the report too."""
     net, ts, inputs, outputs, _ = heater()
     data = write_csv(tmp_path / "log.csv", ts / (60.0 if unit == "min" else 1.0),
                      {**inputs, **outputs})
@@ -84,9 +85,10 @@ def test_a_log_in_minutes_is_marked_and_one_in_seconds_is_not(tmp_path, capsys, 
         assert report["warnings"] == [] and "Warning" not in md and "warning" not in err, err
     else:
         assert "If `time_s` counts minutes" in err, err
-        assert "the fitted noise of T_block" in err and "model error" in err, err
-        assert any("the fitted noise of T_block" in w for w in report["warnings"])
-        assert "**Warning:** the fitted noise of T_block" in md
+        said = "every capacitance ended 10× or more below its value in the model file"
+        assert said in err and "(minutes make them 60× too small)" in err, err
+        assert any(said in w for w in report["warnings"])
+        assert f"**Warning:** {said}" in md
 
 
 def _rtd_run(core):

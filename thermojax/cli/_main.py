@@ -208,7 +208,8 @@ def cmd_fit(args) -> int:
     import warnings
 
     from .. import io
-    from ..fitting._fit import profile_interval
+    from ..fitting._fit import fit, profile_interval
+    from ..fitting._hold_check import hold_findings
     from ..fitting._implausible_fit import implausible_fit
     from ..fitting._interval_check import check_intervals
     from ..fitting._fit_report import (file_values, comparison_table, format_parameter_table,
@@ -240,6 +241,9 @@ def cmd_fit(args) -> int:
                           "conductance or capacitance off by orders of magnitude), the "
                           "columns' units, and the model's structure.")
         for finding in implausible_fit(spec, result.spec):
+            warnings.warn(finding)
+        for finding in hold_findings(spec, result.nll, lambda other: fit(
+                other, experiments, likelihood=args.likelihood).nll, args.progress):
             warnings.warn(finding)
         profiles = ({} if getattr(args, "no_interval_check", False)
                     else check_intervals(result, args.progress))

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import functools
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +48,7 @@ from ._separation import separation_advice
 from ._step import Step, confirmed_optimum, evaluate
 from ._symbolic_step import SearchSettings, record_evidence
 from .._blas_threads import one_blas_thread
+from ..fitting._hold_check import hold_findings
 from .._json import json_safe
 from .._memory import release_compiled_if_crowded
 from ..measurements._telemetry import Telemetry
@@ -169,6 +171,10 @@ def _first_step(spec, runs, likelihood, out, inputs, resume, say) -> tuple[list[
     if out is not None and not records and out.is_dir():
         _clear_earlier_run(out)
     current = evaluate(start_spec, runs, likelihood, progress=None)
+    if not records:  # a fresh start: the holds the file left out, checked once
+        for finding in hold_findings(spec, current.record["nll"], lambda other: evaluate(
+                other, runs, likelihood).record["nll"], say):
+            warnings.warn(finding)
     if records:
         current.record["added"] = records[-1]["added"]
         records[-1] = {**current.record, "candidates": [], "wall_time_s":

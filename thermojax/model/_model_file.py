@@ -208,7 +208,8 @@ class _Reader:
         gain = self.param(e["gain"], "heat_inputs", i, "gain") if "gain" in e else Parameter(1.0, True)
         return HeatInput(self.string(e["node"], "heat_inputs", i, "node"),
                          self.string(e["input"], "heat_inputs", i, "input"), gain,
-                         self.string(e.get("hold", "foh"), "heat_inputs", i, "hold"))
+                         self.string(e.get("hold", "foh"), "heat_inputs", i, "hold"),
+                         hold_written="hold" in e)
 
     def sensor(self, e: dict, i: int) -> Sensor:
         self.keys(e, "sensors", i, ("node", "column"), ("noise",))

@@ -71,6 +71,9 @@ class HeatInput:
     input: str  # CSV column, W
     gain: Parameter  # dimensionless
     hold: str = "foh"
+    # False where the file left `hold` out (the default taken): `fit` then checks the
+    # other hold against the data (`fitting._hold_check`). Not part of the model's value.
+    hold_written: bool = field(default=True, compare=False)
 
     @property
     def key(self) -> str:
