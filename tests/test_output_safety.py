@@ -307,7 +307,7 @@ def test_a_disk_that_fills_while_fit_writes_leaves_no_partial_folder(capsys, mon
 
     # a fit that ends where it started: nothing to warn of, then the disk fills
     fitted = types.SimpleNamespace(likelihood="output_error", problem=None, dominant=[],
-                                   spec=load_model(RTD2))
+                                   nll=0.0, spec=load_model(RTD2))
     monkeypatch.setattr(fit_module, "fit", lambda *a, **k: fitted)
 
     def write_fit_outputs(result, experiments, folder, *args, **kwargs):
