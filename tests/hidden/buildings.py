@@ -16,7 +16,9 @@ simulated EXACTLY: x_{k+1} = Ad x_k + Bd u_k + w_k with [[Ad, Bd], [0, I]] = exp
 and w_k ~ N(0, Qd), Qd = ∫0^dt e^{As} Q e^{Aᵀs} ds (Q = diag σ²) by Van Loan's method:
 expm([[−A, Q], [0, Aᵀ]]·dt) = [[·, M12], [0, M22]], Ad = M22ᵀ, Qd = Ad·M12. The measurement is
 y_k = T_sensor(t_k) + v_k, v_k ~ N(0, noise²). The run starts at the steady state of the first input
-sample, x0 = −A⁻¹ B u_0.
+sample, x0 = −A⁻¹ B u_0. A case with a temperature-dependent capacitance (C_i (1 + β (T_i − 25 °C)),
+its process noise still σ_i dW_i in °C) is simulated in `NONLINEAR_SUBSTEPS` substeps per sample,
+each exact for the network frozen at the substep's predicted midpoint (second order).
 
 Inputs (15-min sampling, dt = 900 s): `Ta` outdoor °C (2 °C mean, daily sinusoid ±3 °C coldest at
 05:00, plus a mean-reverting random walk: 3-day time constant, 2 °C std); `Ps` global radiation W/m²
@@ -29,6 +31,8 @@ Cases (`building_case_names()`):
                    sensor Ts; Ph heats Th, Ps heats Ti and Te; yTi reads Ts.
   building_wall2   interior Ti and a two-layer wall Ti–Te1–Te2–Ta; Ph and Ps heat Ti, Ps also Te1.
   building_null    the one-node start model itself (other parameter values): nothing to add.
+  building_4state_ct  building_4state with the heater's capacitance varying with its temperature,
+                   C_h (1 + β (T_h − 25 °C)), β = 0.02 /K (the one temperature-dependent effect).
 The believed start model of every case is the one-node model of `prbs1/ti.toml`.
 """
 
@@ -59,6 +63,13 @@ _CASES = {
         boundaries=[("Te2", "Ta", 300.0)],
         heats=[("Ti", "Ph", 1.0), ("Ti", "Ps", 5.0), ("Te1", "Ps", 4.0)],
         sensor=dict(column="yTi", node="Ti", noise=0.01)),
+    "building_4state_ct": dict(
+        nodes={"Ti": (5.0e5, 4e-4), "Te": (1.2e7, 1e-4), "Th": (2.4e6, 3e-4), "Ts": (2.0e5, 1e-4)},
+        links=[("Ti", "Te", 1000.0), ("Ti", "Th", 800.0), ("Ti", "Ts", 100.0)],
+        boundaries=[("Te", "Ta", 200.0)],
+        heats=[("Th", "Ph", 1.0), ("Ti", "Ps", 5.0), ("Te", "Ps", 4.0)],
+        capacitance_temperature={"Th": 0.02},
+        sensor=dict(column="yTi", node="Ts", noise=0.01)),
     "building_null": dict(
         nodes={"Ti": (3.0e6, 3e-4)},
         links=[],
@@ -155,17 +166,51 @@ def building_inputs(ts, rng) -> dict[str, np.ndarray]:
     return {"Ta": ta, "Ps": ps, "Ph": ph}
 
 
+NONLINEAR_SUBSTEPS = 8  # per sample period, for a temperature-dependent capacitance
+
+
+def capacitance_factors(truth: dict, x) -> np.ndarray:
+    """`1 + β (T − 25)` per node (1 where the capacitance is constant), at temperatures `x` (°C)."""
+    betas = truth.get("capacitance_temperature", {})
+    return np.array([1.0 + betas.get(k, 0.0) * (x[i] - 25.0) for i, k in enumerate(truth["nodes"])])
+
+
+def _nonlinear_step(truth, A, B, Q, x, u, h, rng, noise):
+    """One sample period of a network with temperature-dependent capacitances, in
+    `NONLINEAR_SUBSTEPS` substeps, each exact for the linear network frozen at the substep's
+    midpoint (the midpoint from a first pass frozen at its start): second order in the substep.
+    The process noise enters in °C (σ dW), as in the linear cases."""
+    hs = h / NONLINEAR_SUBSTEPS
+    for _ in range(NONLINEAR_SUBSTEPS):
+        d = 1.0 / capacitance_factors(truth, x)
+        aug = np.zeros((len(x) + len(u), len(x) + len(u)))
+        aug[:len(x), :len(x)], aug[:len(x), len(x):] = d[:, None] * A, d[:, None] * B
+        E = scipy.linalg.expm(aug * hs)  # the predictor needs no noise covariance
+        mid = 0.5 * (x + E[:len(x), :len(x)] @ x + E[:len(x), len(x):] @ u)
+        d = 1.0 / capacitance_factors(truth, mid)
+        Ad, Bd, Qd = discretize(d[:, None] * A, d[:, None] * B, Q, hs)
+        x = Ad @ x + Bd @ u
+        if noise:
+            x = x + np.linalg.cholesky(Qd) @ rng.standard_normal(len(x))
+    return x
+
+
 def simulate_building(truth: dict, ts, inputs: dict, rng, noise: bool = True) -> dict:
-    """Exact zoh simulation at `ts`: the sensor column (with measurement noise when `noise`) and
-    every node's true temperature under its name. `noise=False` drops process noise too."""
+    """zoh simulation at `ts`: the sensor column (with measurement noise when `noise`) and
+    every node's true temperature under its name. `noise=False` drops process noise too.
+    Exact for a linear network; second order in `NONLINEAR_SUBSTEPS` substeps per period
+    where the truth has a temperature-dependent capacitance."""
     ts = np.asarray(ts, float)
     names, A, B, Q, c = matrices(truth)
     u = np.column_stack([np.asarray(inputs[col], float) for col in COLUMNS])
     x = np.zeros((len(ts), len(names)))
-    x[0] = -np.linalg.solve(A, B @ u[0])
+    x[0] = -np.linalg.solve(A, B @ u[0])  # a steady state whatever the capacitances
     steps: dict[float, tuple] = {}
     for k in range(len(ts) - 1):
         h = float(ts[k + 1] - ts[k])
+        if truth.get("capacitance_temperature"):
+            x[k + 1] = _nonlinear_step(truth, A, B, Q, x[k], u[k], h, rng, noise)
+            continue
         if h not in steps:
             Ad, Bd, Qd = discretize(A, B, Q, h)
             steps[h] = (Ad, Bd, np.linalg.cholesky(Qd) if noise else None)
