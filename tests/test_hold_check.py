@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import scipy.linalg
 
 from helpers import run_cli
@@ -82,3 +83,34 @@ def test_power_that_moves_linearly_or_a_written_hold_gets_no_remark(tmp_path, ca
     report, err = _fit(capsys, stated, csv_zoh, tmp_path / "stated")
     assert "checking the hold" not in err
     assert not [w for w in report["warnings"] if "hold" in w], report["warnings"]
+
+
+@pytest.mark.filterwarnings("always:P_heater is held")  # the warning under test, shown
+def test_investigate_goes_on_from_the_hold_the_data_fit_and_says_so(tmp_path, capsys):
+    """The same switched-power log under `investigate`: step 0 is the given model held
+    "zoh", which is the generated structure, so nothing is added; the report and the final
+    model say which hold was taken and why."""
+    csv, model = _log(tmp_path, "zoh")
+    out = tmp_path / "inv"
+    rc, stdout, err = run_cli(capsys, "investigate", "--model", model, "--data", csv,
+                              "--out", out, "--max-steps", "2")
+    assert rc == 0, err
+    report = json.loads((out / "report.json").read_text())
+    step0 = report["steps"][0]
+    [change] = step0["hold_changes"]
+    assert (change["column"], change["hold"]) == ("P_heater", "zoh")
+    # step 0 is the fit of the model with the hold written, and the gain is its gain
+    written = tmp_path / "zoh.toml"
+    written.write_text(model.read_text().replace('input = "P_heater"',
+                                                 'input = "P_heater"\nhold = "zoh"'))
+    zoh, _ = _fit(capsys, written, csv, tmp_path / "zoh")
+    foh, _ = _fit(capsys, model, csv, tmp_path / "foh")
+    assert abs(step0["nll"] - zoh["nll"]) < 0.1, (step0["nll"], zoh["nll"])
+    assert abs(change["gain_log_l"] - (foh["nll"] - zoh["nll"])) < 0.1
+    assert [s["added"] for s in report["steps"][1:]] == []  # the truth's structure
+    assert 'warning: P_heater is held "foh"' in err
+    assert 'The investigation goes on from hold = "zoh" on P_heater' in err
+    final = parse_model((out / "model_final.toml").read_text())
+    assert [(h.input, h.hold, h.hold_written) for h in final.heat_inputs] == \
+        [("P_heater", "zoh", True)]
+    assert "The model file gives no hold for `P_heater`" in (out / "report.md").read_text()

@@ -9,8 +9,9 @@ logged as 5-minute averages reaches a Kalman −log L 176 higher under `"foh"` t
 
 Where a file leaves a heat input's `hold` out, the same model is fitted again with
 `"zoh"` on that column; a gain above `GAIN` in log L (the same parameters: a likelihood
-ratio above e¹⁰) is said, with what to write. The model is not changed: the hold is the
-user's to state.
+ratio above e¹⁰) is said, with what to write. `fit` leaves the model as written (the
+hold is the user's to state); `investigate`, whose every later step would inherit the
+worse inputs, goes on from the better hold and says so (`better_holds`).
 """
 
 from __future__ import annotations
@@ -40,10 +41,20 @@ def with_hold(spec: ModelSpec, column: str, hold: str) -> ModelSpec:
         for h in spec.heat_inputs))
 
 
-def hold_findings(spec: ModelSpec, nll: float, refit: Callable[[ModelSpec], float],
-                  say=lambda _msg: None) -> list[str]:
-    """Words for each heat input whose data fit clearly better held `"zoh"` than the
-    `"foh"` the file defaulted to.
+@dataclasses.dataclass(frozen=True)
+class HoldFinding:
+    """A heat-input column the file left at `"foh"` whose data fit `gain` (log L) better
+    held `"zoh"`; `text`: the words for the user."""
+
+    column: str
+    gain: float
+    text: str
+
+
+def better_holds(spec: ModelSpec, nll: float, refit: Callable[[ModelSpec], float],
+                 say=lambda _msg: None) -> list[HoldFinding]:
+    """Each heat input whose data fit clearly better held `"zoh"` than the `"foh"` the
+    file defaulted to.
 
     **Arguments:**
 
@@ -61,11 +72,17 @@ def hold_findings(spec: ModelSpec, nll: float, refit: Callable[[ModelSpec], floa
             other = refit(with_hold(spec, column, "zoh"))
         gain = nll - other
         if np.isfinite(gain) and gain > GAIN:
-            found.append(
+            found.append(HoldFinding(column, float(gain), (
                 f"{column} is held \"foh\" (piecewise linear between samples) because the "
                 "model file gives no `hold` for it, but the same model fits the data better "
                 f"by {gain:.1f} in log L with hold = \"zoh\" (piecewise constant: switched "
                 "power, or power averaged over each sample period). If that is how the "
                 f"column is logged, write hold = \"zoh\" on its [[heat_inputs]] entry; "
-                "to keep \"foh\" and silence this, write hold = \"foh\".")
+                "to keep \"foh\" and silence this, write hold = \"foh\".")))
     return found
+
+
+def hold_findings(spec: ModelSpec, nll: float, refit: Callable[[ModelSpec], float],
+                  say=lambda _msg: None) -> list[str]:
+    """The words of `better_holds` (same arguments), one per column."""
+    return [f.text for f in better_holds(spec, nll, refit, say)]

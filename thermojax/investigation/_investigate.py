@@ -48,7 +48,7 @@ from ._separation import separation_advice
 from ._step import Step, confirmed_optimum, evaluate
 from ._symbolic_step import SearchSettings, record_evidence
 from .._blas_threads import one_blas_thread
-from ..fitting._hold_check import hold_findings
+from ..fitting._hold_check import better_holds, with_hold
 from .._json import json_safe
 from .._memory import release_compiled_if_crowded
 from ..measurements._telemetry import Telemetry
@@ -172,9 +172,7 @@ def _first_step(spec, runs, likelihood, out, inputs, resume, say) -> tuple[list[
         _clear_earlier_run(out)
     current = evaluate(start_spec, runs, likelihood, progress=None)
     if not records:  # a fresh start: the holds the file left out, checked once
-        for finding in hold_findings(spec, current.record["nll"], lambda other: evaluate(
-                other, runs, likelihood).record["nll"], say):
-            warnings.warn(finding)
+        current = _with_better_holds(current, runs, likelihood, say)
     if records:
         current.record["added"] = records[-1]["added"]
         records[-1] = {**current.record, "candidates": [], "wall_time_s":
@@ -182,6 +180,29 @@ def _first_step(spec, runs, likelihood, out, inputs, resume, say) -> tuple[list[
     else:
         records.append(current.record)
     return records, current
+
+
+def _with_better_holds(current: Step, runs, likelihood, say) -> Step:
+    """Step 0 held as its data say: where a heat input the file gave no hold fits clearly
+    better piecewise constant (`fitting._hold_check`), the loop goes on from that hold
+    (every later step would inherit the worse inputs), warns with what to write, and
+    records the change on the step (`hold_changes`: column, hold, gain in log L)."""
+    def refit(other):
+        return evaluate(other, runs, likelihood).record["nll"]
+
+    found = better_holds(current.spec, current.record["nll"], refit, say)
+    if not found:
+        return current
+    spec = current.spec
+    for f in found:
+        spec = with_hold(spec, f.column, "zoh")
+    better = evaluate(spec, runs, likelihood)  # again: the check's own fit kept no remarks
+    for f in found:
+        warnings.warn(f"{f.text} The investigation goes on from hold = \"zoh\" on "
+                      f"{f.column}, which its models write.")
+    better.record["hold_changes"] = [{"column": f.column, "hold": "zoh",
+                                      "gain_log_l": round(f.gain, 3)} for f in found]
+    return better
 
 
 def _say_expected(loop: _Loop, records: list[dict]) -> None:

@@ -255,6 +255,12 @@ def _summary(report: dict, steps: list[dict], columns, noise: dict, units: dict,
                   + "; ".join(f"{_effect(a)} (step {i})" for i, a in added) + ".")
     else:
         md.append("The investigation added no effect to the given model.")
+    for h in first.get("hold_changes") or []:
+        md.append(f"The model file gives no hold for `{h['column']}`; held "
+                  f"\"{h['hold']}\" (piecewise constant between samples) the given model "
+                  f"fits its data better by {h['gain_log_l']:.1f} in log L than under the "
+                  "default \"foh\", so the investigation went on from that hold and its "
+                  "models write it.")
     stopped = report.get("stopped_because")
     if stopped and not diagnosis:
         md.append(stopping_sentence(stopped, verdict, _STOPPED))

@@ -156,7 +156,8 @@ def confirmed_optimum(step: Step, runs, likelihood, say) -> Step:
     gain = step.record["nll"] - again.record["nll"]
     if gain > MULTISTART_TOL:
         say(f"multi-start: a better optimum, −log L lower by {gain:.3f}")
-        again.record["added"] = step.record["added"]
+        again.record.update({k: step.record[k] for k in ("added", "hold_changes")
+                             if k in step.record})
         step = again
     step.record["multistart_gain"] = float(max(gain, 0.0))
     return step
