@@ -88,3 +88,61 @@ def test_data_span_covers_sensors_and_boundaries_only():
     span = data_span(spec, [t])
     assert span.temperatures == (-5.0, 30.0)  # the power column's 900 is not a temperature
     assert span.columns["P"] == (0.0, 900.0)
+
+
+_HEATER_MASS = """
+name = "room"
+[[nodes]]
+name = "room"
+capacitance = 1e6
+[[boundaries]]
+node = "room"
+input = "Ta"
+conductance = 150.0
+[[heat_inputs]]
+node = "room"
+input = "Ph"
+gain = { value = 1.0, fixed = true }
+[[sensors]]
+node = "room"
+column = "y"
+[[effects]]
+kind = "extra_node"
+where = ["room", "Ph"]
+name = "heater"
+capacitance = %r
+conductance = %r
+"""
+
+
+def test_an_added_node_lifted_beyond_any_body_is_a_lag_not_a_mass():
+    """A heater's mass takes the logged power (up to 5000 W, gain 1) and passes it to the
+    room through its conductance: at 639 W/K it runs 7.8 K over the room; the same lag
+    (τ = C/G = 2,300 s) fitted as 112 J/K behind 0.0481 W/K would run 5000 / 0.0481 =
+    1.04e5 K over it, which no body does."""
+    from thermojax import parse_model
+    from thermojax.investigation._physical_range import MAX_RISE_K, lifted_node
+    from thermojax.model.effects import lower_effects
+
+    span = DataSpan((0.0, 30.0), {"Ph": (0.0, 5000.0), "Ta": (-5.0, 10.0), "y": (18, 30)})
+
+    def lowered(c, g):
+        low = lower_effects(parse_model(_HEATER_MASS % (c, g)))
+        return getattr(low, "spec", low)
+
+    assert lifted_node(lowered(1.47e6, 639.0), span) is None
+    why = lifted_node(lowered(112.0, 0.0481), span)
+    assert why and "heater" in why and "1.04e+05 K" in why and "Ph" in why
+    # the threshold: 1000 K at 5000 W is 5 W/K
+    assert lifted_node(lowered(1e4, 5000.0 / MAX_RISE_K * 1.01), span) is None
+    assert lifted_node(lowered(1e4, 5000.0 / MAX_RISE_K * 0.99), span)
+    # a candidate whose refit left an earlier mass so lifted is not supported, whatever
+    # its own values (here a sound mass hanging off the room)
+    from types import SimpleNamespace
+
+    c = Candidate(kind="extra_node", where=("room",), score=50.0, p_value=1e-6,
+                  method="refit", supported=True,
+                  parameters={"capacitance": 1e5, "conductance": 100.0})
+    c.result = SimpleNamespace(result=SimpleNamespace(lowered_spec=lowered(112.0, 0.0481)))
+    reject_unphysical([c], span)
+    assert not c.supported and not c.physical and "a lag, not a body" in c.note

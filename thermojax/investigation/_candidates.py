@@ -72,6 +72,10 @@ class Candidate:
     # False where the refitted parameters leave the kind's physical range
     # (`_physical_range.reject_unphysical`); the note says why.
     physical: bool = True
+    # Wall time of the refit's fits, s, summed over its starts (fits side by side overlap),
+    # and how many fits that was: what a model of its structure costs to fit.
+    refit_seconds: float | None = None
+    refit_fits: int = 0
 
     def __post_init__(self):
         if self.score_test is None and self.method == "score":

@@ -93,6 +93,9 @@ class _Loop:
     held_out: HeldOutFits
     plots: PlotsAhead | None
     search: SearchSettings | None = None
+    # What a fit of the last chosen structure cost against the last step's average refit
+    # (`refit_cost_ratio`): the next step's refits all extend that structure.
+    cost_ratio: float = 1.0
 
 
 @one_blas_thread()  # XLA's pool and the fits' threads use the cores (`_blas_threads`)
@@ -142,6 +145,7 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
                 advice = held_out_advice(cands, likelihood)
                 stopped = "no_supported_candidate"
                 break
+            loop.cost_ratio = refit_cost_ratio(chosen, cands)
             current = _extend(current, chosen, runs, likelihood)
             say(f"added {chosen.kind} {list(chosen.where)}")
             records.append(current.record)
@@ -205,19 +209,62 @@ def _with_better_holds(current: Step, runs, likelihood, say) -> Step:
     return better
 
 
+def refit_cost_ratio(chosen: Candidate, cands: list[Candidate]) -> float:
+    """Seconds per fit of `chosen`'s refit over those of every refitted candidate of its
+    step (1 where not measured): how much dearer a fit of the structure the next step
+    extends is than the average fit of the step that chose it (a nonlinear effect's
+    refit, an extended Kalman filter in ETD2 substeps, against linear ones)."""
+    timed = [c for c in cands if c.refit_seconds is not None and c.refit_fits > 0]
+    if chosen not in timed:
+        return 1.0
+    mean = sum(c.refit_seconds for c in timed) / sum(c.refit_fits for c in timed)
+    own = chosen.refit_seconds / chosen.refit_fits
+    return own / mean if mean > 0 else 1.0
+
+
+def expected_step_seconds(last: dict, cost_ratio: float) -> float:
+    """The next step's wall time (s) from the last step's record: its fitting phases (the
+    refits and held-out folds, `phase_times_s`) scaled by `cost_ratio` where that is
+    above 1, the rest as they were."""
+    phases = last.get("phase_times_s") or {}
+    fitting = phases.get("refits", 0.0) + phases.get("held-out folds", 0.0)
+    return last["wall_time_s"] + max(cost_ratio - 1.0, 0.0) * fitting
+
+
+# A measured cost ratio above this changes what the loop says to expect.
+DEARER = 1.2
+
+
 def _say_expected(loop: _Loop, records: list[dict]) -> None:
     """Before step `i` (> 0), what the last step cost, which this one, a model one effect
     larger scored against as many candidates, takes about as long or more: its wall time
-    and its largest phase."""
+    and its largest phase; where the effect it added made fits of the model dearer
+    (`refit_cost_ratio` over `DEARER`), the time expected from that."""
     last = records[-2] if len(records) > 1 else None
     if last is None or not last.get("wall_time_s"):
         return
     phases = last.get("phase_times_s") or {}
     work = {k: v for k, v in phases.items() if k != COMPILATION}
     top = max(work, key=work.get, default=None)
-    loop.say(f"step {len(records) - 1} starts; the last step took {last['wall_time_s']:.0f} s"
-             + (f" ({top} {work[top]:.0f} s)" if top else "")
-             + ": expect about as long or more (a model one effect larger, as many candidates)")
+    said = (f"step {len(records) - 1} starts; the last step took {last['wall_time_s']:.0f} s"
+            + (f" ({top} {work[top]:.0f} s)" if top else ""))
+    if loop.cost_ratio > DEARER:
+        expect = expected_step_seconds(last, loop.cost_ratio)
+        loop.say(f"{said}; a fit of the model it chose cost {loop.cost_ratio:.1f}× its "
+                 f"average refit, and every refit of this step extends that model: expect "
+                 f"about {_duration(expect)} or more")
+    else:
+        loop.say(f"{said}: expect about as long or more (a model one effect larger, as "
+                 "many candidates)")
+
+
+def _duration(seconds: float) -> str:
+    """`"40 s"`, `"7 min"`, `"1.5 h"`."""
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
 
 
 def _stops_before(loop: _Loop, records: list[dict]) -> str | None:

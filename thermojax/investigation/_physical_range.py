@@ -7,6 +7,13 @@ crosses zero within the data's temperatures. A refitted candidate outside its ra
 not supported, whatever its likelihood. A sensor artifact (gain, offset, lag) is not
 chosen over a supported physical effect that the data support nearly as well (deflated
 Δ BIC within `MIN_BIC_DROP`): a sensor error is the last explanation, not the first.
+
+A refit is also judged as a whole model: an added node that its own heat inputs would
+lift more than `MAX_RISE_K` over what it touches at the largest logged input is a lag
+fitted with a vanishing capacitance and conductance, not a body (on a generated building
+a heater's mass went from 1.1e6 J/K and 639 W/K to 112 J/K and 0.05 W/K, 10⁵ K over the
+room at full power, when a later candidate was refitted beside it, and every fit after
+needed four times the substeps).
 """
 
 from __future__ import annotations
@@ -40,9 +47,33 @@ def data_span(spec: ModelSpec, runs: list[Telemetry]) -> DataSpan:
     return DataSpan((low, high), columns)
 
 
+# Kelvin an added node may sit over what it touches, its heat inputs at their largest
+# logged magnitude: no body in a thermal network runs a thousand kelvin over its neighbours.
+MAX_RISE_K = 1000.0
+
+
+def lifted_node(lowered: ModelSpec, span: DataSpan) -> str | None:
+    """Why an added node of the fitted (lowered) model is no body: the steady rise its own
+    heat inputs give it over what it touches, Σ |gain| max |u| / Σ G, beyond `MAX_RISE_K`;
+    None where every added node stays within it."""
+    for node in (n for n in lowered.nodes if n.added_by_effect):
+        heats = [h for h in lowered.heat_inputs if h.node == node.name]
+        power = sum(abs(h.gain.value) * max(abs(v) for v in span.columns.get(h.input, (0, 0)))
+                    for h in heats)
+        g = (sum(k.conductance.value for k in lowered.links if node.name in k.between)
+             + sum(b.conductance.value for b in lowered.boundaries if b.node == node.name))
+        if power > 0 and (g <= 0 or power / g > MAX_RISE_K):
+            return (f"the added node {node.name} would sit {power / g if g > 0 else np.inf:.3g}"
+                    f" K above what it touches at the largest logged "
+                    f"{', '.join(h.input for h in heats)} ({power:.3g} W through {g:.3g} W/K, "
+                    f"{node.capacitance.value:.3g} J/K): a lag, not a body")
+    return None
+
+
 def reject_unphysical(cands: list[Candidate], span: DataSpan) -> None:
     """Mark supported candidates whose fitted parameters leave their kind's physical
-    range as not supported, saying why, in place."""
+    range, or whose fitted model lifts an added node beyond `MAX_RISE_K` (`lifted_node`),
+    as not supported, saying why, in place."""
     for c in cands:
         if c.method != "refit" or not c.parameters:
             continue
@@ -50,6 +81,8 @@ def reject_unphysical(cands: list[Candidate], span: DataSpan) -> None:
         if not why and c.learned is not None:
             why = KINDS["expression"].reverses_heat(c.learned.text(c.where), tuple(c.where),
                                                      c.parameters, span)
+        if not why and c.result is not None:
+            why = lifted_node(c.result.result.lowered_spec, span)
         if why:
             c.physical = False
             if c.supported:

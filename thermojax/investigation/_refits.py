@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import time
 
 import numpy as np
 
@@ -187,6 +188,9 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
     has not found the extended model's optimum, which is at least the nested one's (the
     effect at its null): its likelihood ratio is reported as 0 and it is not supported."""
     by_hold, ext = {}, None
+    c.refit_seconds = sum(got.fit_seconds for _, _, got in fits
+                          if not isinstance(got, Exception))
+    c.refit_fits = len(fits)
     for hold, start, got in fits:
         if isinstance(got, Exception):  # one candidate's failure must not end the loop
             c.note = f"refit from {start} failed: {type(got).__name__}: {got}"[:300]
@@ -312,11 +316,14 @@ def _fit_plans(plans: list[list[tuple]], runs, likelihood, nested_nll: float,
                    (1, -len(plans[ki[1]]), ki[1], ki[0]))
 
     def evaluated(model, polish, first):  # a Step, or the exception `_refit` reports
+        t0 = time.perf_counter()
         try:
-            return evaluate(model, runs, likelihood, nested_nll=nested_nll, polish=polish,
-                            restart_unconverged=first)
+            got = evaluate(model, runs, likelihood, nested_nll=nested_nll, polish=polish,
+                           restart_unconverged=first)
         except Exception as err:
             return err
+        got.fit_seconds = time.perf_counter() - t0
+        return got
 
     def first(plan, k):
         return k == 0 or plan[k][0] != plan[k - 1][0]

@@ -32,6 +32,7 @@ class Step:
     traces: list[dict] = field(repr=False, default_factory=list)
     lrv: dict = field(default_factory=dict)  # column -> long-run variance ratio of residuals
     starts: int = 1  # how many fits from distinct starts `result` is the best of
+    fit_seconds: float = 0.0  # wall time of the fit that made it, s (a refit's: `_refits`)
     # `(likelihood, Future)` of `scoring_inputs`, computed ahead (`score_ahead`)
     scoring: tuple | None = field(default=None, repr=False)
 
