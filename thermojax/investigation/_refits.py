@@ -322,7 +322,8 @@ def _fit_plans(plans: list[list[tuple]], runs, likelihood, nested_nll: float,
                            restart_unconverged=first)
         except Exception as err:
             return err
-        got.fit_seconds = time.perf_counter() - t0
+        if isinstance(got, Step):
+            got.fit_seconds = time.perf_counter() - t0
         return got
 
     def first(plan, k):
