@@ -117,7 +117,7 @@ def innovation_directions(result: FitResult, data):
 def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits: int = 3,
                   fdr: float = 0.05, say=print, white_p: float | None = None,
                   initial: ModelSpec | None = None, missing=None,
-                  search: SearchSettings | None = None) -> list[Candidate]:
+                  search: SearchSettings | None = None, forecast=None) -> list[Candidate]:
     """Rank every candidate effect for the model of `step` (which it leaves unchanged).
 
     Thermal candidates are score-tested, the best `refits` of them refitted (see
@@ -125,7 +125,8 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     the user's values, since a fit without the effect may have bent the other
     parameters to mimic it); viscoelastic ones are always refitted. With `white_p`,
     thermal candidates are only scored, not refitted, when every sensor's residuals
-    are already white at that level (the misfit is in a bias channel).
+    are already white at that level (the misfit is in a bias channel). `forecast(first)`,
+    where given, is told the candidates first in line to be refitted before any is.
 
     **Returns:** the candidates, refitted first, then by decreasing score."""
     spec, result = step.spec, step.result
@@ -176,8 +177,11 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
         found = _searched(step, runs, missing, cands, unused, (data, weights, r, J, states,
                                                                whiten), columns, search,
                           fdr, say)
-    refit_best([c for c in cands if c.learned is None], refits, wave,
-               beside=best_law + found)
+    kinds = [c for c in cands if c.learned is None]
+    if forecast is not None and refits:
+        forecast(best_law + found + [c for c in kinds if c.method == "score"
+                                     and c.score > 0][:refits])
+    refit_best(kinds, refits, wave, beside=best_law + found)
     for c in found:
         c.add_note("proposed by the symbolic search", first=True)
     if best_law:

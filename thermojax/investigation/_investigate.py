@@ -46,6 +46,8 @@ from ._refit_verdicts import added_effect
 from ._selection import held_out_advice
 from ._separation import separation_advice
 from ._step import Step, confirmed_optimum, evaluate
+from ._step_estimate import (DEARER, RefitCosts, duration_text, expected_step_seconds,
+                             refit_cost_ratio, refit_forecast)
 from ._symbolic_step import SearchSettings, record_evidence
 from .._blas_threads import one_blas_thread
 from ..fitting._hold_check import better_holds, with_hold
@@ -96,6 +98,8 @@ class _Loop:
     # What a fit of the last chosen structure cost against the last step's average refit
     # (`refit_cost_ratio`): the next step's refits all extend that structure.
     cost_ratio: float = 1.0
+    # What the last step's refits cost (`RefitCosts`), for the forecast once scored.
+    refit_costs: RefitCosts | None = None
 
 
 @one_blas_thread()  # XLA's pool and the fits' threads use the cores (`_blas_threads`)
@@ -146,6 +150,8 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
                 stopped = "no_supported_candidate"
                 break
             loop.cost_ratio = refit_cost_ratio(chosen, cands)
+            loop.refit_costs = RefitCosts.measured(cands, phases.get("refits", 0.0),
+                                                   current.result.model.is_nonlinear)
             current = _extend(current, chosen, runs, likelihood)
             say(f"added {chosen.kind} {list(chosen.where)}")
             records.append(current.record)
@@ -209,32 +215,6 @@ def _with_better_holds(current: Step, runs, likelihood, say) -> Step:
     return better
 
 
-def refit_cost_ratio(chosen: Candidate, cands: list[Candidate]) -> float:
-    """Seconds per fit of `chosen`'s refit over those of every refitted candidate of its
-    step (1 where not measured): how much dearer a fit of the structure the next step
-    extends is than the average fit of the step that chose it (a nonlinear effect's
-    refit, an extended Kalman filter in ETD2 substeps, against linear ones)."""
-    timed = [c for c in cands if c.refit_seconds is not None and c.refit_fits > 0]
-    if chosen not in timed:
-        return 1.0
-    mean = sum(c.refit_seconds for c in timed) / sum(c.refit_fits for c in timed)
-    own = chosen.refit_seconds / chosen.refit_fits
-    return own / mean if mean > 0 else 1.0
-
-
-def expected_step_seconds(last: dict, cost_ratio: float) -> float:
-    """The next step's wall time (s) from the last step's record: its fitting phases (the
-    refits and held-out folds, `phase_times_s`) scaled by `cost_ratio` where that is
-    above 1, the rest as they were."""
-    phases = last.get("phase_times_s") or {}
-    fitting = phases.get("refits", 0.0) + phases.get("held-out folds", 0.0)
-    return last["wall_time_s"] + max(cost_ratio - 1.0, 0.0) * fitting
-
-
-# A measured cost ratio above this changes what the loop says to expect.
-DEARER = 1.2
-
-
 def _say_expected(loop: _Loop, records: list[dict]) -> None:
     """Before step `i` (> 0), what the last step cost, which this one, a model one effect
     larger scored against as many candidates, takes about as long or more: its wall time
@@ -252,19 +232,18 @@ def _say_expected(loop: _Loop, records: list[dict]) -> None:
         expect = expected_step_seconds(last, loop.cost_ratio)
         loop.say(f"{said}; a fit of the model it chose cost {loop.cost_ratio:.1f}× its "
                  f"average refit, and every refit of this step extends that model: expect "
-                 f"about {_duration(expect)} or more")
+                 f"about {duration_text(expect)} or more")
     else:
         loop.say(f"{said}: expect about as long or more (a model one effect larger, as "
                  "many candidates)")
 
 
-def _duration(seconds: float) -> str:
-    """`"40 s"`, `"7 min"`, `"1.5 h"`."""
-    if seconds < 120:
-        return f"{seconds:.0f} s"
-    if seconds < 5400:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
+def _say_forecast(loop: _Loop, current: Step, first: list[Candidate]) -> None:
+    """Once scored, what the refits first in line will take where nonlinear models among
+    them make it dearer than the last step's (`refit_forecast`)."""
+    said = refit_forecast(loop.refit_costs, first, current.result.model.is_nonlinear)
+    if said:
+        loop.say(said)
 
 
 def _stops_before(loop: _Loop, records: list[dict]) -> str | None:
@@ -294,7 +273,8 @@ def _step_candidates(loop: _Loop, current: Step, i: int) -> tuple:
                                       say=say))
     cands = diagnose_step(current, loop.runs, loop.likelihood, refits=loop.refits,
                           fdr=loop.fdr, say=say, white_p=loop.white_p, initial=loop.spec,
-                          missing=missing, search=loop.search)
+                          missing=missing, search=loop.search,
+                          forecast=lambda first: _say_forecast(loop, current, first))
 
     def checking(c):  # while a candidate's held-out folds are fitted
         _plot_ahead(loop.plots, out, i + 1, c.result, _added(c))
