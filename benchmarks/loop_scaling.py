@@ -53,7 +53,10 @@ def run_length(case: str, n_samples: int, max_steps: int, folder: Path) -> dict:
     if proc.returncode != 0:
         raise SystemExit(f"investigate failed on {n_samples} samples:\n{proc.stderr[-3000:]}")
     report = json.loads((out / "report.json").read_text())
-    return {"samples": n_samples, "wall_s": wall, "report": report}
+    # what the loop said to expect of each step, before it and once scored
+    said = [line.strip() for line in (proc.stdout + proc.stderr).splitlines()
+            if "expect" in line]
+    return {"samples": n_samples, "wall_s": wall, "report": report, "expected": said}
 
 
 def growth_exponent(samples, seconds) -> float:
@@ -84,6 +87,8 @@ def main() -> None:
                                                                    key=lambda kv: -kv[1]))
             print(f"  step {i} {added or 'start':<40} −log L {s['nll']:10.1f}  "
                   f"{s.get('wall_time_s') or 0:7.0f} s  ({split})", flush=True)
+        for line in r["expected"]:
+            print(f"  said: {line}", flush=True)
     if len(results) > 1:
         walls = [r["wall_s"] for r in results]
         # the steps that scored candidates (the last step of a `max_steps` stop did not)
