@@ -16,7 +16,7 @@ from ._laws_screen import _law_adds_nothing, _law_outranked, _learned_places
 from ._phase_times import phase
 from ._physical_range import data_span, prefer_physics, reject_unphysical
 from ._refit_verdicts import duplicate_reason, rule_p_value, sample_period
-from ._refits import _refit_side_by_side, refit_best
+from ._refits import _refit_side_by_side, refit_best, refittable
 from ._selection import judge, prefer_simpler_laws, prefer_vocabulary
 from ._separation import separation_advice
 from ._step import Step, _bias_runs, _experiments
@@ -179,8 +179,7 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
                           fdr, say)
     kinds = [c for c in cands if c.learned is None]
     if forecast is not None and refits:
-        forecast(best_law + found + [c for c in kinds if c.method == "score"
-                                     and c.score > 0][:refits])
+        forecast(best_law + found + refittable(kinds)[:refits])
     refit_best(kinds, refits, wave, beside=best_law + found)
     for c in found:
         c.add_note("proposed by the symbolic search", first=True)

@@ -249,6 +249,11 @@ def _refit(c: Candidate, step: Step, runs, new_columns, fits: list[tuple], say,
     return True
 
 
+def refittable(cands: list[Candidate]) -> list[Candidate]:
+    """The candidates of `cands` a refit may take: score-tested and scored above zero."""
+    return [c for c in cands if c.method == "score" and c.score > 0]
+
+
 def refit_best(cands: list[Candidate], refits: int, refit_wave,
                beside: list[Candidate] = ()) -> None:
     """Refit the best-scored thermal candidates (`cands` in decreasing score) until
@@ -258,8 +263,8 @@ def refit_best(cands: list[Candidate], refits: int, refit_wave,
     time would try are tried. The `beside` candidates (score-tested, scored above zero)
     are refitted whatever their rank, first in the first wave: they fill the cores while
     the ranked candidates fit, and their outcome does not count."""
-    pending = [c for c in cands if c.method == "score" and c.score > 0]
-    extra = [c for c in beside if c.method == "score" and c.score > 0 and c not in pending]
+    pending = refittable(cands)
+    extra = [c for c in refittable(beside) if c not in pending]
     done = tried = 0
     while extra or (pending and done < refits and tried < 2 * refits):
         size = min(refits - done, 2 * refits - tried) if pending else 0
