@@ -291,8 +291,10 @@ def write_fit_markdown(out: Path, report: dict, rows: list[dict], plots: list[st
           + ("converged" if report.get("converged") else "**not converged**")
           + (f" ({report.get('message')})" if report.get("message") not in
              (None, "converged") else "") + "."
-          + (f" Nonlinear effects integrated in {report['etd2_substeps']} ETD2 step(s) per "
-             "sample period." if report.get("etd2_substeps") else "")
+          + (f" Nonlinear effects integrated in {report['etd2_substeps']} "
+             + ("fourth-order exponential (ETDRK4)" if report.get("likelihood") == "kalman"
+                else "ETD2") + " step(s) per sample period."
+             if report.get("etd2_substeps") else "")
           + (f" Solved by {report['method']}." if report.get("method") else ""), ""]
     md += [f"**Warning:** {w}" for w in report.get("warnings") or []]
     md += ([""] if report.get("warnings") else []) + ["## Parameters", ""]

@@ -169,8 +169,9 @@ def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
     """The Kalman stage, started from the output-error `start` or, with `start` None,
     from the file's values; `polish` False ends it after the scoring steps and the boundary
     check, as does a start that ends far above `nested_nll` (`fit`'s); `smoothed` as
-    `fit`'s. A nonlinear model is integrated in the fewest ETD2 substeps its likelihood
-    needs at the start (`_integration.fewest_kalman_substeps`), and solved again from the
+    `fit`'s. A nonlinear model is integrated in the fewest substeps (of the extended
+    filter's fourth-order step, `_likelihood._extended_transition`) its likelihood needs
+    at the start (`_integration.fewest_kalman_substeps`), and solved again from the
     solution with more as long as the solution needs more."""
     template = prep.template if start is None else start.state
     p = len(prep.spec.sensors)  # the filter's own noise is in theta; sigma rides along
@@ -190,12 +191,12 @@ def fit_kalman(prep: Prepared, start: Solution | None, solver, max_steps: int,
                 else _kalman_substeps(sol.state, prep.data))
         if more <= used:
             return sol
-        say(f"the solution's likelihood needs {more} ETD2 substeps per sample period (its "
-            f"start's {used}); solving again from it with {more}")
+        say(f"the solution's likelihood needs {more} integration substeps per sample period "
+            f"(its start's {used}); solving again from it with {more}")
         template, used = sol.state, more
 
 
-# The most ETD2 substeps a Kalman fit starts in, whatever its start needs: a start far
+# The most substeps a Kalman fit starts in, whatever its start needs: a start far
 # from the data (the user's values, an effect at its score's estimate) can need 16 where
 # its solution needs 2-8, and a solve in 16 costs four times one in 4 a call (PRBS1). The
 # solution's check decides whether the fit is solved again, from there, in more.
@@ -203,7 +204,7 @@ START_SUBSTEPS = 4
 
 
 def _kalman_substeps(state, data, remember: bool = True) -> int:
-    """The ETD2 substeps a Kalman fit of `state`'s structure takes from here: at a
+    """The substeps a Kalman fit of `state`'s structure takes from here: at a
     solution (`remember`, for later fits of the structure too) the fewest its likelihood
     needs, at a start at most `START_SUBSTEPS` (where its filter is finite)."""
     substeps, _ = fewest_kalman_substeps(
@@ -224,7 +225,7 @@ def _fit_kalman_from(prep: Prepared, template, sigma, solver, max_steps: int,
                      prior_log_std: float, say, polish: bool, nested_nll=None,
                      smoothed: bool = False, finer=None) -> Solution | _Unpolished:
     """`fit_kalman` from the values of `template` (a `FitState`), integrated as it is.
-    `finer(state) -> int`: the ETD2 substeps a nonlinear model's likelihood needs at
+    `finer(state) -> int`: the substeps a nonlinear model's likelihood needs at
     `state`, asked after the boundary check: where that is more than `template` is
     integrated in, the fit stops before its polish (`_Unpolished`), which would refine
     the optimum of a likelihood off by more than it gains (on PRBS1 the heater mass's

@@ -25,7 +25,8 @@ from ..compilation._traced_cache import stored_jit
 from ..measurements._data import Dataset
 from ..dynamics._discretize import discretize, discretize_process_noise, sample_period
 from ..model._model import ThermalModel
-from ..dynamics._nonlinear import etd2_step, initial_state_nonlinear
+from ..dynamics._etdrk4 import etdrk4_step
+from ..dynamics._nonlinear import initial_state_nonlinear
 from ..dynamics._sensitivity import dataset_block_outputs
 
 LOG_2PI = math.log(2 * math.pi)
@@ -76,8 +77,9 @@ def kalman_run(model: ThermalModel, ts, u, y, mask, run_initial=None, substeps=N
     as their `hold` says; the initial mean is the model's initial state, the
     initial covariance `diag(initial_std²)`. A linear model's covariances do not depend
     on the data: once they settle (`_settled`) they are reused until a sample is missing
-    (`_settling_covariances`). `substeps`: a nonlinear model's ETD2 steps per sample
-    period when not `model.etd2_substeps` (possibly traced: `_integration`'s check).
+    (`_settling_covariances`). `substeps`: a nonlinear model's integration steps per
+    sample period (`_extended_transition`) when not `model.etd2_substeps` (possibly
+    traced: `_integration`'s check).
     """
     system = model.linear_system()
     dt = sample_period(ts)  # the median step (docs/formats.md §1 allows jitter)
@@ -276,17 +278,20 @@ _CHUNKED_FROM = 2000
 
 def _extended_transition(model, system, dt, substeps=None):
     """`f(m, u_k, u_k1) -> (mean at the next sample, its Jacobian in m)` of a model with
-    nonlinear effects: ETD2 (`_nonlinear`) and its Jacobian (an extended Kalman filter).
-    The Jacobian is the linearized step applied to the identity: the same numbers as
-    `jax.jacfwd(step)`, with the step evaluated once (under the fit's own forward
-    derivatives, the filter ran 1.7× faster on PRBS1's four-state model).
+    nonlinear effects: the fourth-order exponential step (`dynamics._etdrk4`: the
+    filter's likelihood sees every sample's one-step error, which ETD2 made too large at
+    few substeps) and its Jacobian (an extended Kalman filter). The Jacobian is the
+    linearized step applied to the identity: the same numbers as `jax.jacfwd(step)`,
+    with the step evaluated once (under the fit's own forward derivatives, the filter
+    with the earlier ETD2 step ran 1.7× faster on PRBS1's four-state model).
 
     The substeps run as a loop, never written out: under the fit's forward derivatives
     the written-out steps' programs took longer to compile than they saved in calls
-    (PRBS1's loop, whose last two steps fit nonlinear models in 4-8 substeps: 80.9 s
+    (measured with ETD2: PRBS1's loop, whose last two steps fit nonlinear models in 4-8 substeps: 80.9 s
     against 86.8 s, two runs each, the same likelihoods; at 16 substeps the scoring
     program's compilation measured 16 s against 30 s)."""
-    step = etd2_step(model, system, dt, unroll=False, substeps=substeps)
+    step = etdrk4_step(model, system, dt,
+                       model.etd2_substeps if substeps is None else substeps)
 
     def f(m, u_k, u_k1):
         m_next, tangent = jax.linearize(lambda x: step(x, u_k, u_k1), m)

@@ -4,7 +4,7 @@ Twice a step: before it starts, from the last step's wall time and how much dear
 of the structure it chose was (`refit_cost_ratio`, `expected_step_seconds`); and once
 its candidates are scored, when the refits first in line include nonlinear models of a
 model that is linear so far (`refit_forecast`): their fits are extended Kalman filters or
-simulations in ETD2 substeps, several times a linear fit's, and the step's time jumps
+simulations in substeps, several times a linear fit's, and the step's time jumps
 there (PRBS1: the first step refitting three nonlinear candidates took 49 s after 15 s;
 the generated nonlinear building's 418 s after 148 s).
 """
@@ -29,7 +29,7 @@ def refit_cost_ratio(chosen: Candidate, cands: list[Candidate]) -> float:
     """Seconds per fit of `chosen`'s refit over those of every refitted candidate of its
     step (1 where not measured): how much dearer a fit of the structure the next step
     extends is than the average fit of the step that chose it (a nonlinear effect's
-    refit, an extended Kalman filter in ETD2 substeps, against linear ones)."""
+    refit, an extended Kalman filter in substeps, against linear ones)."""
     timed = _timed(cands)
     if not any(chosen is c for c in timed):
         return 1.0
