@@ -1,5 +1,6 @@
 """Time: exact discretization, simulation (exact hold, diffrax), ETD2 for nonlinear
-effects, and forward sensitivities for the fit's Jacobian."""
+effects (ETDRK4 in the extended Kalman filter), and forward sensitivities for the fit's
+Jacobian."""
 
 from .. import _jax_settings  # noqa: F401  (float64 and XLA options before any array is made)
 from ._discretize import (AbstractDiscretization, ForwardEuler, MatrixExponential, Modal, Tustin,
