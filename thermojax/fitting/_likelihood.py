@@ -287,9 +287,9 @@ def _extended_transition(model, system, dt, substeps=None):
 
     The substeps run as a loop, never written out: under the fit's forward derivatives
     the written-out steps' programs took longer to compile than they saved in calls
-    (measured with ETD2: PRBS1's loop, whose last two steps fit nonlinear models in 4-8 substeps: 80.9 s
-    against 86.8 s, two runs each, the same likelihoods; at 16 substeps the scoring
-    program's compilation measured 16 s against 30 s)."""
+    (measured with ETD2: PRBS1's loop, whose last two steps fit nonlinear models in 4-8
+    substeps: 80.9 s against 86.8 s, two runs each, the same likelihoods; at 16 substeps
+    the scoring program's compilation measured 16 s against 30 s)."""
     step = etdrk4_step(model, system, dt,
                        model.etd2_substeps if substeps is None else substeps)
 
