@@ -47,3 +47,31 @@ def test_refused_before_work_when_memory_is_short(tmp_path, monkeypatch, capsys)
 def test_small_fit_passes_the_guard():
     cost = _size.check_fit_size(6, 12, available=24e9)
     assert cost.bytes < 1e9 and cost.seconds < 1.0
+
+
+def test_a_long_log_costs_its_jacobian_as_measured():
+    # the six-node IMU's output-error fit (3 sensors, 22 free parameters), peak resident
+    # memory measured on the development machine (the module docstring): 1.85 GB at
+    # 10⁶ samples, 3.22 GB at 2·10⁶
+    assert _size.fit_cost(6, 22, 3 * 10**6).bytes == pytest.approx(1.85e9, rel=0.1)
+    assert _size.fit_cost(6, 22, 6 * 10**6).bytes == pytest.approx(3.22e9, rel=0.1)
+    assert _size.fit_cost(6, 22).jacobian_bytes == 0.0
+
+
+def test_a_log_too_long_for_the_memory_is_refused_naming_its_readings(tmp_path, monkeypatch,
+                                                                      capsys):
+    model = _chain(tmp_path / "chain.toml", 3)
+    n = 20_000
+    rows = ["time_s,T_amb,T_end"] + [f"{i:.1f},25.0,25.0" for i in range(n)]
+    (tmp_path / "long.csv").write_text("\n".join(rows) + "\n")
+    # 3 capacitances, 2 conductances, the boundary's and 3 starts on 20,000 readings:
+    # the Jacobian's 3.7 MB outweigh the network's sensitivities
+    need = _size.fit_cost(3, 9, n)
+    assert need.jacobian_bytes > need.bytes - _size.BASE_BYTES - need.jacobian_bytes
+    monkeypatch.setattr(_size, "available_memory", lambda: need.bytes)
+    assert main(["fit", "--model", str(model), "--data", str(tmp_path / "long.csv"),
+                 "--out", str(tmp_path / "f"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "20,000 sensor readings" in err and "every k-th row" in err
+    assert "chain.toml" in err
+    assert not (tmp_path / "f").exists()

@@ -118,14 +118,14 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     say = progress or (lambda _msg: None)
     prep = prepare(spec, experiments, likelihood, holdout, starts)
     n_states = prep.template.model.network.topology.n_nodes
+    sizes = dict(n_samples=int(sum(prep.data.lengths)), n_readings=int(prep.data.outputs.size))
     path = choose_path(n_states, len(prep.names), adjoint_eligible(prep, likelihood, solver)
-                       and jacobian != "forward") if jacobian != "adjoint" else "adjoint"
+                       and jacobian != "forward", **sizes) if jacobian != "adjoint" else "adjoint"
     if path == "adjoint" and not adjoint_eligible(prep, likelihood, solver):
         raise InputError("`fit(jacobian='adjoint')` needs an output-error fit of a linear "
                          "model without bias columns, with the default solver; use "
                          "jacobian='auto'.", file=spec.source)
-    cost = check_fit_size(n_states, len(prep.names), spec.source, path=path,
-                          n_samples=int(sum(prep.data.lengths)))
+    cost = check_fit_size(n_states, len(prep.names), spec.source, path=path, **sizes)
     if path == "adjoint":
         say(f"a large network: {len(prep.names)} free parameters of {cost.n_states} "
             f"states, fitted by the adjoint path (about {cost.bytes / 1e9:.1f} GB and "

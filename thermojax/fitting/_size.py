@@ -10,6 +10,15 @@ free parameter, so its memory grows like `P (2n)²` and its time like `P n³` (`
 fit those figures (about 0.6 GB of runtime and compiled programs, plus
 `BYTES_PER_ENTRY · P (2n)²`); the time is the machine's, a rough guide elsewhere.
 
+A long log adds the Jacobian of its residuals: one number per sample, sensor and free
+parameter, held about `JACOBIAN_COPIES` times over while a step is taken (the solver's
+linearization and the next one). Measured on the six-node IMU (3 sensors, 22 free
+parameters, output error): 0.53 GB at 10⁵ samples, 1.85 GB at 10⁶ and 3.22 GB at
+2·10⁶, 1.37 GB per 10⁶ samples, 2.6 times the Jacobian's 0.53 GB. A log too long
+for the memory at hand is refused before the work with what to do (a shorter stretch,
+or fewer samples: the thermal time constants seldom need every one), not ended by the
+system's out-of-memory killer.
+
 An output-error fit of a linear network without bias columns, with the default solver,
 takes the adjoint path (`fitting._adjoint`) where the forward sensitivities are predicted
 to take longer than `ADJOINT_ABOVE_S` or not to fit in memory (`choose_path`). Its
@@ -31,6 +40,8 @@ BYTES_PER_ENTRY = 146.0           # bytes per entry of the P blocks of (2n)²
 SECONDS_PER_WORK = 381.0 / (161 * 80 ** 3)   # per unit of P n³ (the n = 80 chain)
 #: Above this share of the memory available now, a fit is refused before it starts.
 MEMORY_SHARE = 0.8
+#: Copies of the residuals' Jacobian (8-byte numbers) a forward-path step holds.
+JACOBIAN_COPIES = 2.6
 
 
 #: s; forward sensitivities predicted to take longer than this: the adjoint path instead.
@@ -53,13 +64,17 @@ class FitCost:
     n_free: int
     bytes: float
     seconds: float
+    jacobian_bytes: float = 0.0  # of `bytes`: the residuals' Jacobian (a long log's)
 
 
-def fit_cost(n_states: int, n_free: int) -> FitCost:
-    """`FitCost` of a fit (see the module docstring for the model and its data)."""
+def fit_cost(n_states: int, n_free: int, n_readings: int = 0) -> FitCost:
+    """`FitCost` of a fit by forward sensitivities (see the module docstring for the model
+    and its data); `n_readings`: the sensor readings fitted (samples × sensors, over every
+    run), whose Jacobian adds `JACOBIAN_COPIES · 8 · n_readings · P` bytes."""
     n, P = int(n_states), int(n_free)
-    return FitCost(n, P, BASE_BYTES + BYTES_PER_ENTRY * P * (2 * n) ** 2,
-                   SECONDS_PER_WORK * P * n ** 3)
+    jacobian = JACOBIAN_COPIES * 8.0 * int(n_readings) * P
+    return FitCost(n, P, BASE_BYTES + BYTES_PER_ENTRY * P * (2 * n) ** 2 + jacobian,
+                   SECONDS_PER_WORK * P * n ** 3, jacobian)
 
 
 def adjoint_cost(n_states: int, n_free: int, n_samples: int, terms: int = 30) -> FitCost:
@@ -72,24 +87,32 @@ def adjoint_cost(n_states: int, n_free: int, n_samples: int, terms: int = 30) ->
                    ADJOINT_BASE_S + ADJOINT_SECONDS_PER_WORK * 3 * P * kept)
 
 
-def choose_path(n_states: int, n_free: int, eligible: bool, available=None) -> str:
+def choose_path(n_states: int, n_free: int, eligible: bool, available=None,
+                n_samples: int = 0, n_readings: int = 0) -> str:
     """`"adjoint"` where the fit may take it (`eligible`: output error, a linear model
     without bias columns, the default solver) and the forward sensitivities are predicted
-    to take longer than `ADJOINT_ABOVE_S` or to need more than `MEMORY_SHARE` of the
-    memory available; else `"forward"`."""
+    to take longer than `ADJOINT_ABOVE_S`, or to need more than `MEMORY_SHARE` of the
+    memory available where the adjoint path needs less (`n_samples` samples and
+    `n_readings` sensor readings over every run: on a long log of a small network the
+    adjoint path's kept series need more than the forward path's Jacobian); else
+    `"forward"`."""
     if not eligible:
         return "forward"
-    cost = fit_cost(n_states, n_free)
+    cost = fit_cost(n_states, n_free, n_readings)
     available = available_memory() if available is None else available
-    too_big = available is not None and cost.bytes > MEMORY_SHARE * available
-    return "adjoint" if too_big or cost.seconds > ADJOINT_ABOVE_S else "forward"
+    if available is not None and cost.bytes > MEMORY_SHARE * available:
+        adjoint = adjoint_cost(n_states, n_free, n_samples)
+        return "adjoint" if adjoint.bytes < cost.bytes else "forward"
+    return "adjoint" if cost.seconds > ADJOINT_ABOVE_S else "forward"
 
 
 def check_fit_size(n_states: int, n_free: int, source=None, available=None,
-                   path: str = "forward", n_samples: int = 0) -> FitCost:
+                   path: str = "forward", n_samples: int = 0, n_readings: int = 0
+                   ) -> FitCost:
     """Refuse (`InputError`) a fit whose predicted memory exceeds `MEMORY_SHARE` of what
     is available (`available` bytes, default now); return its `FitCost`. `path`:
-    `choose_path`'s answer (`"adjoint"` costs `adjoint_cost` of `n_samples` samples)."""
+    `choose_path`'s answer (`"adjoint"` costs `adjoint_cost` of `n_samples` samples);
+    `n_readings`: the forward path's sensor readings (`fit_cost`)."""
     available = available_memory() if available is None else available
     if path == "adjoint":
         cost = adjoint_cost(n_states, n_free, n_samples)
@@ -101,7 +124,18 @@ def check_fit_size(n_states: int, n_free: int, source=None, available=None,
                 "design (`{ value = ..., fixed = true }`), fit fewer or shorter runs, or "
                 "run on a machine with more memory.", file=source)
         return cost
-    cost = fit_cost(n_states, n_free)
+    cost = fit_cost(n_states, n_free, n_readings)
+    if available is not None and cost.bytes > MEMORY_SHARE * available \
+            and cost.jacobian_bytes > cost.bytes - BASE_BYTES - cost.jacobian_bytes:
+        raise InputError(
+            f"fitting {n_free} free parameters to {n_readings:,} sensor readings needs about "
+            f"{cost.bytes / 1e9:.1f} GB (the residuals' Jacobian holds readings × free "
+            f"parameters numbers, {JACOBIAN_COPIES:g} times over) and "
+            f"{available / 1e9:.1f} GB are available. Fit a shorter stretch of the log, or "
+            "fewer samples of it (keep every k-th row of the file: the thermal time "
+            "constants seldom need every sample), fix the parameters known from design "
+            "(`{ value = ..., fixed = true }`), or run on a machine with more memory.",
+            file=source)
     if available is not None and cost.bytes > MEMORY_SHARE * available:
         raise InputError(
             f"fitting {n_free} free parameters of a {n_states}-state network needs about "
