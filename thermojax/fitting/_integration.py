@@ -17,8 +17,8 @@ reaches it; but it reaches it at every sample, against a one-step prediction err
 the sensor noise, so the extended filter steps with a fourth-order scheme
 (`dynamics._etdrk4`), whose error falls as the fourth power of the substep. On a
 7,000-sample building log with a temperature-dependent heating medium, −log L was within
-0.05 of its converged value at 2 of its substeps where ETD2 needed 16 (a stiff mode
-costs it its order: with PRBS1's fast heater mass it needs 4, as ETD2 does, `_etdrk4`).
+0.05 of its converged value at 2 of its substeps where ETD2 needed 16; at PRBS1's
+four-effect model (a fast heater mass) 2 against ETD2's more than 8 (`_etdrk4`).
 It is checked at the start values (a start far from the data is solved in at most
 `_kalman_fit.START_SUBSTEPS`) and again at the solution (`_kalman_fit`), and only the
 solution's need is remembered.
@@ -88,8 +88,9 @@ def fewest_kalman_substeps(state, data: Dataset, tolerance: float | None = None,
     differs from the same filter's in four times as many substeps by at most
     `tolerance` (`KALMAN_TOLERANCE` when None) × 255/256 (the filter's error falls as
     the fourth power of the step); the last one unchecked, error NaN. A filter that
-    fails (non-finite −log L) takes the last. `at_most`: the ladder ends there where the filter is finite, whatever the error (a
-    fit's start: its solution decides how many it needs)."""
+    fails (non-finite −log L) takes the last. `at_most`: the ladder ends there where the
+    filter is finite, whatever the error (a fit's start: its solution decides how many
+    it needs)."""
     tolerance = KALMAN_TOLERANCE if tolerance is None else tolerance
     model = dataclasses.replace(state.model, etd2_substeps=DEFAULT_ETD2_SUBSTEPS)
 

@@ -125,8 +125,9 @@ def check_fit_size(n_states: int, n_free: int, source=None, available=None,
                 "run on a machine with more memory.", file=source)
         return cost
     cost = fit_cost(n_states, n_free, n_readings)
+    sensitivities = cost.bytes - BASE_BYTES - cost.jacobian_bytes  # the network's part
     if available is not None and cost.bytes > MEMORY_SHARE * available \
-            and cost.jacobian_bytes > cost.bytes - BASE_BYTES - cost.jacobian_bytes:
+            and cost.jacobian_bytes > sensitivities:
         raise InputError(
             f"fitting {n_free} free parameters to {n_readings:,} sensor readings needs about "
             f"{cost.bytes / 1e9:.1f} GB (the residuals' Jacobian holds readings × free "
