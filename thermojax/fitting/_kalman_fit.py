@@ -382,7 +382,7 @@ def _zero_variances(theta, problem, names, solver, max_steps, say, pins=(), at=N
 def _polish(theta, problem, names, pins, say, tol: float = 1e-3, last: bool = True):
     """Confirm the optimum from the truncated solution, on the parameters not held at
     zero: Newton steps along every direction (the scoring steps' curvature, untruncated
-    down to `_POLISH_CURVATURE`, with `newton`'s secant correction, damped), then, if they do not converge
+    down to `_POLISH_CURVATURE`, damped as in `newton`), then, if they do not converge
     in `_POLISH_STEPS`, L-BFGS-B (SciPy) from where they stopped, unless a round of
     boundary check and scoring follows (not `last`) and the steps gained more than
     `_RESCORE`: that round goes on from there at a fraction of L-BFGS-B's calls. Taken
@@ -396,7 +396,7 @@ def _polish(theta, problem, names, pins, say, tol: float = 1e-3, last: bool = Tr
 
     pinned = _pinned(problem, pins)
     theta = np.array(theta, float)
-    full = TruncatedNewton(min_curvature=_POLISH_CURVATURE, tol=_POLISH_TOL, secant=True)
+    full = TruncatedNewton(min_curvature=_POLISH_CURVATURE, tol=_POLISH_TOL)
     sol = _newton_except(theta, pinned, pins, full, _POLISH_STEPS)
     start = sol.initial_loss  # the steps' first evaluation, at `theta`
     if sol.loss < start:

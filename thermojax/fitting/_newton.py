@@ -35,19 +35,13 @@ import numpy as np
 class TruncatedNewton(eqx.Module):
     """Settings of `newton`: `min_curvature`, `max_step` (parameter units), `tol` (in
     `-log L`: 1e-2 is two orders below any likelihood-ratio threshold, and lets a
-    process noise whose optimum is zero stop creeping towards it), `secant`: add to the
-    caller's curvature a correction learned from the gradients of accepted steps
-    (Dennis, Gay and Welsch's structured update, NL2SOL's), the part the Fisher
-    information misses where the model does not fit the data exactly (real data: on
-    PRBS1's heater mass the information has two zero eigenvalues where the Hessian has
-    2e-4, and the polish took 46-55 steps without it, 16-19 with it). The iteration
-    limit is `newton`'s `max_steps`, as in optimistix."""
+    process noise whose optimum is zero stop creeping towards it). The iteration limit
+    is `newton`'s `max_steps`, as in optimistix."""
 
     min_curvature: float = 1.0
     max_step: float = 1.0
     tol: float = 1e-2
     max_backtracks: int = eqx.field(static=True, default=30)
-    secant: bool = eqx.field(static=True, default=False)
 
 
 @dataclass(frozen=True)
@@ -77,9 +71,8 @@ def newton(value_grad_curvature: Callable, theta0,
     initial_loss = loss
     if not (np.all(np.isfinite(g)) and np.all(np.isfinite(H))):
         return NewtonSolution(theta, loss, 0, False, initial_loss)
-    S = np.zeros_like(H)  # the secant correction (`solver.secant`), else zero
     while k < max_steps:
-        mu, V = np.linalg.eigh(0.5 * (H + H.T) + S)
+        mu, V = np.linalg.eigh(0.5 * (H + H.T))
         curv = np.abs(mu)
         keep = curv > solver.min_curvature
         Vg = np.where(keep, V.T @ g, 0.0)
@@ -91,7 +84,7 @@ def newton(value_grad_curvature: Callable, theta0,
         def trial(lam):
             dx = -(V @ np.where(keep, Vg / (curv + lam), 0.0))
             dx = dx * min(1.0, solver.max_step / max(np.max(np.abs(dx)), 1e-300))
-            predicted = -(g @ dx + 0.5 * dx @ ((H + S) @ dx))
+            predicted = -(g @ dx + 0.5 * dx @ (H @ dx))
             at = _evaluate(value_grad_curvature, theta + dx)
             return dx, at, (loss - at[0]) / max(abs(predicted), 1e-300)
 
@@ -106,28 +99,9 @@ def newton(value_grad_curvature: Callable, theta0,
         if not rho > 0:
             break
         lam *= max(1 / 3, 1 - (2 * min(rho, 1.0) - 1) ** 3)
-        if solver.secant:
-            S = _secant_update(S, dx, at[1] - g, at[2])
         theta = theta + dx
         loss, g, H = at
     return NewtonSolution(theta, float(loss), k, converged, initial_loss)
-
-
-def _secant_update(S, s, y, H_new):
-    """Dennis, Gay and Welsch's update (NL2SOL) of the correction `S` that the curvature
-    `H` misses, from an accepted step `s` (params,) and its change of gradient `y`: the
-    new `H_new + S` satisfies the secant equation `(H_new + S) s = y`, `S` sized down
-    first (`min(1, |sᵀ y♯| / |sᵀ S s|)`) so that a correction grown on earlier steps
-    does not outweigh what this one measured."""
-    ys = y @ s
-    if not ys > 0:  # no curvature measured along `s`: keep what was learned
-        return S
-    y_sharp = y - H_new @ s  # what the curvature at the new point does not explain
-    sSs = s @ S @ s
-    if sSs != 0:
-        S = S * min(1.0, abs(s @ y_sharp) / abs(sSs))
-    w = y_sharp - S @ s
-    return S + (np.outer(w, y) + np.outer(y, w)) / ys - (w @ s) * np.outer(y, y) / ys ** 2
 
 
 def _evaluate(value_grad_curvature, theta):
