@@ -103,8 +103,13 @@ def identifiability(info: np.ndarray, names: list[str], spec: ModelSpec,
         v = v * np.sign(v[np.argmax(np.abs(v))])
         members = {names[lg[i]]: round(float(v[i]), 3) for i in np.argsort(-np.abs(v))
                    if abs(v[i]) > _LOADING}
+        # the direction itself, every loading to 3 decimals: one below `_LOADING` names no
+        # parameter, but left out it would move the direction off the null space (by up
+        # to a tenth where a subspace's basis, arbitrary within it, has such a loading)
+        combination = {names[lg[i]]: round(float(v[i]), 3) for i in np.argsort(-np.abs(v))
+                       if round(float(v[i]), 3) != 0.0}
         std = 1.0 / np.sqrt(max(mu[j], 1e-300))
-        entry = {"combination": members, "log_std": _finite(std) if std < 1e150 else None,
+        entry = {"combination": combination, "log_std": _finite(std) if std < 1e150 else None,
                  "cause": _cause(spec, {names[lg[i]]: float(v[i]) for i in range(len(lg))},
                                  sample_period, mu[j] < 1e-12 * mu_max)}
         touching = [g for g in groups if set(g["parameters"]) & set(members)]
@@ -297,8 +302,8 @@ def _explain_group(g: dict, basis: np.ndarray, names: list[str], spec: ModelSpec
     first = g["directions"][0]
     std = first["log_std"] if first["log_std"] is not None else float("inf")
     if dim == 1:
-        msg = _explain(first["combination"], spec, std, sample_period, cause=cause,
-                       to_fix=to_fix)
+        named = {p: w for p, w in first["combination"].items() if p in g["parameters"]}
+        msg = _explain(named, spec, std, sample_period, cause=cause, to_fix=to_fix)
     else:
         msg = _explain({p: 1.0 for p in g["parameters"]}, spec, std, sample_period,
                        subspace=dim, cause=cause, to_fix=to_fix, scale=scale)
