@@ -187,6 +187,22 @@ def test_directions_sharing_parameters_are_merged():
     assert "2 independent combinations" in d["message"]
 
 
+def test_a_direction_is_reported_whole_and_named_by_its_large_loadings():
+    """A null direction with a small loading (0.05 of the largest) on the core's
+    capacitance: its `combination` is the direction itself to 3 decimals, small loading
+    included (left out, the reported direction would sit 4 % off the null space), while
+    the parameters it names, and the message, are those loaded over a tenth."""
+    v = np.array([1.0, 0.05, 0.0, -0.7])  # RTD2S_NAMES order
+    F = fisher(basis(4, v, seed=2), [0.0, 30.0, 300.0, 3000.0])
+    (d,) = identifiability(F, RTD2S_NAMES, rtd2s_spec()).directions
+    reported = np.array([d["directions"][0]["combination"].get(n, 0.0) for n in RTD2S_NAMES])
+    assert np.linalg.norm(reported - v) < 2e-3, reported
+    named = {RTD2S_NAMES[0], RTD2S_NAMES[3]}
+    assert set(d["parameters"]) == named
+    assert "nodes.core.capacitance" not in d["message"]
+    assert all(n in d["message"] for n in named)
+
+
 @pytest.mark.parametrize("powered", [False, True])
 def test_unpowered_runs_name_the_missing_excitation(powered):
     """imu6 (which has a heat input) with the common scale of every C and G, and a
