@@ -101,13 +101,14 @@ def identifiability(info: np.ndarray, names: list[str], spec: ModelSpec,
     for j in np.flatnonzero(weak):
         v = V[:, j] / np.max(np.abs(V[:, j]))
         v = v * np.sign(v[np.argmax(np.abs(v))])
-        members = {names[lg[i]]: round(float(v[i]), 3) for i in np.argsort(-np.abs(v))
-                   if abs(v[i]) > _LOADING}
         # the direction itself, every loading to 3 decimals: one below `_LOADING` names no
-        # parameter, but left out it would move the direction off the null space (by up
-        # to a tenth where a subspace's basis, arbitrary within it, has such a loading)
-        combination = {names[lg[i]]: round(float(v[i]), 3) for i in np.argsort(-np.abs(v))
+        # parameter (`members`), but left out it would move the direction off the null
+        # space (by up to a tenth where a subspace's basis, arbitrary within it, has one)
+        order = np.argsort(-np.abs(v))
+        combination = {names[lg[i]]: round(float(v[i]), 3) for i in order
                        if round(float(v[i]), 3) != 0.0}
+        members = {names[lg[i]]: combination[names[lg[i]]] for i in order
+                   if abs(v[i]) > _LOADING}
         std = 1.0 / np.sqrt(max(mu[j], 1e-300))
         entry = {"combination": combination, "log_std": _finite(std) if std < 1e150 else None,
                  "cause": _cause(spec, {names[lg[i]]: float(v[i]) for i in range(len(lg))},
