@@ -180,15 +180,16 @@ def fit_lbfgsb(net: Network, U, Y, dt, budget: float, target: float, maxiter=100
     """`scipy.optimize.minimize(method="L-BFGS-B")` of `net.nll` from the file's values
     with SciPy's finite-difference gradient, stopped after `budget` s (`ftol`: SciPy's
     relative-reduction test, default SciPy's 2.2e-9). Also the time at which −log L first
-    came within 1 of `target` (None if never)."""
-    state = dict(calls=0, best=np.inf, reached=None, nit=0)
+    came within 1 of `target` (None if never), and `x`, the best point evaluated."""
+    state = dict(calls=0, best=np.inf, reached=None, nit=0, x=net.x())
     t = time.perf_counter()
 
     def f(x):
         state["calls"] += 1
         v = net.nll(x, U, Y, dt)
         v = v if np.isfinite(v) else 1e300
-        state["best"] = min(state["best"], v)
+        if v < state["best"]:
+            state["best"], state["x"] = v, np.array(x)
         if state["reached"] is None and state["best"] <= target + 1.0:
             state["reached"] = time.perf_counter() - t
         return v
@@ -206,6 +207,7 @@ def fit_lbfgsb(net: Network, U, Y, dt, budget: float, target: float, maxiter=100
         message, success = str(res.message), bool(res.success)
     except _Budget:
         message, success = f"stopped at the {budget:g} s budget", False
-    return dict(wall=time.perf_counter() - t, nll=float(state["best"]), nit=state["nit"],
+    return dict(wall=time.perf_counter() - t, nll=float(state["best"]), x=state["x"],
+                nit=state["nit"],
                 nfev=state["calls"], success=success, message=message,
                 reached_within_1=state["reached"])
