@@ -180,7 +180,7 @@ def fit_lbfgsb(net: Network, U, Y, dt, budget: float, target: float, maxiter=100
     """`scipy.optimize.minimize(method="L-BFGS-B")` of `net.nll` from the file's values
     with SciPy's finite-difference gradient, stopped after `budget` s (`ftol`: SciPy's
     relative-reduction test, default SciPy's 2.2e-9). Also the time at which −log L first
-    came within 1 of `target` (None if never), and `x`, the best point evaluated."""
+    came within 1 of `target` (None if never), and `x`, the best point evaluated (a list)."""
     state = dict(calls=0, best=np.inf, reached=None, nit=0, x=net.x())
     t = time.perf_counter()
 
@@ -207,7 +207,7 @@ def fit_lbfgsb(net: Network, U, Y, dt, budget: float, target: float, maxiter=100
         message, success = str(res.message), bool(res.success)
     except _Budget:
         message, success = f"stopped at the {budget:g} s budget", False
-    return dict(wall=time.perf_counter() - t, nll=float(state["best"]), x=state["x"],
+    return dict(wall=time.perf_counter() - t, nll=float(state["best"]), x=state["x"].tolist(),
                 nit=state["nit"],
                 nfev=state["calls"], success=success, message=message,
                 reached_within_1=state["reached"])

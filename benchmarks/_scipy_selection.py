@@ -121,7 +121,7 @@ def forward_selection(toml: dict, U, Y, dt: float, budget: float, say=print) -> 
             net = numpy_kalman.Network(model)
             again = numpy_kalman.fit_lbfgsb(net, U, Y, dt, budget=left(), target=-np.inf)
             runs += 1
-            model = with_values(model, net, net.full(again["x"]))
+            model = with_values(model, net, net.full(np.asarray(again["x"])))
             gain = got["nll"] - again["nll"]
             got = {**again, "model": model, "runs": runs, "nit": again["nit"] + got["nit"]}
             if gain < RESTART_GAIN:
