@@ -7,6 +7,7 @@ Matplotlib is imported when a figure is made, not with this module.
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -72,13 +73,23 @@ def style_figure(fig, grid: bool = True) -> None:
             ax.grid(alpha=0.3)
 
 
+#: Matplotlib's text layout is not thread-safe (its mathtext parser keeps state between
+#: calls: two threads laying out tick labels such as 10⁻¹ at once raise `ParseException`
+#: or `IndexError`), and `investigate` draws figures on a worker thread
+#: (`investigation._plots_ahead`) while the loop writes others: every figure is styled,
+#: laid out and written under this lock. Building a figure's artists needs no lock.
+_LAYOUT_LOCK = threading.Lock()
+
+
 def save_figure(fig, path: str | Path, tight: bool = True) -> Path:
-    """Style `fig`, lay it out and write it to the PNG `path` at `DPI`; returns `path`."""
-    style_figure(fig)
-    if tight:
-        fig.tight_layout()
+    """Style `fig`, lay it out and write it to the PNG `path` at `DPI`; returns `path`.
+    Safe to call from several threads (`_LAYOUT_LOCK`)."""
     path = Path(path)
-    fig.savefig(path, dpi=DPI, metadata={"Software": "thermojax"})
+    with _LAYOUT_LOCK:
+        style_figure(fig)
+        if tight:
+            fig.tight_layout()
+        fig.savefig(path, dpi=DPI, metadata={"Software": "thermojax"})
     return path
 
 

@@ -6,8 +6,9 @@ figures as soon as its fit is final, on one worker thread, and hands them to the
 when it is written, if the report asks for the very same figures (same traces object,
 columns, inputs, titles, units); otherwise the report's figures are drawn again, after
 the ones ahead (one worker, first in first out: a stale figure never overwrites a
-current one). All drawing of these figures happens on the worker thread, so matplotlib
-is never used from two threads at once.
+current one). All drawing of these figures happens on the worker thread; the loop's
+other figures are drawn on its own thread meanwhile, and matplotlib's text layout, which
+is not thread-safe, runs under `_plots.save_figure`'s lock.
 """
 
 from __future__ import annotations
