@@ -39,11 +39,12 @@ def _node(toml, name):
     return next(n for n in toml["nodes"] if n["name"] == name)
 
 
-def _new_node(toml, name, parent, capacitance, tau):
+def _new_node(toml, name, parent, capacitance, conductance):
+    """A node `name` of `capacitance` with `parent`'s process noise, linked to it."""
     toml["nodes"].append({"name": name, "capacitance": capacitance,
                           "process_noise": _value(parent.get("process_noise", 0.0))})
     toml.setdefault("links", []).append({"between": [parent["name"], name],
-                                         "conductance": capacitance / tau})
+                                         "conductance": conductance})
 
 
 def extensions(toml: dict, dt: float) -> list[tuple[str, dict]]:
@@ -56,7 +57,8 @@ def extensions(toml: dict, dt: float) -> list[tuple[str, dict]]:
             continue
         t = copy.deepcopy(toml)
         parent = _node(t, h["node"])
-        _new_node(t, name, parent, _value(parent["capacitance"]) / 4, TAU_S)
+        c = _value(parent["capacitance"]) / 4
+        _new_node(t, name, parent, c, c / TAU_S)
         t["heat_inputs"][k]["node"] = name
         out.append((f"mass taking {h['input']} from {h['node']}", t))
     for k, b in enumerate(toml.get("boundaries", [])):
@@ -66,9 +68,7 @@ def extensions(toml: dict, dt: float) -> list[tuple[str, dict]]:
         t = copy.deepcopy(toml)
         parent = _node(t, b["node"])
         g = _value(b["conductance"])
-        t["nodes"].append({"name": name, "capacitance": 10 * _value(parent["capacitance"]),
-                           "process_noise": _value(parent.get("process_noise", 0.0))})
-        t.setdefault("links", []).append({"between": [b["node"], name], "conductance": 2 * g})
+        _new_node(t, name, parent, 10 * _value(parent["capacitance"]), 2 * g)
         t["boundaries"][k] = {**b, "node": name, "conductance": 2 * g}
         out.append((f"mass taking {b['input']} from {b['node']}", t))
     for n in toml["nodes"]:
@@ -76,15 +76,16 @@ def extensions(toml: dict, dt: float) -> list[tuple[str, dict]]:
         if name in names or n["name"].startswith("lag_"):
             continue
         t = copy.deepcopy(toml)
-        _new_node(t, name, _node(t, n["name"]), _value(n["capacitance"]), TAU_S)
+        _new_node(t, name, _node(t, n["name"]), _value(n["capacitance"]),
+                  _value(n["capacitance"]) / TAU_S)
         out.append((f"dead-end mass on {n['name']}", t))
     for k, s in enumerate(toml["sensors"]):
         name = f"lag_{s['column']}"
         if name in names:
             continue
         t = copy.deepcopy(toml)
-        _new_node(t, name, _node(t, s["node"]), _value(_node(t, s["node"])["capacitance"])
-                  / 100, dt)
+        c = _value(_node(t, s["node"])["capacitance"]) / 100
+        _new_node(t, name, _node(t, s["node"]), c, c / dt)
         t["sensors"][k]["node"] = name
         out.append((f"lag on {s['column']}", t))
     return out
