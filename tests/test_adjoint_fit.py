@@ -134,7 +134,8 @@ def test_large_networks_take_the_adjoint_path_and_are_not_refused():
     assert _size.choose_path(6, 13, True, available=24e9) == "forward"
     with pytest.raises(tj.InputError, match="P·"):
         _size.check_fit_size(200, 601, available=12e9)                     # forward: refused
-    cost = _size.check_fit_size(200, 601, available=12e9, path="adjoint", n_samples=400)
+    cost = _size.check_fit_size(200, 601, available=12e9, path="adjoint", n_samples=400,
+                                n_readings=400 * 200)
     assert cost.bytes < 2e9
 
 
@@ -172,3 +173,26 @@ def test_too_many_parameters_for_the_information_report_conditional_stds(monkeyp
         # a conditional std (the others held) never exceeds the marginal one; 1 % for the
         # two information matrices' roundoff and the solvers' stopping points
         assert a["std"] <= 1.01 * f["std"], name
+
+
+@pytest.mark.parametrize("jacobian_bytes", [1e9, 0.0])
+def test_information_by_columns_or_by_pairs_is_the_gram_of_the_jacobian(monkeypatch,
+                                                                         jacobian_bytes):
+    # the information by forward products and one matrix product (a Jacobian that fits)
+    # and by forward and reverse pairs (one that does not): both JᵀJ of the Jacobian that
+    # jax.jacfwd forms whole from the residuals
+    from thermojax.fitting import _adjoint
+    from thermojax.fitting._problem import make_problem, prepare
+    from thermojax.model._parameters import free_parameters
+
+    monkeypatch.setattr(_adjoint, "_JACOBIAN_BYTES", jacobian_bytes)
+    monkeypatch.setattr(_adjoint, "_BATCH", 8)   # 19 free parameters: three batches
+    start, runs, _ = _chain_fit_data(6)
+    prep = prepare(start, runs, "output_error")
+    theta = free_parameters(prep.template, prep.index)
+    ap = _adjoint.adjoint_problem(make_problem(prep.template, prep.index, prep.data,
+                                               prep.sigma, theta), theta)
+    J = jax.jacfwd(lambda t: _adjoint.adjoint_residuals(t, ap)[:-theta.shape[0]])(theta)
+    want = np.asarray(J).T @ np.asarray(J)
+    got = _adjoint.information(theta, ap)
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10 * np.abs(want).max())

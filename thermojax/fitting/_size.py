@@ -23,9 +23,10 @@ An output-error fit of a linear network without bias columns, with the default s
 takes the adjoint path (`fitting._adjoint`) where the forward sensitivities are predicted
 to take longer than `ADJOINT_ABOVE_S` or not to fit in memory (`choose_path`). Its
 memory grows like the series terms it keeps (`runs · T · d · n`, `d` terms per sample
-period) plus the information matrix (`P²`), its time like `P` products of a simulation
-(`P · T · d · (n + e)`); it is refused only where that memory does not fit
-(`adjoint_cost`).
+period) plus the information matrix (`P²`) and, where it takes at most
+`ADJOINT_JACOBIAN_BYTES`, the residuals' Jacobian that the information is formed from; its
+time like `P` products of a simulation (`P · T · d · (n + e)`); it is refused only where
+that memory does not fit (`adjoint_cost`).
 """
 
 from __future__ import annotations
@@ -51,6 +52,10 @@ ADJOINT_ABOVE_S = 60.0
 ADJOINT_BASE_BYTES = 0.6e9
 ADJOINT_BYTES_PER_TERM = 8.0 * 3
 ADJOINT_BYTES_PER_ENTRY = 8.0 * 4
+#: Bytes of the residuals' Jacobian (readings × P) up to which the adjoint path forms the
+#: information from its columns (forward products only, twice as fast as forward and
+#: reverse pairs) and holds it.
+ADJOINT_JACOBIAN_BYTES = 1e9
 ADJOINT_BASE_S = 30.0  # compilation
 ADJOINT_SECONDS_PER_WORK = 5.4e-8  # per unit of 3 P · T · d · n (264 s at n = 200, P = 601)
 
@@ -77,14 +82,19 @@ def fit_cost(n_states: int, n_free: int, n_readings: int = 0) -> FitCost:
                    SECONDS_PER_WORK * P * n ** 3, jacobian)
 
 
-def adjoint_cost(n_states: int, n_free: int, n_samples: int, terms: int = 30) -> FitCost:
+def adjoint_cost(n_states: int, n_free: int, n_samples: int, terms: int = 30,
+                 n_readings: int = 0) -> FitCost:
     """`FitCost` of the adjoint path: `n_samples` samples over all runs, `terms` series
-    terms per sample period (`dynamics._taylor_hold.taylor_plan`)."""
+    terms per sample period (`dynamics._taylor_hold.taylor_plan`), `n_readings` sensor
+    readings (samples × sensors over every run: the Jacobian the information is formed
+    from, where it is held)."""
     n, P, T = int(n_states), int(n_free), int(n_samples)
     kept = T * terms * n
+    jacobian = 8.0 * int(n_readings) * P
+    jacobian = jacobian if jacobian <= ADJOINT_JACOBIAN_BYTES else 0.0
     return FitCost(n, P, ADJOINT_BASE_BYTES + ADJOINT_BYTES_PER_TERM * kept
-                   + ADJOINT_BYTES_PER_ENTRY * P ** 2,
-                   ADJOINT_BASE_S + ADJOINT_SECONDS_PER_WORK * 3 * P * kept)
+                   + ADJOINT_BYTES_PER_ENTRY * P ** 2 + jacobian,
+                   ADJOINT_BASE_S + ADJOINT_SECONDS_PER_WORK * 3 * P * kept, jacobian)
 
 
 def choose_path(n_states: int, n_free: int, eligible: bool, available=None,
@@ -101,7 +111,7 @@ def choose_path(n_states: int, n_free: int, eligible: bool, available=None,
     cost = fit_cost(n_states, n_free, n_readings)
     available = available_memory() if available is None else available
     if available is not None and cost.bytes > MEMORY_SHARE * available:
-        adjoint = adjoint_cost(n_states, n_free, n_samples)
+        adjoint = adjoint_cost(n_states, n_free, n_samples, n_readings=n_readings)
         return "adjoint" if adjoint.bytes < cost.bytes else "forward"
     return "adjoint" if cost.seconds > ADJOINT_ABOVE_S else "forward"
 
@@ -115,7 +125,7 @@ def check_fit_size(n_states: int, n_free: int, source=None, available=None,
     `n_readings`: the forward path's sensor readings (`fit_cost`)."""
     available = available_memory() if available is None else available
     if path == "adjoint":
-        cost = adjoint_cost(n_states, n_free, n_samples)
+        cost = adjoint_cost(n_states, n_free, n_samples, n_readings=n_readings)
         if available is not None and cost.bytes > MEMORY_SHARE * available:
             raise InputError(
                 f"fitting {n_free} free parameters of a {n_states}-state network by the "
