@@ -1,7 +1,8 @@
 """`_blas_threads.one_blas_thread`: every loaded BLAS library on one thread inside, the
 earlier limits back after (nested, and after an exception); worker threads inside the
 main thread's limit see it, and their own use changes nothing. The truth is what
-threadpoolctl reads back from the libraries themselves."""
+threadpoolctl reads back from the libraries themselves. `every_blas_thread`: every core
+inside, from the main thread only."""
 
 import threading
 
@@ -58,3 +59,24 @@ def test_an_exception_inside_still_restores():
         except ValueError:
             pass
         assert all(n == 2 for n in _threads())
+
+
+def test_every_core_inside_in_the_main_thread_and_no_change_from_a_worker():
+    import os
+
+    from thermojax._blas_threads import every_blas_thread
+
+    seen = {}
+
+    def worker():
+        with every_blas_thread():
+            seen["worker"] = _threads()
+
+    with one_blas_thread():
+        with every_blas_thread():
+            assert all(n == os.cpu_count() for n in _threads())
+        assert all(n == 1 for n in _threads())          # the one thread back after
+        t = threading.Thread(target=worker)
+        t.start()
+        t.join(10)
+    assert seen["worker"] and all(n == 1 for n in seen["worker"])

@@ -17,6 +17,7 @@ fits run on worker threads inside the limit their main thread took.
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
 
 from threadpoolctl import threadpool_limits
@@ -30,4 +31,15 @@ def one_blas_thread():
         yield
         return
     with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+@contextlib.contextmanager
+def every_blas_thread():
+    """Every core's BLAS thread inside, for one large NumPy product while nothing else
+    runs (taken in the main thread only; elsewhere the limits stay as they are)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    with threadpool_limits(limits=os.cpu_count(), user_api="blas"):
         yield

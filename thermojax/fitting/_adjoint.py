@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._blas_threads import every_blas_thread
 from ..compilation._traced_cache import stored_jit
 from ..dynamics._taylor_hold import SparsePlan, model_outputs_taylor, plan_norm, sparse_plan
 from ._matrix_free import MatrixFreeGaussNewton, matrix_free_gauss_newton
@@ -187,17 +188,14 @@ def _information_columns(theta, ap: AdjointProblem, directions):
 
 
 @stored_jit
-def _information_by_columns(theta, ap: AdjointProblem, batches):
-    """`JᵀJ` (k P', k P') of the data residuals' Jacobian along the directions `batches`
-    (k, P, P'): the Jacobian's columns by batched forward products, then one product in
-    XLA (its threads, not NumPy's single BLAS thread)."""
+def _jacobian_columns(theta, ap: AdjointProblem, directions):
+    """`J V` (rows, k) of the data residuals for directions `V` (P, k): batched forward
+    products."""
     def data_r(t):
         return adjoint_residuals(t, ap)[:-theta.shape[0]]
 
     _, lin = jax.linearize(data_r, theta)
-    cols = jax.lax.map(jax.vmap(lin, in_axes=1, out_axes=1), batches)  # (k, rows, P')
-    k, _, width = cols.shape
-    return jnp.einsum("ari,brj->aibj", cols, cols).reshape(k * width, k * width)
+    return jax.vmap(lin, in_axes=1, out_axes=1)(directions)
 
 
 @stored_jit
@@ -242,9 +240,11 @@ def information(theta, ap: AdjointProblem, say=None) -> np.ndarray | None:
         return None
     rows = int(np.prod(ap.problem.data.outputs.shape))
     if 8.0 * rows * P <= _JACOBIAN_BYTES:
-        batches = np.stack([cols for _, _, cols in _batches(P)])
-        H = np.asarray(_information_by_columns(theta, ap, jax.device_put(batches)))[:P, :P]
-        return 0.5 * (H + H.T)
+        J = np.empty((rows, P))
+        for start, k, cols in _batches(P):
+            J[:, start:start + k] = np.asarray(_jacobian_columns(theta, ap, cols))[:, :k]
+        with every_blas_thread():   # nothing else runs meanwhile
+            return J.T @ J
     out = np.empty((P, P))
     for start, k, cols in _batches(P):
         out[:, start:start + k] = np.asarray(_information_columns(theta, ap, cols))[:, :k]

@@ -56,8 +56,9 @@ ADJOINT_BYTES_PER_ENTRY = 8.0 * 4
 #: information from its columns (forward products only, twice as fast as forward and
 #: reverse pairs) and holds it.
 ADJOINT_JACOBIAN_BYTES = 1e9
-ADJOINT_BASE_S = 30.0  # compilation
-ADJOINT_SECONDS_PER_WORK = 5.4e-8  # per unit of 3 P · T · d · n (264 s at n = 200, P = 601)
+ADJOINT_BASE_S = 10.0  # compilation
+# per unit of 3 P · T · d · n (d = 30): 13, 21 and 61 s at n = 50, 100, 200 (2026-12-07)
+ADJOINT_SECONDS_PER_WORK = 1.15e-8
 
 
 @dataclasses.dataclass(frozen=True)
