@@ -19,7 +19,10 @@ per parameter: memory like `P (2n)²`, time like `P n³`):
   the Jacobian fits in `_JACOBIAN_BYTES`, else `JᵀJ e_i` by forward and reverse pairs
   (half the speed, memory of the simulation only); the CG solves' preconditioner
   (refreshed every `_REFRESH_STEPS` steps) and, at the solution, the standard errors and
-  the identifiability report. Beyond `MAX_INFORMATION_PARAMS` only its diagonal is formed
+  the identifiability report. Beyond `LOCAL_INFORMATION_ABOVE` parameters, where the
+  Jacobian is too large to hold, the information of each parameter's sensitivities kept
+  near the states it acts on, from a few hundred compressed products
+  (`_local_information`; the method says so). Beyond `MAX_INFORMATION_PARAMS` only its diagonal is formed
   and the stds are conditional ones (the fit's `method` says so).
 
 Which path a fit takes is `_size.choose_path` (for linear models without bias columns,
@@ -39,10 +42,13 @@ from ..compilation._traced_cache import stored_jit
 from ..dynamics._taylor_hold import SparsePlan, model_outputs_taylor, plan_norm, sparse_plan
 from ._matrix_free import MatrixFreeGaussNewton, matrix_free_gauss_newton
 from ._problem import _model_of, _prior, _Problem
-from ._size import ADJOINT_JACOBIAN_BYTES
+from . import _size
 
 #: Parameters beyond which the information matrix (P² numbers, P products) is not formed.
 MAX_INFORMATION_PARAMS = 6000
+#: Parameters beyond which, where the Jacobian is too large to hold, the information is
+#: the local one (`_local_information`).
+LOCAL_INFORMATION_ABOVE = _size.LOCAL_INFORMATION_ABOVE
 #: Bytes of kept series terms above which each sample period is checkpointed instead.
 _KEPT_BYTES = 2e9
 #: Directions per batch of products when the information matrix is formed.
@@ -50,7 +56,7 @@ _BATCH = 64
 #: Bytes of the data residuals' Jacobian (rows × P) up to which the information is formed
 #: from its columns (forward products only) rather than by forward and reverse pairs: on a
 #: 200-node chain (80,000 rows, 601 parameters, 0.38 GB) 5.4 s against 10.5 s.
-_JACOBIAN_BYTES = ADJOINT_JACOBIAN_BYTES
+_JACOBIAN_BYTES = _size.ADJOINT_JACOBIAN_BYTES
 
 
 class AdjointProblem(eqx.Module):
@@ -301,7 +307,7 @@ def fit_adjoint(prep, max_steps: int, say, solver: MatrixFreeGaussNewton | None 
     say(f"adjoint path: {P} free parameters, {ap.plan.degree}-term series in "
         f"{ap.plan.substeps} substep(s) per sample period"
         + (", diagonal products" if ap.plan.offsets is not None else ""))
-    theta, total, evals, full, H, H_sigma = theta0, 0, 0, True, None, None
+    theta, total, evals, kind, note, H, H_sigma = theta0, 0, 0, "exact", "", None, None
     for it in range(outer):
         ap = AdjointProblem(make_problem(prep.template, prep.index, prep.data, sigma, theta0),
                             ap.plan, ap.checkpoint)
@@ -312,8 +318,8 @@ def fit_adjoint(prep, max_steps: int, say, solver: MatrixFreeGaussNewton | None 
             if not (pass_steps == 0 and H is not None
                     and np.all(np.abs(np.log(sigma / H_sigma)) < _REUSE_WEIGHTS)):
                 start, H_sigma = theta, sigma  # where and with which weights H is taken
-                H, full = _information_or_diagonal(theta, ap)
-            mu, V = np.linalg.eigh(H) if full else (np.diag(H), np.eye(P))
+                H, kind, note = _information_or_diagonal(theta, ap)
+            mu, V = np.linalg.eigh(H) if kind != "diagonal" else (np.diag(H), np.eye(P))
             limit = min(_REFRESH_STEPS, max_steps - pass_steps)
             theta, steps, ok, products, n_eval, _, norm = solve_adjoint(
                 theta, ap, *jax.device_put((V, mu)), solver,
@@ -343,19 +349,17 @@ def fit_adjoint(prep, max_steps: int, say, solver: MatrixFreeGaussNewton | None 
     final = AdjointProblem(make_problem(prep.template, prep.index, prep.data, sigma, theta0),
                            ap.plan, ap.checkpoint)
     nll = output_error_nll(r * sigma_used, mask, sigma)
-    note = ""
     # the last information, at the final stds (they moved by under 1e-3 when settled),
     # where the steps since moved every parameter well inside its std
     moved = np.abs(np.asarray(theta) - np.asarray(start))
-    if full and settled and np.all(np.abs(np.log(sigma / H_sigma)) < 1e-3) and np.all(
-            moved < _REUSE_STD * np.sqrt(np.maximum(
-            np.diag(np.linalg.pinv(H)), 0.0))):
+    if kind != "diagonal":   # the stds from H: `pinv(H)`'s diagonal by its eigenvectors
+        inverse = np.where(mu > 1e-15 * mu.max(), 1.0 / np.where(mu > 0, mu, 1.0), 0.0)
+        std = np.sqrt(np.sum(V ** 2 * inverse[None, :], axis=1))
+    if kind != "diagonal" and settled and np.all(np.abs(np.log(sigma / H_sigma)) < 1e-3) \
+            and np.all(moved < _REUSE_STD * std):
         info = H
     else:
-        info, full = _information_or_diagonal(theta, final)
-    if not full:
-        note = (f"; {P} free parameters: stds are conditional (each with the others held), "
-                "from the diagonal of the information only")
+        info, kind, note = _information_or_diagonal(theta, final)
     p = len(prep.spec.sensors)
     state = with_free_parameters(prep.template, prep.index, theta)
     state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model,
@@ -384,9 +388,26 @@ _REUSE_WEIGHTS = np.log(1.25)
 
 
 def _information_or_diagonal(theta, ap: AdjointProblem):
-    """`(H, full)`: the information at `theta`, or beyond `MAX_INFORMATION_PARAMS` the
-    diagonal of `JᵀJ` as a diagonal matrix (`full` False)."""
+    """`(H, kind, note)`: the information at `theta` (`kind` "exact"); beyond
+    `LOCAL_INFORMATION_ABOVE` parameters, where its Jacobian is too large to hold, the
+    information of sensitivities kept within a radius (`_local_information`, "local");
+    beyond `MAX_INFORMATION_PARAMS` the diagonal of `JᵀJ` as a diagonal matrix
+    ("diagonal"). `note`: what the report's method adds about it."""
+    P = theta.shape[0]
+    rows = int(np.prod(ap.problem.data.outputs.shape))
+    if LOCAL_INFORMATION_ABOVE < P <= MAX_INFORMATION_PARAMS \
+            and 8.0 * rows * P > _JACOBIAN_BYTES:
+        from ._local_information import local_information
+
+        H, radius, tail = local_information(theta, ap)
+        return H, "local", (
+            f"; {P} free parameters: the information (stds, preconditioner) from each "
+            f"parameter's sensitivities kept on the sensors within {radius} links of the "
+            f"states it acts on (an approximation: of sampled parameters' sensitivities at "
+            f"most {tail:.1e} of the norm lies beyond)")
     H = information(theta, ap)
     if H is None:
-        return np.diag(jacobian_diagonal(theta, ap)), False
-    return H, True
+        return np.diag(jacobian_diagonal(theta, ap)), "diagonal", (
+            f"; {P} free parameters: stds are conditional (each with the others held), "
+            "from the diagonal of the information only")
+    return H, "exact", ""

@@ -56,6 +56,15 @@ ADJOINT_BYTES_PER_ENTRY = 8.0 * 4
 #: information from its columns (forward products only, twice as fast as forward and
 #: reverse pairs) and holds it.
 ADJOINT_JACOBIAN_BYTES = 1e9
+#: Free parameters beyond which, where that Jacobian is too large to hold, the adjoint
+#: path's information is the local one (`_local_information`: a few hundred compressed
+#: products whatever `P`; 1,500 pairs would take about 2 minutes at 500 nodes).
+LOCAL_INFORMATION_ABOVE = 1500
+#: The local information's cost in the time forecast, as this many parameters' products
+#: (a 1,000-node chain, 3,001 parameters: 357 s, 2026-12-07).
+LOCAL_INFORMATION_AS_PARAMS = 900
+#: Compressed products the local information holds (a chain at radius 40: 3 · 81).
+LOCAL_COLOURS = 243
 ADJOINT_BASE_S = 10.0  # compilation
 # per unit of 3 P · T · d · n (d = 30): 13, 21 and 61 s at n = 50, 100, 200 (2026-12-07)
 ADJOINT_SECONDS_PER_WORK = 1.15e-8
@@ -93,9 +102,13 @@ def adjoint_cost(n_states: int, n_free: int, n_samples: int, terms: int = 30,
     kept = T * terms * n
     jacobian = 8.0 * int(n_readings) * P
     jacobian = jacobian if jacobian <= ADJOINT_JACOBIAN_BYTES else 0.0
+    products = P
+    if not jacobian and P > LOCAL_INFORMATION_ABOVE:   # its compressed products held
+        products = LOCAL_INFORMATION_AS_PARAMS
+        jacobian = 8.0 * int(n_readings) * LOCAL_COLOURS
     return FitCost(n, P, ADJOINT_BASE_BYTES + ADJOINT_BYTES_PER_TERM * kept
                    + ADJOINT_BYTES_PER_ENTRY * P ** 2 + jacobian,
-                   ADJOINT_BASE_S + ADJOINT_SECONDS_PER_WORK * 3 * P * kept, jacobian)
+                   ADJOINT_BASE_S + ADJOINT_SECONDS_PER_WORK * 3 * products * kept, jacobian)
 
 
 def choose_path(n_states: int, n_free: int, eligible: bool, available=None,
