@@ -17,8 +17,9 @@ import pytest
 import thermojax as tj
 from helpers import chain_data
 from thermojax.fitting import _adjoint
-from thermojax.fitting._local_information import (MAX_TAIL, _truncated, colouring,
-                                                   footprints, local_information)
+from thermojax.fitting._local_information import (MAX_TAIL, _acted_on, _compressed,
+                                                   _sensor_states, colouring, footprints,
+                                                   local_information)
 from thermojax.fitting._problem import make_problem, prepare
 from thermojax.measurements._data import Experiment
 from thermojax.model._parameters import free_parameters
@@ -67,7 +68,9 @@ def test_the_radius_grows_until_the_dropped_tails_are_small_and_the_stds_follow(
     std_got = np.sqrt(np.diag(np.linalg.inv(got)))
     assert np.max(np.abs(std_got / std_want - 1)) < 0.01
     # and the compression is real: far fewer forward products than parameters
-    fp, colour, _ = _truncated(theta, ap, radius)
+    fp = footprints(_acted_on(theta, ap), ap.plan.a_cols, ap.plan.a_real,
+                    _sensor_states(ap), radius)
+    colour, _ = _compressed(theta, ap, fp)
     assert colour.max() + 1 < 0.8 * theta.shape[0]
 
 

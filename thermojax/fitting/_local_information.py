@@ -81,7 +81,8 @@ def _acted_on(theta, ap) -> np.ndarray:
         k = block.shape[0]
         if k < _TOUCH_BATCH:
             block = np.concatenate([block, np.zeros((_TOUCH_BATCH - k, P))])
-        out[start:start + k] = np.asarray(_moved_rows(theta, ap, jax.device_put(block)))[:k] > 0
+        moved = np.asarray(_moved_rows(theta, ap, jax.device_put(block)))
+        out[start:start + k] = moved[:k] > 0
     return out
 
 
@@ -121,16 +122,13 @@ def colouring(footprint: np.ndarray) -> np.ndarray:
     return colour
 
 
-def _truncated(theta, ap, radius: int):
-    """`(footprint (P, p), colour (P,), compressed (R T, p, colours))`: the compressed
-    forward products of `radius`."""
+def _compressed(theta, ap, footprint: np.ndarray):
+    """`(colour (P,), compressed (R T, p, colours))`: `footprint`'s colouring and one
+    forward product per colour, along the sum of its parameters' unit directions."""
     from ._adjoint import _BATCH, _jacobian_columns
 
-    plan = ap.plan
     R, T, p = ap.problem.data.outputs.shape
-    fp = footprints(_acted_on(theta, ap), plan.a_cols, plan.a_real, _sensor_states(ap),
-                    radius)
-    colour = colouring(fp)
+    colour = colouring(footprint)
     k = int(colour.max()) + 1
     P = theta.shape[0]
     compressed = np.empty((R * T, p, k))
@@ -141,7 +139,7 @@ def _truncated(theta, ap, radius: int):
             directions[colour == c, c - start] = 1.0
         cols = np.asarray(_jacobian_columns(theta, ap, jax.device_put(directions)))
         compressed[:, :, start:start + width] = cols[:, :width].reshape(R * T, p, width)
-    return fp, colour, compressed
+    return colour, compressed
 
 
 def _sensor_states(ap) -> np.ndarray:
@@ -178,12 +176,14 @@ def local_information(theta, ap, radius: int = RADIUS) -> tuple[np.ndarray, int,
     used, doubled from `radius` until the dropped tails (`dropped_tails`) are below
     `MAX_TAIL` (or the radius spans the network); and that largest dropped tail."""
     n = ap.plan.a_cols.shape[0]
+    plan, acted_on, sensors = ap.plan, _acted_on(theta, ap), _sensor_states(ap)
     while True:
-        fp, colour, compressed = _truncated(theta, ap, radius)
+        fp = footprints(acted_on, plan.a_cols, plan.a_real, sensors, radius)
         tail = dropped_tails(theta, ap, fp)
         if tail <= MAX_TAIL or radius >= n:
             break
         radius *= 2
+    colour, compressed = _compressed(theta, ap, fp)
     P = theta.shape[0]
     H = np.zeros((P, P))
     with every_blas_thread():
