@@ -17,9 +17,9 @@ import pytest
 import thermojax as tj
 from helpers import chain_data
 from thermojax.fitting import _adjoint
-from thermojax.fitting._local_information import (MAX_TAIL, _acted_on, _compressed,
-                                                   _sensor_states, colouring, footprints,
-                                                   local_information)
+from thermojax.fitting._local_information import (MAX_TAIL, _compressed, colouring,
+                                                   footprints, local_information,
+                                                   sensor_states)
 from thermojax.fitting._problem import make_problem, prepare
 from thermojax.measurements._data import Experiment
 from thermojax.model._parameters import free_parameters
@@ -50,9 +50,15 @@ def _gram_and_problem(n, n_times=300):
     return J.T @ J, theta, ap
 
 
+def _local(theta, ap, radius):
+    R, T, _ = ap.problem.data.outputs.shape
+    return local_information(lambda V: _adjoint._jacobian_columns(theta, ap, V),
+                             _adjoint._acted_on(theta, ap), ap.plan, R * T, 8, radius)
+
+
 def test_a_radius_spanning_the_network_gives_the_exact_information():
     want, theta, ap = _gram_and_problem(6)
-    got, radius, tail = local_information(theta, ap, radius=10)
+    got, radius, tail = _local(theta, ap, radius=10)
     assert radius == 10 and tail == 0.0
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10 * np.abs(want).max())
 
@@ -62,15 +68,17 @@ def test_the_radius_grows_until_the_dropped_tails_are_small_and_the_stds_follow(
     # Measured on 40 nodes over 600 s: radius 12 drops 12 % of a column (stds off by
     # 40 %), 16 drops 5.6 % (4 %), 25 drops 0.7 % (2e-4)
     want, theta, ap = _gram_and_problem(80, n_times=150)
-    got, radius, tail = local_information(theta, ap, radius=6)
+    got, radius, tail = _local(theta, ap, radius=6)
     assert radius > 6 and tail <= MAX_TAIL          # 6 drops a quarter: doubled
     std_want = np.sqrt(np.diag(np.linalg.inv(want)))
     std_got = np.sqrt(np.diag(np.linalg.inv(got)))
     assert np.max(np.abs(std_got / std_want - 1)) < 0.01
     # and the compression is real: far fewer forward products than parameters
-    fp = footprints(_acted_on(theta, ap), ap.plan.a_cols, ap.plan.a_real,
-                    _sensor_states(ap), radius)
-    colour, _ = _compressed(theta, ap, fp)
+    fp = footprints(_adjoint._acted_on(theta, ap), ap.plan.a_cols, ap.plan.a_real,
+                    sensor_states(ap.plan), radius)
+    R, T, _ = ap.problem.data.outputs.shape
+    colour, _ = _compressed(lambda V: _adjoint._jacobian_columns(theta, ap, V), fp,
+                            R * T, 8)
     assert colour.max() + 1 < 0.8 * theta.shape[0]
 
 

@@ -22,8 +22,8 @@ per parameter: memory like `P (2n)²`, time like `P n³`):
   the identifiability report. Beyond `LOCAL_INFORMATION_ABOVE` parameters, where the
   Jacobian is too large to hold, the information of each parameter's sensitivities kept
   near the states it acts on, from a few hundred compressed products
-  (`_local_information`; the method says so). Beyond `MAX_INFORMATION_PARAMS` only its diagonal is formed
-  and the stds are conditional ones (the fit's `method` says so).
+  (`_local_information`; the method says so). Beyond `MAX_INFORMATION_PARAMS` only its
+  diagonal is formed and the stds are conditional ones (the fit's `method` says so).
 
 Which path a fit takes is `_size.choose_path` (for linear models without bias columns,
 fitted by output error with the default solver): the adjoint one where the forward
@@ -39,7 +39,9 @@ import numpy as np
 
 from .._blas_threads import every_blas_thread
 from ..compilation._traced_cache import stored_jit
-from ..dynamics._taylor_hold import SparsePlan, model_outputs_taylor, plan_norm, sparse_plan
+from ..dynamics._taylor_hold import (SparsePlan, gathered, model_outputs_taylor, plan_norm,
+                                     sparse_plan)
+from ._local_information import local_information
 from ._matrix_free import MatrixFreeGaussNewton, matrix_free_gauss_newton
 from ._problem import _model_of, _prior, _Problem
 from . import _size
@@ -387,6 +389,50 @@ _REUSE_STD = 0.1
 _REUSE_WEIGHTS = np.log(1.25)
 
 
+@stored_jit
+def _moved_rows(theta, ap, directions):
+    """`(k, n)`: for each direction (k, P), the summed absolute tangent of each state's
+    row of `A` (the plan's non-zeros) and of `B`, and of its start in every run."""
+    problem, plan = ap.problem, ap.plan
+    data = problem.data
+
+    def parts(t):
+        model, run_initial = _model_of(t, problem)
+        system = model.linear_system()
+        u0 = data.inputs[:, 0].astype(system.A.dtype)
+        if run_initial is None or run_initial.shape[1] == 0:
+            x0 = jax.vmap(lambda u: _initial(model, system, u, None))(u0)
+        else:
+            x0 = jax.vmap(lambda u, r: _initial(model, system, u, r))(u0, run_initial)
+        return gathered(system.A, plan.a_cols, plan.a_real), system.B, x0
+
+    def tangent(v):
+        dA, dB, dx0 = jax.jvp(parts, (theta,), (v,))[1]
+        return jnp.abs(dA).sum(1) + jnp.abs(dB).sum(1) + jnp.abs(dx0).sum(0)
+
+    return jax.vmap(tangent)(directions)
+
+
+def _acted_on(theta, ap: AdjointProblem) -> np.ndarray:
+    """`(P, n)` bool: the states whose row of `A` or `B`, or whose start in some run,
+    moves with each parameter (`_moved_rows`, `_TOUCH_BATCH` directions at a time)."""
+    P = theta.shape[0]
+    out = np.zeros((P, ap.plan.a_cols.shape[0]), bool)
+    eye = np.eye(P)
+    for start in range(0, P, _TOUCH_BATCH):
+        block = eye[start:start + _TOUCH_BATCH]
+        k = block.shape[0]
+        if k < _TOUCH_BATCH:
+            block = np.concatenate([block, np.zeros((_TOUCH_BATCH - k, P))])
+        moved = np.asarray(_moved_rows(theta, ap, jax.device_put(block)))
+        out[start:start + k] = moved[:k] > 0
+    return out
+
+
+#: Unit directions per batch when the states each parameter acts on are found.
+_TOUCH_BATCH = 16
+
+
 def _information_or_diagonal(theta, ap: AdjointProblem):
     """`(H, kind, note)`: the information at `theta` (`kind` "exact"); beyond
     `LOCAL_INFORMATION_ABOVE` parameters, where its Jacobian is too large to hold, the
@@ -397,9 +443,9 @@ def _information_or_diagonal(theta, ap: AdjointProblem):
     rows = int(np.prod(ap.problem.data.outputs.shape))
     if LOCAL_INFORMATION_ABOVE < P <= MAX_INFORMATION_PARAMS \
             and 8.0 * rows * P > _JACOBIAN_BYTES:
-        from ._local_information import local_information
-
-        H, radius, tail = local_information(theta, ap)
+        H, radius, tail = local_information(
+            lambda V: _jacobian_columns(theta, ap, V), _acted_on(theta, ap), ap.plan,
+            rows // ap.problem.data.outputs.shape[2], _BATCH)
         return H, "local", (
             f"; {P} free parameters: the information (stds, preconditioner) from each "
             f"parameter's sensitivities kept on the sensors within {radius} links of the "
