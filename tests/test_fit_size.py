@@ -3,6 +3,8 @@ and what to do; a long one says so first (thermojax.fitting._size)."""
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from thermojax.cli import main
@@ -69,9 +71,15 @@ def test_a_log_too_long_for_the_memory_is_refused_naming_its_readings(tmp_path, 
     need = _size.fit_cost(3, 9, n)
     assert need.jacobian_bytes > need.bytes - _size.BASE_BYTES - need.jacobian_bytes
     monkeypatch.setattr(_size, "available_memory", lambda: need.bytes)
+    # a Kalman fit holds the Jacobian: refused before the work
     assert main(["fit", "--model", str(model), "--data", str(tmp_path / "long.csv"),
-                 "--out", str(tmp_path / "f"), "--quiet"]) == 2
+                 "--likelihood", "kalman", "--out", str(tmp_path / "f"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "20,000 sensor readings" in err and "every k-th row" in err
     assert "chain.toml" in err
     assert not (tmp_path / "f").exists()
+    # output error on a linear model sums its normal equations over stretches instead
+    assert main(["fit", "--model", str(model), "--data", str(tmp_path / "long.csv"),
+                 "--out", str(tmp_path / "oe"), "--quiet"]) == 0
+    report = json.loads((tmp_path / "oe" / "report.json").read_text())
+    assert report["method"].startswith("Gauss-Newton on normal equations")

@@ -57,6 +57,41 @@ def run_tangents(maps, dmaps, dz0, w, L: int = _BLOCK):
     """Output tangents (blocks L, p, P) of one run along `P` directions, padded to whole
     blocks, given the tangents of its maps and initial state (leading axis `P`) and `w`
     from `run_primal`."""
+    return _tangents(maps, dmaps, dz0, w, L)[0]
+
+
+def chunk_outputs_and_tangents(maps, dmaps, s0, ds0, u, L: int = _BLOCK):
+    """One stretch of a run (`u` (blocks L, m), whole blocks) from its start `s0` (n,) and
+    the start's tangents `ds0` (P, n): `(outputs (blocks L, p), tangents (blocks L, p, P),
+    the next stretch's start (n,), its tangents (P, n))`. Stretches chained start to start
+    give `run_primal` and `run_tangents` of the whole run (each sample depends on the ones
+    before only through the block start)."""
+    y, w = run_primal(maps, s0, u, L)
+    dy, dstarts, drive = _tangents(maps, dmaps, ds0, w, L)
+    DL = maps[0]
+    ds_next = dstarts[-1] + dstarts[-1] @ DL.T + drive[-1]  # as `_next_start`
+    return y, dy, _next_start(maps, w), ds_next
+
+
+def chunk_outputs(maps, s0, u, L: int = _BLOCK):
+    """`chunk_outputs_and_tangents` without the tangents: `(outputs (blocks L, p), the
+    next stretch's start (n,))`."""
+    y, w = run_primal(maps, s0, u, L)
+    return y, _next_start(maps, w)
+
+
+def _next_start(maps, w):
+    """The block start after the last row `[u_b; s_b]` of `w`: the recurrence's own step
+    `s[b+1] = s[b] + DL s[b] + N u[b]` (`DL` is `Phi^L - I`)."""
+    DL, N, _ = maps
+    Lm = N.shape[1]
+    u_last, s_last = w[-1, :Lm], w[-1, Lm:]
+    return s_last + DL @ s_last + N @ u_last
+
+
+def _tangents(maps, dmaps, dz0, w, L: int):
+    """`run_tangents`, the tangent block starts (blocks, P, n) and their drives (blocks,
+    P, n)."""
     DL, N, O = maps
     dDL, dN, dO = dmaps
     n = DL.shape[0]
@@ -66,10 +101,11 @@ def run_tangents(maps, dmaps, dz0, w, L: int = _BLOCK):
     # Tangent block starts: s'[b+1] = Phi^L s'[b] + (dDL s[b] + dN u[b]).
     drive = w @ jnp.concatenate([jnp.transpose(dN, (2, 0, 1)).reshape(Lm, P * n),
                                  jnp.transpose(dDL, (2, 0, 1)).reshape(n, P * n)], axis=0)
-    dstarts = recurrence(DL, drive.reshape(-1, P, n), dz0)  # (blocks, P, n)
+    drive = drive.reshape(-1, P, n)
+    dstarts = recurrence(DL, drive, dz0)  # (blocks, P, n)
     dy = w @ jnp.transpose(dO, (2, 1, 0)).reshape(Lm + n, -1)  # (blocks, L p P)
     dy = dy.reshape(-1, L * p, P) + small_inner_product(O[:, Lm:], jnp.swapaxes(dstarts, 1, 2))
-    return dy.reshape(-1, p, P)
+    return dy.reshape(-1, p, P), dstarts, drive
 
 
 def _steady_state_small(system, u0):
@@ -151,6 +187,21 @@ def output_sensitivity_parts(params_to_model, theta, data, states=None):
         y, J = dataset_outputs_and_jacobian(params_to_model, theta, data, states)
         return pad_to_blocks(y), lambda: pad_to_blocks(J)
 
+    ((maps, z0), offset), ((dmaps, dz0), doffset) = map_tangents(params_to_model, theta, data)
+    y, w = jax.vmap(run_primal)(maps, z0, data.inputs.astype(theta.dtype))
+
+    def jacobian():
+        return jax.vmap(run_tangents)(maps, dmaps, dz0, w) + doffset.T[None, None]
+
+    return y + offset[None, None, :], jacobian
+
+
+def map_tangents(params_to_model, theta, data):
+    """The small part of the output Jacobian: `(((maps, z0), offset), ((dmaps, dz0),
+    doffset))`, each run's `dataset_maps` and the model's output offset (p,), with their
+    tangents along every parameter (runs, P, ...) and (P, p). Of the data only each
+    run's period and first inputs are read."""
+
     def maps_of(t):
         model, run_initial = params_to_model(t)
         return dataset_maps(model, data, run_initial), model.output_offset()
@@ -161,10 +212,4 @@ def output_sensitivity_parts(params_to_model, theta, data, states=None):
         jnp.eye(theta.shape[0], dtype=theta.dtype))
     # Materialized before use: otherwise XLA fuses the small products that build the maps
     # into the large elementwise passes over the outputs and recomputes them per element.
-    ((maps, z0), offset), ((dmaps, dz0), doffset) = jax.lax.optimization_barrier(small)
-    y, w = jax.vmap(run_primal)(maps, z0, data.inputs.astype(theta.dtype))
-
-    def jacobian():
-        return jax.vmap(run_tangents)(maps, dmaps, dz0, w) + doffset.T[None, None]
-
-    return y + offset[None, None, :], jacobian
+    return jax.lax.optimization_barrier(small)

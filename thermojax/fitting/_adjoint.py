@@ -41,7 +41,7 @@ from .._blas_threads import every_blas_thread
 from ..compilation._traced_cache import stored_jit
 from ..dynamics._taylor_hold import (SparsePlan, gathered, model_outputs_taylor, plan_norm,
                                      sparse_plan)
-from ._local_information import local_information
+from ._local_information import RADIUS, local_information
 from ._matrix_free import MatrixFreeGaussNewton, matrix_free_gauss_newton
 from ._problem import _model_of, _prior, _Problem
 from . import _size
@@ -183,14 +183,20 @@ def evaluate(theta, ap: AdjointProblem):
     return np.asarray(r), np.asarray(y)
 
 
+def _data_linearization(theta, ap: AdjointProblem):
+    """The weighted data residuals' linearization at `theta` (`jax.linearize`: `v -> J v`,
+    rows of every run, the prior's left out)."""
+    def data_r(t):
+        return adjoint_residuals(t, ap)[:-theta.shape[0]]
+
+    return jax.linearize(data_r, theta)[1]
+
+
 @stored_jit
 def _information_columns(theta, ap: AdjointProblem, directions):
     """`JᵀJ V` (P, k) of the data residuals for directions `V` (P, k): one forward and
     one reverse product per column, batched."""
-    def data_r(t):
-        return adjoint_residuals(t, ap)[:-theta.shape[0]]
-
-    _, lin = jax.linearize(data_r, theta)
+    lin = _data_linearization(theta, ap)
     transposed = jax.linear_transpose(lin, theta)
     return jax.vmap(lambda v: transposed(lin(v))[0], in_axes=1, out_axes=1)(directions)
 
@@ -199,21 +205,14 @@ def _information_columns(theta, ap: AdjointProblem, directions):
 def _jacobian_columns(theta, ap: AdjointProblem, directions):
     """`J V` (rows, k) of the data residuals for directions `V` (P, k): batched forward
     products."""
-    def data_r(t):
-        return adjoint_residuals(t, ap)[:-theta.shape[0]]
-
-    _, lin = jax.linearize(data_r, theta)
-    return jax.vmap(lin, in_axes=1, out_axes=1)(directions)
+    return jax.vmap(_data_linearization(theta, ap), in_axes=1, out_axes=1)(directions)
 
 
 @stored_jit
 def _column_norms(theta, ap: AdjointProblem, directions):
     """`‖J v‖²` (k,) of the data residuals for directions `V` (P, k), batched forward
     products."""
-    def data_r(t):
-        return adjoint_residuals(t, ap)[:-theta.shape[0]]
-
-    _, lin = jax.linearize(data_r, theta)
+    lin = _data_linearization(theta, ap)
     return jax.vmap(lambda v: jnp.sum(lin(v) ** 2), in_axes=1)(directions)
 
 
@@ -294,9 +293,9 @@ def fit_adjoint(prep, max_steps: int, say, solver: MatrixFreeGaussNewton | None 
     diagonal of `JᵀJ` only and it is the information reported: each std is then the
     parameter's conditional std (the others held at their values), a lower bound, and the
     method says so."""
-    from ..model._parameters import free_parameters, with_free_parameters
+    from ..model._parameters import free_parameters
     from ._likelihood import ml_sigma, output_error_nll
-    from ._problem import FitState, Solution, _check_finite, make_problem
+    from ._problem import _check_finite, make_problem, output_error_solution
 
     solver = solver or MatrixFreeGaussNewton()
     theta0 = free_parameters(prep.template, prep.index)
@@ -310,6 +309,7 @@ def fit_adjoint(prep, max_steps: int, say, solver: MatrixFreeGaussNewton | None 
         f"{ap.plan.substeps} substep(s) per sample period"
         + (", diagonal products" if ap.plan.offsets is not None else ""))
     theta, total, evals, kind, note, H, H_sigma = theta0, 0, 0, "exact", "", None, None
+    structure = {}   # what every information of this fit shares (`_information_or_diagonal`)
     for it in range(outer):
         ap = AdjointProblem(make_problem(prep.template, prep.index, prep.data, sigma, theta0),
                             ap.plan, ap.checkpoint)
@@ -320,7 +320,7 @@ def fit_adjoint(prep, max_steps: int, say, solver: MatrixFreeGaussNewton | None 
             if not (pass_steps == 0 and H is not None
                     and np.all(np.abs(np.log(sigma / H_sigma)) < _REUSE_WEIGHTS)):
                 start, H_sigma = theta, sigma  # where and with which weights H is taken
-                H, kind, note = _information_or_diagonal(theta, ap)
+                H, kind, note = _information_or_diagonal(theta, ap, structure)
             mu, V = np.linalg.eigh(H) if kind != "diagonal" else (np.diag(H), np.eye(P))
             limit = min(_REFRESH_STEPS, max_steps - pass_steps)
             theta, steps, ok, products, n_eval, _, norm = solve_adjoint(
@@ -361,18 +361,9 @@ def fit_adjoint(prep, max_steps: int, say, solver: MatrixFreeGaussNewton | None 
             and np.all(moved < _REUSE_STD * std):
         info = H
     else:
-        info, kind, note = _information_or_diagonal(theta, final)
-    p = len(prep.spec.sensors)
-    state = with_free_parameters(prep.template, prep.index, theta)
-    state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model,
-                                 jax.device_put(np.log(sigma[:p]))), state.run_initial,
-                     state.bias_log_tau)
-    n_meas = mask.sum(axis=(0, 1))
-    names = [f"sensors.{c}.noise" for c in prep.spec.sensor_columns]
-    noise = {name: (float(sigma[j]), float(sigma[j] / np.sqrt(2 * max(n_meas[j], 1))))
-             for j, name in enumerate(names) if not prep.fixed_sigma[j]}
-    sol = Solution(final.problem, np.asarray(theta), state, prep.names, info, nll, total,
-                   bool(ok), y, noise, evals)
+        info, kind, note = _information_or_diagonal(theta, final, structure)
+    sol = output_error_solution(prep, theta, theta0, sigma, info, nll, total, bool(ok), y,
+                                evals)
     return sol, METHOD + note
 
 
@@ -433,19 +424,26 @@ def _acted_on(theta, ap: AdjointProblem) -> np.ndarray:
 _TOUCH_BATCH = 16
 
 
-def _information_or_diagonal(theta, ap: AdjointProblem):
+def _information_or_diagonal(theta, ap: AdjointProblem, structure: dict):
     """`(H, kind, note)`: the information at `theta` (`kind` "exact"); beyond
     `LOCAL_INFORMATION_ABOVE` parameters, where its Jacobian is too large to hold, the
     information of sensitivities kept within a radius (`_local_information`, "local");
     beyond `MAX_INFORMATION_PARAMS` the diagonal of `JᵀJ` as a diagonal matrix
-    ("diagonal"). `note`: what the report's method adds about it."""
+    ("diagonal"). `note`: what the report's method adds about it. `structure`: what one
+    fit's calls share (filled by the first): the states each parameter acts on (the
+    network's structure, not the point) and the radius last needed, where the next
+    call's tail check starts."""
     P = theta.shape[0]
     rows = int(np.prod(ap.problem.data.outputs.shape))
     if LOCAL_INFORMATION_ABOVE < P <= MAX_INFORMATION_PARAMS \
             and 8.0 * rows * P > _JACOBIAN_BYTES:
+        if "acted_on" not in structure:
+            structure["acted_on"] = _acted_on(theta, ap)
         H, radius, tail = local_information(
-            lambda V: _jacobian_columns(theta, ap, V), _acted_on(theta, ap), ap.plan,
-            rows // ap.problem.data.outputs.shape[2], _BATCH)
+            lambda V: _jacobian_columns(theta, ap, V), structure["acted_on"], ap.plan,
+            rows // ap.problem.data.outputs.shape[2], _BATCH,
+            structure.get("radius", RADIUS))
+        structure["radius"] = radius
         return H, "local", (
             f"; {P} free parameters: the information (stds, preconditioner) from each "
             f"parameter's sensitivities kept on the sensors within {radius} links of the "

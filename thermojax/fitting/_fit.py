@@ -34,6 +34,7 @@ from ._initial_states import start_mismatches
 from ._problem import (LIKELIHOODS, SHORT_RUN, Solution, integrated_for_output_error,
                        prepare)
 from ._adjoint import adjoint_eligible, fit_adjoint
+from ._normal_equations import fit_normal_equations
 from ._size import check_fit_size, choose_path
 from ._plateau import GAIN, invisible_nodes, plateau_note, visible_start
 from ._profile import profile_interval
@@ -41,6 +42,8 @@ from ._summary import FitResult, summarize
 
 #: s; a fit predicted to take longer says so before it starts (`fitting._size`).
 LONG_FIT_S = 120.0
+#: How an output-error fit may differentiate its residuals (`fit`'s `jacobian`).
+JACOBIANS = ("auto", "forward", "adjoint", "normal_equations")
 
 __all__ = ["FitResult", "LIKELIHOODS", "fit", "output_error_at", "profile_interval",
            "standardized_innovations"]
@@ -103,11 +106,14 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
       cannot determine.
     - `jacobian`: how the output-error fit differentiates its residuals. `"auto"`: by
       forward sensitivities (the Jacobian formed), except for a linear network without
-      bias columns, fitted with the default solver, whose forward sensitivities would take
-      longer than a minute or not fit in memory (`fitting._size.choose_path`): that one by
-      the adjoint path (`fitting._adjoint`: reverse-mode products, matrix-free steps,
-      never a Jacobian). `"forward"` or `"adjoint"` forces one; the report's `method`
-      says which ran.
+      bias columns, fitted with the default solver (`fitting._size.choose_path`): on a
+      long log whose residuals' Jacobian would take more than
+      `_size.NORMAL_EQUATIONS_ABOVE_BYTES`, on normal equations summed over stretches
+      of the log (`fitting._normal_equations`: memory independent of the log's length);
+      for a network whose forward sensitivities would take longer than a minute or not
+      fit in memory, by the adjoint path (`fitting._adjoint`: reverse-mode products,
+      matrix-free steps, never a Jacobian). `"forward"`, `"adjoint"` or
+      `"normal_equations"` forces one; the report's `method` says which ran.
     - `smoothed`: Kalman fits whose `FitResult.smoothed` (RTS-smoothed node temperatures)
       will be read: their program is compiled beside the fit's last steps, where it
       costs no wall time on two cores. Otherwise they are computed when first read.
@@ -119,14 +125,23 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     prep = prepare(spec, experiments, likelihood, holdout, starts)
     n_states = prep.template.model.network.topology.n_nodes
     sizes = dict(n_samples=int(sum(prep.data.lengths)), n_readings=int(prep.data.outputs.size))
-    path = choose_path(n_states, len(prep.names), adjoint_eligible(prep, likelihood, solver)
-                       and jacobian != "forward", **sizes) if jacobian != "adjoint" else "adjoint"
-    if path == "adjoint" and not adjoint_eligible(prep, likelihood, solver):
-        raise InputError("`fit(jacobian='adjoint')` needs an output-error fit of a linear "
+    if jacobian not in JACOBIANS:
+        raise InputError(f"`fit(jacobian={jacobian!r})`: expected one of "
+                         f"{', '.join(JACOBIANS)}.", file=spec.source)
+    eligible = adjoint_eligible(prep, likelihood, solver)
+    path = jacobian if jacobian in ("adjoint", "normal_equations") else choose_path(
+        n_states, len(prep.names), eligible and jacobian != "forward", **sizes)
+    if path != "forward" and not eligible:
+        raise InputError(f"`fit(jacobian={path!r})` needs an output-error fit of a linear "
                          "model without bias columns, with the default solver; use "
                          "jacobian='auto'.", file=spec.source)
     cost = check_fit_size(n_states, len(prep.names), spec.source, path=path, **sizes)
-    if path == "adjoint":
+    if path == "normal_equations":
+        say(f"a long log: {sizes['n_readings']:,} sensor readings and {len(prep.names)} "
+            "free parameters, fitted on normal equations summed over stretches of the log "
+            f"(about {cost.bytes / 1e9:.1f} GB and roughly {_duration(cost.seconds)} on a "
+            "2-core machine)")
+    elif path == "adjoint":
         say(f"a large network: {len(prep.names)} free parameters of {cost.n_states} "
             f"states, fitted by the adjoint path (about {cost.bytes / 1e9:.1f} GB and "
             f"roughly {cost.seconds / 60:.0f} min on a 2-core machine)")
@@ -138,10 +153,12 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     if kalman:
         sol = _kalman_stages(prep, solver, max_steps, prior_log_std, n_starts, seed, say,
                              polish, nested_nll, smoothed, restart_unconverged)
-    elif path == "adjoint":
+    elif path in ("adjoint", "normal_equations"):
         if n_starts > 1:
-            say("the adjoint path fits from the file's values only (one start)")
-        sol, method = fit_adjoint(prep, max_steps, say)
+            say(f"the {path.replace('_', ' ')} path fits from the file's values only "
+                "(one start)")
+        fit_path = fit_adjoint if path == "adjoint" else fit_normal_equations
+        sol, method = fit_path(prep, max_steps, say)
         sol.method = method
     else:
         sol = fit_output_error(prep, solver, max_steps, n_starts, seed, say)
@@ -158,6 +175,11 @@ def fit(spec: ModelSpec, experiments: list[Experiment], *, likelihood: str = "ou
     if not kalman:  # a Kalman free run drifts with its process noise: no start check
         _warn_start_mismatch(result, experiments)
     return result
+
+
+def _duration(seconds: float) -> str:
+    """`seconds` in words: "40 s", "12 min"."""
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
 
 
 def _warn_start_mismatch(result: FitResult, experiments) -> None:

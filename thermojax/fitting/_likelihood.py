@@ -43,8 +43,13 @@ def simulate_dataset(model: ThermalModel, data: Dataset, run_initial=None
 def output_error_nll(residuals: np.ndarray, mask: np.ndarray, sigma: np.ndarray) -> float:
     """`-log L` of residuals (runs, times, outputs) °C with per-sensor std `sigma` (outputs,)
     °C, in NumPy."""
-    n = mask.sum(axis=(0, 1))
-    ssr = (residuals ** 2).sum(axis=(0, 1))
+    return output_error_nll_from_sums((residuals ** 2).sum(axis=(0, 1)), mask.sum(axis=(0, 1)),
+                                      sigma)
+
+
+def output_error_nll_from_sums(ssr: np.ndarray, n: np.ndarray, sigma: np.ndarray) -> float:
+    """`output_error_nll` from each sensor's sum of squared residuals `ssr` (°C²) over its
+    `n` measured samples, std `sigma` (outputs,) °C."""
     return float(np.sum(0.5 * n * (LOG_2PI + 2 * np.log(sigma)) + 0.5 * ssr / sigma ** 2))
 
 

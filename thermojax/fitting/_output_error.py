@@ -27,8 +27,9 @@ from ..dynamics._sensitivity import (block_outputs_and_states, dataset_block_out
                                      output_sensitivity_parts, pad_to_blocks)
 from ._likelihood import ml_sigma, output_error_nll
 from ._bias_residuals import bias_residuals, pushed_forward
-from ._problem import (FitState, Prepared, Solution, _check_finite, _model_of, _perturbed_starts,
-                       _prior, _Problem, _state, dataset, make_problem, template_at)
+from ._problem import (Prepared, Solution, _check_finite, _model_of, _perturbed_starts,
+                       _prior, _Problem, _state, dataset, make_problem,
+                       output_error_solution, template_at)
 from ._side_by_side import side_by_side
 from ._stationarity import escape, violations
 from ._integration import fewest_substeps, integration_tolerance, shared_substeps, with_substeps
@@ -336,28 +337,14 @@ def fit_output_error(prep: Prepared, solver, max_steps: int, n_starts: int, seed
         best, not_stationary = _first_order(best, prep, theta0, solver, max_steps, say)
     if prep.template.model.is_nonlinear:
         best, prep = _accurate_at_solution(best, prep, theta0, solver, max_steps, say)
-    sigma = best.sigma
-    state = with_free_parameters(prep.template, prep.index, best.theta)
-    p = len(prep.spec.sensors)
-    state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model,
-                                 jax.device_put(np.log(sigma[:p]))), state.run_initial,
-                     state.bias_log_tau)
     # JᵀJ at theta from the last pass, re-weighted to the final stds.
-    info = np.einsum("j,jab->ab", (best.used / sigma) ** 2, np.asarray(best.evaluation.gram))
-    # Estimated noise stds are parameters too (ML: std(σ) = σ / sqrt(2 N)).
-    n_meas = prep.mask().sum(axis=(0, 1))
-    names = ([f"sensors.{c}.noise" for c in prep.spec.sensor_columns]
-             + [f"biases.{b.column}.noise" for b in prep.spec.biases])
-    noise = {name: (float(sigma[j]), float(sigma[j] / np.sqrt(2 * max(n_meas[j], 1))))
-             for j, name in enumerate(names) if not prep.fixed_sigma[j]}
-    return Solution(make_problem(prep.template, prep.index, prep.data, sigma, theta0,
-                                 bias=prep.bias),
-                    np.asarray(best.theta), state, prep.names, info, best.nll, best.n_steps,
-                    best.converged, np.asarray(best.evaluation.predictions), noise,
-                    best.n_evaluations,
-                    alternatives=[(np.asarray(r.theta), float(r.nll)) for r in passes
-                                  if r is not best],
-                    not_stationary=not_stationary)
+    info = np.einsum("j,jab->ab", (best.used / best.sigma) ** 2,
+                     np.asarray(best.evaluation.gram))
+    return output_error_solution(
+        prep, best.theta, theta0, best.sigma, info, best.nll, best.n_steps, best.converged,
+        best.evaluation.predictions, best.n_evaluations,
+        alternatives=[(np.asarray(r.theta), float(r.nll)) for r in passes if r is not best],
+        not_stationary=not_stationary)
 
 
 def _first_order(best: _Pass, prep: Prepared, theta0, solver: TruncatedGaussNewton,

@@ -108,6 +108,31 @@ class Solution:
     not_stationary: str = ""
 
 
+def output_error_solution(prep: "Prepared", theta, theta0, sigma, information, nll: float,
+                          n_steps: int, converged: bool, predictions, n_evaluations: int,
+                          **more) -> Solution:
+    """The `Solution` of an output-error solve at `theta` (free,) with the noise stds
+    `sigma` (sensors + bias columns,) it ended at: the model carries the sensors' stds,
+    each estimated std is reported with its ML std `σ / sqrt(2 N)`; `information` (free,
+    free) is `JᵀJ` weighted by `sigma`; `more`: the other fields of `Solution`."""
+    sigma = np.asarray(sigma, float)
+    state = with_free_parameters(prep.template, prep.index, jax.device_put(np.asarray(theta)))
+    p = len(prep.spec.sensors)
+    state = FitState(eqx.tree_at(lambda m: m.log_noise, state.model,
+                                 jax.device_put(np.log(sigma[:p]))), state.run_initial,
+                     state.bias_log_tau)
+    n_meas = prep.mask().sum(axis=(0, 1))
+    names = ([f"sensors.{c}.noise" for c in prep.spec.sensor_columns]
+             + [f"biases.{b.column}.noise" for b in prep.spec.biases])
+    noise = {name: (float(sigma[j]), float(sigma[j] / np.sqrt(2 * max(n_meas[j], 1))))
+             for j, name in enumerate(names) if not prep.fixed_sigma[j]}
+    return Solution(make_problem(prep.template, prep.index, prep.data, sigma, theta0,
+                                 bias=prep.bias),
+                    np.asarray(theta), state, prep.names, np.asarray(information), float(nll),
+                    int(n_steps), bool(converged), np.asarray(predictions), noise,
+                    None if n_evaluations is None else int(n_evaluations), **more)
+
+
 # ---------------------------------------------------------------------------
 # Preparation
 

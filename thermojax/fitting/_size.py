@@ -15,13 +15,18 @@ parameter, held about `JACOBIAN_COPIES` times over while a step is taken (the so
 linearization and the next one). Measured on the six-node IMU (3 sensors, 22 free
 parameters, output error): 0.53 GB at 10⁵ samples, 1.85 GB at 10⁶ and 3.22 GB at
 2·10⁶, 1.37 GB per 10⁶ samples, 2.6 times the Jacobian's 0.53 GB. A log too long
-for the memory at hand is refused before the work with what to do (a shorter stretch,
-or fewer samples: the thermal time constants seldom need every one), not ended by the
-system's out-of-memory killer.
+for the memory at hand (in a fit that cannot take the normal equations below: a Kalman
+likelihood, a nonlinear model, bias columns) is refused before the work with what to do
+(a shorter stretch, or fewer samples: the thermal time constants seldom need every
+one), not ended by the system's out-of-memory killer.
 
 An output-error fit of a linear network without bias columns, with the default solver,
-takes the adjoint path (`fitting._adjoint`) where the forward sensitivities are predicted
-to take longer than `ADJOINT_ABOVE_S` or not to fit in memory (`choose_path`). Its
+whose residuals' Jacobian would take more than `NORMAL_EQUATIONS_ABOVE_BYTES` (and more
+than the network's sensitivities) sums its normal equations over stretches of the log
+instead (`fitting._normal_equations`): its memory is the log's copies, not the Jacobian's.
+Otherwise such a fit takes the adjoint path (`fitting._adjoint`) where the forward
+sensitivities are predicted to take longer than `ADJOINT_ABOVE_S` or not to fit in memory
+(`choose_path`). Its
 memory grows like the series terms it keeps (`runs · T · d · n`, `d` terms per sample
 period) plus the information matrix (`P²`) and, where it takes at most
 `ADJOINT_JACOBIAN_BYTES`, the residuals' Jacobian that the information is formed from; its
@@ -70,6 +75,24 @@ ADJOINT_BASE_S = 10.0  # compilation
 ADJOINT_SECONDS_PER_WORK = 1.15e-8
 
 
+#: Bytes of the forward path's residual Jacobian (its copies included) above which a fit
+#: that may take it (`choose_path`) sums normal equations over stretches of the log
+#: instead (`fitting._normal_equations`), where that Jacobian outweighs the network's
+#: sensitivities. Below it the forward path is faster where it fits (the six-node IMU at
+#: 10⁶ samples: 14.5 s and 1.54 GB against 26.6 s and 0.66 GB).
+NORMAL_EQUATIONS_ABOVE_BYTES = 2e9
+#: The normal-equations path's constants, from the six-node IMU (3 sensors, 19 free
+#: parameters; benchmarks/README.md, `long_logs.py`): 0.67 GB and 26 s at 10⁶ samples,
+#: 2.41 GB and 259 s at 10⁷. Runtime and compiled programs, then per sensor reading the
+#: log's copies (the run as read, its padded device copy, the predictions and the
+#: reports' residuals: about eight numbers), and the time per unit of readings × P²
+#: (each step one pass with the Jacobian and one or two without, ~16 steps from 30 % off).
+NORMAL_EQUATIONS_BASE_BYTES = 0.5e9
+NORMAL_EQUATIONS_BYTES_PER_READING = 64.0
+NORMAL_EQUATIONS_BASE_S = 10.0
+NORMAL_EQUATIONS_SECONDS_PER_WORK = 2.3e-8
+
+
 @dataclasses.dataclass(frozen=True)
 class FitCost:
     """The predicted peak memory (`bytes`) and time (`seconds`) of one fit of `n_states`
@@ -111,19 +134,36 @@ def adjoint_cost(n_states: int, n_free: int, n_samples: int, terms: int = 30,
                    ADJOINT_BASE_S + ADJOINT_SECONDS_PER_WORK * 3 * products * kept, jacobian)
 
 
+def normal_equations_cost(n_states: int, n_free: int, n_readings: int) -> FitCost:
+    """`FitCost` of the normal-equations path (`fitting._normal_equations`) on
+    `n_readings` sensor readings over every run: the data's copies, not their Jacobian,
+    grow with the log."""
+    P, R = int(n_free), int(n_readings)
+    return FitCost(int(n_states), P,
+                   NORMAL_EQUATIONS_BASE_BYTES + NORMAL_EQUATIONS_BYTES_PER_READING * R,
+                   NORMAL_EQUATIONS_BASE_S + NORMAL_EQUATIONS_SECONDS_PER_WORK * R * P ** 2)
+
+
 def choose_path(n_states: int, n_free: int, eligible: bool, available=None,
                 n_samples: int = 0, n_readings: int = 0) -> str:
-    """`"adjoint"` where the fit may take it (`eligible`: output error, a linear model
-    without bias columns, the default solver) and the forward sensitivities are predicted
-    to take longer than `ADJOINT_ABOVE_S`, or to need more than `MEMORY_SHARE` of the
-    memory available where the adjoint path needs less (`n_samples` samples and
-    `n_readings` sensor readings over every run: on a long log of a small network the
-    adjoint path's kept series need more than the forward path's Jacobian); else
-    `"forward"`."""
+    """Where the fit may leave the forward path (`eligible`: output error, a linear
+    model without bias columns, the default solver): `"normal_equations"` on a long log,
+    whose residuals' Jacobian (`n_readings` sensor readings over every run) outweighs the
+    network's sensitivities and would take more than `NORMAL_EQUATIONS_ABOVE_BYTES`, or
+    the forward path more than `MEMORY_SHARE` of the memory available;
+    `"adjoint"` where the forward sensitivities are predicted to take longer than
+    `ADJOINT_ABOVE_S`, or to need more than `MEMORY_SHARE` of the memory available where
+    the adjoint path needs less (`n_samples` samples over every run: on a long log of a
+    small network the adjoint path's kept series need more than the forward path's
+    Jacobian); else `"forward"`."""
     if not eligible:
         return "forward"
     cost = fit_cost(n_states, n_free, n_readings)
     available = available_memory() if available is None else available
+    too_large = cost.jacobian_bytes > NORMAL_EQUATIONS_ABOVE_BYTES or (
+        available is not None and cost.bytes > MEMORY_SHARE * available)
+    if too_large and cost.jacobian_bytes > cost.bytes - BASE_BYTES - cost.jacobian_bytes:
+        return "normal_equations"
     if available is not None and cost.bytes > MEMORY_SHARE * available:
         adjoint = adjoint_cost(n_states, n_free, n_samples, n_readings=n_readings)
         return "adjoint" if adjoint.bytes < cost.bytes else "forward"
@@ -138,6 +178,8 @@ def check_fit_size(n_states: int, n_free: int, source=None, available=None,
     `choose_path`'s answer (`"adjoint"` costs `adjoint_cost` of `n_samples` samples);
     `n_readings`: the forward path's sensor readings (`fit_cost`)."""
     available = available_memory() if available is None else available
+    if path == "normal_equations":  # the data are in memory already: nothing to refuse
+        return normal_equations_cost(n_states, n_free, n_readings)
     if path == "adjoint":
         cost = adjoint_cost(n_states, n_free, n_samples, n_readings=n_readings)
         if available is not None and cost.bytes > MEMORY_SHARE * available:
