@@ -182,3 +182,27 @@ def test_a_run_config_checks_intervals_unless_told_not_to(case, tmp_path, capsys
     assert main(["run", str(tmp_path / "cfg.toml")]) == 2
     err = capsys.readouterr().err
     assert "cfg.toml" in err and "options.interval_check" in err and "Traceback" not in err
+
+
+def test_checks_stop_at_their_budget_naming_those_left(case):
+    _, _, result, checks = case
+    # a budget the first check already spends: it runs, the second is left and named
+    with pytest.warns(UserWarning, match="stopped after 1 of 2") as caught:
+        partial = check_intervals(result, budget_s=0.0)
+    assert list(partial) == list(checks)[:1]
+    assert partial[list(checks)[0]]["lower"] == pytest.approx(checks[list(checks)[0]]["lower"])
+    assert list(checks)[1] in str(caught[0].message)
+
+
+def test_a_fit_on_summed_normal_equations_is_not_profiled(case):
+    import dataclasses
+
+    from thermojax.fitting._normal_equations import METHOD
+    from thermojax.fitting._profile import profile_interval
+
+    _, _, result, _ = case
+    long_log = dataclasses.replace(result, method=METHOD)  # as such a fit reports itself
+    with pytest.warns(UserWarning, match="not checked against the profile likelihood"):
+        assert check_intervals(long_log) == {}
+    with pytest.raises(tj.InputError, match="shorter stretch"):
+        profile_interval(long_log, "nodes.core.capacitance")

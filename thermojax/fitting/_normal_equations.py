@@ -82,8 +82,10 @@ def _stretch_cost(maps, offset, s, u, y, mask):
 
 def _stretches(prep: Prepared, stretch: int):
     """`(run, first sample, inputs, readings, mask)` of every stretch of every run, each
-    `stretch` samples long (a run's last one padded with its last input, unmeasured);
-    a run shorter than `stretch` is one stretch of its whole blocks."""
+    `stretch` samples long, rounded up to whole blocks (a run's last one padded with its
+    last input, unmeasured); a run shorter than `stretch` is one stretch of its whole
+    blocks."""
+    stretch = -(-stretch // _BLOCK) * _BLOCK
     data = prep.data
     inputs, outputs, mask = (np.asarray(a) for a in (data.inputs, data.outputs, data.mask))
     for r, T in enumerate(data.lengths):
@@ -166,13 +168,13 @@ def fit_normal_equations(prep: Prepared, max_steps: int, say,
     iteration takes one pass with the Jacobian and one cost pass per trial step; progress
     is said after each. `stretch`: samples per stretch (default `STRETCH`)."""
     solver = solver or TruncatedGaussNewton()
-    stretch = stretch or STRETCH
+    stretch = -(-(stretch or STRETCH) // _BLOCK) * _BLOCK
     theta0 = free_parameters(prep.template, prep.index)
     problem = make_problem(prep.template, prep.index, prep.data, prep.sigma, theta0)
     counts = prep.mask().sum(axis=(0, 1))
-    n_samples = int(sum(prep.data.lengths))
-    say(f"a long log: {n_samples:,} samples, normal equations summed over stretches of "
-        f"{min(stretch, n_samples):,}")
+    n_stretches = sum(-(-T // stretch) for T in prep.data.lengths)
+    say(f"normal equations summed over {n_stretches} stretch(es) of up to {stretch:,} "
+        "samples per pass")
     theta = np.asarray(theta0)
     t0 = time.perf_counter()
     ss, gram, grad = normal_equations(jax.device_put(theta), problem, prep, stretch)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._errors import InputError
+from ._normal_equations import METHOD as NORMAL_EQUATIONS
 from ._output_error import _chi_square, _solve_oe
 from ._problem import _is_log, make_problem
 from ._solver import TruncatedGaussNewton
@@ -35,6 +36,11 @@ def profile_interval(result: FitResult, name: str, level: float = 0.95, max_refi
     if result.likelihood != "output_error" or result.problem is None:
         raise InputError("profile intervals are available for output-error fits; refit with "
                          "likelihood='output_error'.", field="--profile")
+    if result.method.startswith(NORMAL_EQUATIONS):
+        raise InputError("a profile likelihood refits the model holding the residuals' "
+                         "Jacobian, which this fit on a long log avoided (normal equations "
+                         "summed over stretches of the log); fit a shorter stretch of the "
+                         "log to profile a parameter.", field="--profile")
     if name not in result.free_names:
         raise InputError(f"'{name}' is not a free parameter; free ones are {result.free_names}.",
                          field="--profile")
