@@ -132,3 +132,22 @@ def test_normal_equations_refuse_what_they_cannot_fit():
         tj.fit(start, runs, likelihood="kalman", jacobian="normal_equations")
     with pytest.raises(tj.InputError, match="expected one of"):
         tj.fit(start, runs, jacobian="reverse")
+
+
+def test_an_invisible_node_on_a_long_log_is_said_not_refitted(monkeypatch):
+    # where the data cannot see a node, a fit on summed normal equations says so instead
+    # of refitting the whole log from a visible start (measured on 2·10⁶ samples of the
+    # six-node IMU: a restart crawled over 100 steps for nothing); the detector itself is
+    # tested in test_plateau.py
+    from thermojax.fitting import _fit
+    from thermojax.fitting._plateau import Invisible
+
+    start, runs, _ = _chain_runs(3)
+    monkeypatch.setattr(_fit, "invisible_nodes",
+                        lambda *a: [Invisible("n1", 0.01, 2.0, 600.0)])
+    lines = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = tj.fit(start, runs, jacobian="normal_equations", progress=lines.append)
+    assert "'n1'" in result.message and "not refitted" in result.message
+    assert not any("refitting from a time constant" in line for line in lines)

@@ -34,7 +34,7 @@ from ._initial_states import start_mismatches
 from ._problem import (LIKELIHOODS, SHORT_RUN, Solution, integrated_for_output_error,
                        prepare)
 from ._adjoint import adjoint_eligible, fit_adjoint
-from ._normal_equations import fit_normal_equations
+from ._normal_equations import METHOD as NORMAL_EQUATIONS, fit_normal_equations
 from ._size import check_fit_size, choose_path
 from ._plateau import GAIN, invisible_nodes, plateau_note, visible_start
 from ._profile import profile_interval
@@ -202,6 +202,11 @@ def _off_plateau(result: FitResult, experiments, say, **options) -> FitResult:
                                 min(e.dt for e in experiments),
                                 max(float(e.ts[-1] - e.ts[0]) for e in experiments))
     if not invisible:
+        return result
+    if result.method.startswith(NORMAL_EQUATIONS):
+        # a restart from far crawls without the geodesic acceleration (2·10⁶ samples of
+        # the six-node IMU: over 100 steps, 6 minutes, for no gain)
+        result.message += plateau_note(invisible, None, restarted=False)
         return result
     say(f"{invisible[0].describe()}: the data cannot move its parameters there; refitting "
         "from a time constant they can see")

@@ -67,10 +67,16 @@ def visible_start(spec: ModelSpec, invisible: list[Invisible]) -> ModelSpec:
         if n.name in moved else n for n in spec.nodes))
 
 
-def plateau_note(invisible: list[Invisible], gain: float | None) -> str:
-    """What the message says: a restart that helped (`gain`, −log L) or one that did not
-    (None)."""
+def plateau_note(invisible: list[Invisible], gain: float | None,
+                 restarted: bool = True) -> str:
+    """What the message says: a restart that helped (`gain`, −log L), one that did not
+    (None), or none tried (`restarted` False: a long log, where it would cost another
+    fit of the whole log)."""
     what = "; ".join(v.describe() for v in invisible)
+    if not restarted:
+        return (f"; {what}: the data cannot see the node's parameters (not refitted from a "
+                "time constant they could see, which on a log this long costs another fit "
+                "of the whole log; fix them from design, or fit a shorter stretch to try)")
     if gain is not None:
         return (f"; restarted from a plateau where {what}, so that the data could not move "
                 f"the node's parameters: −log L fell by {gain:.4g}. A start this far from the "
