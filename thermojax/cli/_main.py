@@ -419,6 +419,8 @@ def _ties_text(c: dict) -> str:
 
 
 def _print_story(report: dict) -> None:
+    from ..investigation._evidence import is_added
+
     steps = report["steps"]
     for i, step in enumerate(steps):
         added = step["added"]
@@ -428,8 +430,7 @@ def _print_story(report: dict) -> None:
         if added is not None and i > 0:
             prev = steps[i - 1]
             chosen = next((c for c in prev.get("candidates") or []
-                           if c["kind"] == added["kind"] and list(c["where"]) ==
-                           list(added["where"])), None)
+                           if is_added(c, added)), None)
             if chosen and chosen.get("tied_with"):
                 print(f"          near-tie: the data could not tell it apart from "
                       f"{_ties_text(chosen)}")

@@ -15,6 +15,7 @@ import json
 from pathlib import Path
 
 from .._errors import InputError
+from ..investigation._evidence import is_added
 from ..model._spec import ModelSpec
 
 
@@ -44,7 +45,7 @@ def rivals_from_investigation(folder) -> list[tuple[str, ModelSpec]]:
                 continue
             nxt = steps[i + 1] if i + 1 < len(steps) else None
             added = (nxt or {}).get("added")
-            if added and added["kind"] == c["kind"] and list(added["where"]) == list(c["where"]):
+            if is_added(c, added):
                 tie = (i, c, c["tied_with"], True)
             elif i == len(steps) - 1 and c is (step.get("candidates") or [None])[0]:
                 tie = (i, c, c["tied_with"], False)

@@ -95,16 +95,16 @@ class SymbolicFront:
     # test through the dynamics)
     leaders: list[FoundLaw] = field(default_factory=list)
 
-    def best(self, k: int = 3) -> list[FoundLaw]:
+    def best(self, k: int = 3, adequate: float = ADEQUATE) -> list[FoundLaw]:
         """The `k` laws of the front most worth refitting, simplest first: the simplest
-        law whose cost is within `ADEQUATE` of the front's lowest, the front's knee (the
-        largest drop of log cost per unit of complexity from the next simpler law), then
-        the next adequate laws by complexity."""
+        law whose cost is within `adequate` (a share) of the front's lowest, the front's
+        knee (the largest drop of log cost per unit of complexity from the next simpler
+        law), then the next adequate laws by complexity."""
         if not self.front:
             return []
         lowest = min(law.cost for law in self.front)
         adequate = [i for i, law in enumerate(self.front)
-                    if law.cost <= lowest * (1.0 + ADEQUATE)]
+                    if law.cost <= lowest * (1.0 + adequate)]
         drops = [(math.log(max(self.front[i - 1].cost, 1e-300)) -
                   math.log(max(self.front[i].cost, 1e-300))) /
                  max(self.front[i].complexity - self.front[i - 1].complexity, 1)
@@ -397,19 +397,21 @@ def _with_stds(s: _Search, law: FoundLaw) -> FoundLaw:
         return _evaluate(law.expression, vnames, values, dict(zip(names, p)))
 
     try:
-        q0 = heat(base)
-        J = np.empty((len(q0), len(base)))
-        for j in range(len(base)):
-            h = 1e-6 * max(abs(base[j]), 1e-8)
-            up, dn = base.copy(), base.copy()
-            up[j] += h
-            dn[j] -= h
-            J[:, j] = (heat(up) - heat(dn)) / (2 * h) * s.w
-        if s.Zw.shape[1]:
-            J = np.concatenate([J, s.Zw], 1)
-        dof = max(len(q0) - J.shape[1], 1)
-        cov = np.linalg.pinv(J.T @ J) * (law.cost / dof)
-        std = np.sqrt(np.maximum(np.diag(cov)[:len(base)], 0.0))
+        # a law that overflows near its constants (exp of a large rate) has no std
+        with np.errstate(divide="raise", over="raise", invalid="raise", under="ignore"):
+            q0 = heat(base)
+            J = np.empty((len(q0), len(base)))
+            for j in range(len(base)):
+                h = 1e-6 * max(abs(base[j]), 1e-8)
+                up, dn = base.copy(), base.copy()
+                up[j] += h
+                dn[j] -= h
+                J[:, j] = (heat(up) - heat(dn)) / (2 * h) * s.w
+            if s.Zw.shape[1]:
+                J = np.concatenate([J, s.Zw], 1)
+            dof = max(len(q0) - J.shape[1], 1)
+            cov = np.linalg.pinv(J.T @ J) * (law.cost / dof)
+            std = np.sqrt(np.maximum(np.diag(cov)[:len(base)], 0.0))
         stds = {n: float(v) for n, v in zip(names, std)}
     except (ValueError, np.linalg.LinAlgError, FloatingPointError):
         stds = {}

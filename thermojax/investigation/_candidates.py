@@ -76,6 +76,10 @@ class Candidate:
     # and how many fits that was: what a model of its structure costs to fit.
     refit_seconds: float | None = None
     refit_fits: int = 0
+    # A refined law (`_symbolic_step.refine_laws`): the indices in the step's
+    # `spec.effects` of the laws it replaces, and their expressions.
+    replaces: tuple[int, ...] = ()
+    replaced: tuple[str, ...] = ()
 
     def __post_init__(self):
         if self.score_test is None and self.method == "score":
@@ -110,7 +114,8 @@ class Candidate:
                 "hold": self.hold, "absorbed_by": self.absorbed_by, "note": self.note,
                 "physical": bool(self.physical),
                 **({"expression": self.expression, "law": self.learned.term.name}
-                   if self.learned is not None else {})}
+                   if self.learned is not None else {}),
+                **({"replaces": list(self.replaced)} if self.replaced else {})}
 
     @property
     def expression(self) -> str | None:

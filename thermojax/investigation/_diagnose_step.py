@@ -20,7 +20,8 @@ from ._refits import _refit_side_by_side, refit_best, refittable
 from ._selection import judge, prefer_simpler_laws, prefer_vocabulary
 from ._separation import separation_advice
 from ._step import Step, _bias_runs, _experiments
-from ._symbolic_step import SearchSettings, mark_proposed, new_laws, search_laws
+from ._symbolic_step import SearchSettings, mark_proposed, new_laws, refine_laws, \
+    search_at_file_values, search_laws
 from ..discovery import column_scales
 from ..fitting._bias import viscoelastic_candidate
 from ..fitting._fit import FitResult, output_error_at
@@ -174,9 +175,8 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
         best_law = []
     found = []
     if refits and search is not None and missing is not None:
-        found = _searched(step, runs, missing, cands, unused, (data, weights, r, J, states,
-                                                               whiten), columns, search,
-                          fdr, say)
+        found = _searched(step, runs, missing, cands, (data, weights, r, J, states, whiten),
+                          columns, search, fdr, say)
     kinds = [c for c in cands if c.learned is None]
     if forecast is not None and refits:
         forecast(best_law + found + refittable(kinds)[:refits])
@@ -198,8 +198,8 @@ def diagnose_step(step: Step, runs: list[Telemetry], likelihood: str, *, refits:
     return cands
 
 
-def _searched(step: Step, runs, missing, cands: list[Candidate], unused, scoring,
-              columns, search: SearchSettings, fdr: float, say) -> list[Candidate]:
+def _searched(step: Step, runs, missing, cands: list[Candidate], scoring, columns,
+              search: SearchSettings, fdr: float, say) -> list[Candidate]:
     """The symbolic search's laws (`_symbolic_step.search_laws`) on the step's missing
     heat, score-tested like the library's and added to `cands`; returns those to refit
     (the `search.refits` best by their score among the significant ones). The front goes into the
@@ -210,7 +210,7 @@ def _searched(step: Step, runs, missing, cands: list[Candidate], unused, scoring
     if mh is None or not mh.carriers:
         return []
     data, weights, r, J, states, whiten = scoring
-    roles = {**unused, **{h.input: "power" for h in step.spec.heat_inputs}}
+    roles = search_roles(step, runs)
     try:
         laws, entry = search_laws(step, runs, mh, roles, search, say)
         laws = new_laws(laws, cands)
@@ -226,7 +226,71 @@ def _searched(step: Step, runs, missing, cands: list[Candidate], unused, scoring
     best = sorted((c for c in scored if c.p_value < fdr), key=lambda c: -c.score)
     mark_proposed(entry, best[:search.refits])
     step.record["symbolic_search"] = entry
-    return best[:search.refits]
+    refined = _refined(step, runs, mh, roles, search, say)
+    cands += refined
+    return best[:search.refits] + refined
+
+
+def search_roles(step: Step, runs) -> dict[str, str]:
+    """The recorded columns a searched law may read (name -> role): the unused ones and
+    the heat inputs' powers."""
+    return {**unused_columns(step.spec, runs),
+            **{h.input: "power" for h in step.spec.heat_inputs}}
+
+
+def at_file_values(step: Step, runs, initial, search: SearchSettings, say
+                   ) -> list[Candidate]:
+    """Candidates from the search on the missing heat at the file's values
+    (`_symbolic_step.search_at_file_values`): added beside the model's effects like the
+    search's other laws, not score-tested at the bent model (whose parameters took part
+    of the law), refitted from the file's values. The search's front goes into the
+    step's `symbolic_search` entry (`at_file_values`)."""
+    roles = search_roles(step, runs)
+    try:
+        laws, entry = search_at_file_values(step, runs, initial, roles, search, say)
+    except Exception as err:  # the search's failure must not end the loop
+        entry = {"verdict": "the search at the file's values could not run: "
+                            f"{type(err).__name__}: {err}"[:300]}
+        say(entry["verdict"])
+        laws = []
+    if entry is not None:
+        step.record.setdefault("symbolic_search", {})["at_file_values"] = entry
+    return [_law_candidate(law, where, found, "proposed by the search on the missing "
+                           "heat at the file's values") for law, where, found in laws]
+
+
+def _law_candidate(law, where, found, note: str, **replacing) -> Candidate:
+    """A searched law `(LearnedLaw, where)` as a candidate refitted whatever its score
+    (an infinite score until then), from the search's constants (`found`, a
+    `FoundLaw`); `replacing`: `replaces` and `replaced` of a refined law."""
+    c = Candidate("expression", tuple(where), math.inf, 1.0, score_test=math.nan,
+                  learned=law, shape=law.term.trials[0] if law.term.trials else None,
+                  estimate=float(found.parameters.get("c", math.nan)), **replacing)
+    c.add_note(note)
+    return c
+
+
+def _refined(step: Step, runs, mh, roles, search: SearchSettings, say) -> list[Candidate]:
+    """Candidates that replace the laws the model holds at a node by the best laws of a
+    search around them (`_symbolic_step.refine_laws`): not score-tested (a replacement
+    is not an extension of the fitted model), always refitted. The search's front goes
+    into the step's `symbolic_search` entry (`refinement`)."""
+    try:
+        laws, entry = refine_laws(step, runs, mh, roles, search, say)
+    except Exception as err:  # the search's failure must not end the loop
+        entry = {"verdict": f"the refining search could not run: {type(err).__name__}: "
+                            f"{err}"[:300]}
+        say(entry["verdict"])
+        laws = []
+    if entry is not None:
+        step.record.setdefault("symbolic_search", {})["refinement"] = entry
+    out = []
+    for law, where, replaces, found in laws:
+        replaced = tuple(step.spec.effects[i].expression for i in replaces)
+        out.append(_law_candidate(law, where, found,
+                                  f"refines {'; '.join(replaced)} (replaces it)",
+                                  replaces=tuple(replaces), replaced=replaced))
+    return out
 
 
 def scoring_inputs(step: Step, runs: list[Telemetry], likelihood: str) -> tuple:

@@ -29,9 +29,14 @@ def label(c: dict) -> str:
     return f"{c.get('kind', '?')} ({w})" if w else str(c.get("kind", "?"))
 
 
-def _same(c: dict, added: dict | None) -> bool:
+def is_added(c: dict, added: dict | None) -> bool:
+    """Whether the candidate `c` (a report.json entry) is the effect `added` of the next
+    step: same kind and place, and for a learned law the same expression (a step may
+    score several laws at one node, and a refined law replaces another there)."""
     return bool(added) and c.get("kind") == added.get("kind") and \
-        _where(c.get("where") or []) == _where(added.get("where") or [])
+        _where(c.get("where") or []) == _where(added.get("where") or []) and \
+        (c.get("expression") is None or added.get("expression") is None or
+         c.get("expression") == added.get("expression"))
 
 
 def votes(c: dict) -> tuple[int, int, int]:
@@ -55,7 +60,7 @@ def _held_out_rejects(c: dict) -> bool:
 def outcome(c: dict, added: dict | None, added_rank: int | None, rank: int) -> str:
     """What came of candidate `c` (ranked `rank`) at a step whose next step `added` the
     candidate ranked `added_rank` (None: nothing added)."""
-    if _same(c, added):
+    if is_added(c, added):
         return "added"
     # the loop marks a candidate the held-out folds reject as not supported, and says
     # so in its note: told apart from one the test itself did not support
@@ -89,7 +94,7 @@ def evidence_rows(step: dict, next_step: dict | None) -> list[dict]:
     `outcome`, best first."""
     cands = list(step.get("candidates") or [])
     added = (next_step or {}).get("added")
-    added_rank = next((k for k, c in enumerate(cands) if _same(c, added)), None)
+    added_rank = next((k for k, c in enumerate(cands) if is_added(c, added)), None)
     shown = cands[:TOP]
     if added_rank is not None and added_rank >= TOP:
         shown.append(cands[added_rank])

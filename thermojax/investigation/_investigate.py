@@ -38,7 +38,8 @@ from ._checkpoint import (_clear_earlier_run, _inputs, _load_checkpoint, _load_s
                           _save_checkpoint, _save_step_series)
 from ._diagnose_step import diagnose_step
 from ._held_out import HeldOutFits, _choose
-from ._missing_heat_step import _network_step, record_missing_heat, record_unexplained
+from ._missing_heat_step import _file_values_step, _network_step, record_missing_heat, \
+    record_unexplained
 from ._outputs import _noise, _plot_ahead, _report, _write_outputs
 from ._phase_times import COMPILATION, phase, phases_in_words, step_phases
 from ._plots_ahead import PlotsAhead
@@ -61,6 +62,7 @@ def _added(c: Candidate) -> dict:
     """The `added` entry of the record of the step that adds `c` (`c.result`)."""
     added = added_effect(c.result.spec, c)
     return {"kind": added.kind, "where": list(added.where),
+            **({"replaces": list(c.replaced)} if c.replaced else {}),
             **({"expression": added.expression} if added.expression else {}),
             "parameters": {k: p.value for k, p in added.parameters.items()},
             **({"name": added.name} if added.name else {}),
@@ -286,12 +288,18 @@ def _step_candidates(loop: _Loop, current: Step, i: int) -> tuple:
                          loop.held_out, checking)
     with phase("missing heat (waited for)"):
         missing = missing()
+    if chosen is None and loop.search is not None and missing is not None and \
+            missing.carriers:
+        with phase("refits"):
+            chosen = _file_values_step(current, loop.runs, cands, loop.likelihood, loop.fdr,
+                                       loop.white_p, loop.spec, loop.search,
+                                       loop.holdout_check, say, loop.held_out)
     if chosen is None and loop.network and missing is not None and missing.carriers:
         with phase("heat network"):
             chosen = _network_step(current, loop.runs, missing, cands, loop.likelihood,
                                    loop.fdr, loop.white_p, loop.spec, loop.holdout_check, say,
                                    loop.held_out)
-    if "front" in current.record.get("symbolic_search", {}):
+    if "symbolic_search" in current.record:
         record_evidence(current.record["symbolic_search"], cands)
     return cands, chosen, missing
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from ._diagnostic_plots import diagnostic_plots, error_chart, settling_time
 from ._diagnostics import diagnose_traces
-from ._evidence import MIN_BIC_DROP, evidence_figure, evidence_rows, votes
+from ._evidence import MIN_BIC_DROP, evidence_figure, evidence_rows, is_added, votes
 from ._missing_heat_plots import missing_heat_section
 from ._whiteness_verdict import stopping_sentence, white_threshold, whiteness_verdict
 from .._plots import column_units
@@ -81,10 +81,7 @@ def _matching_candidate(previous: dict, added: dict) -> dict | None:
     """The candidate of the previous step that was added (spec: the first one; matched
     by kind and place when possible)."""
     cands = previous.get("candidates") or []
-    for c in cands:
-        if c.get("kind") == added.get("kind") and _where(c.get("where")) == _where(added.get("where")):
-            return c
-    return cands[0] if cands else None
+    return next((c for c in cands if is_added(c, added)), cands[0] if cands else None)
 
 
 def _evidence(i: int, step: dict, previous: dict, report: dict, columns, units) -> str:
@@ -463,6 +460,55 @@ def _front_table(entry: dict | None) -> list[str]:
                   f"| {_yes_no(row.get('on_front'))} | {_num(ev.get('score_test'))} "
                   f"| {_yes_no(refit)} | {_num(ev.get('likelihood_ratio'))} "
                   f"| {_num(ev.get('delta_bic'))} | {_num(ev.get('holdout_gain'))} "
+                  f"| {_yes_no(ev.get('supported')) if refit else '–'} |")
+    return (md + [""] + _file_values_table(entry.get("at_file_values"))
+            + _refinement_table(entry.get("refinement")))
+
+
+def _refinement_table(entry: dict | None) -> list[str]:
+    """`### Laws refined`: the front of the search around the laws the model held at the
+    node (the heat they carry plus the missing heat), the refitted ones' evidence as
+    replacements of those laws."""
+    if not entry:
+        return []
+    if "front" not in entry:
+        return ["### Laws refined", "", _sentence(entry.get("verdict", "no search")), ""]
+    held = "; ".join(f"`{t}`" for t in entry["replaces"])
+    return _picked_table(
+        "### Laws refined", entry,
+        f"The model held {held} at {entry['node']}. A search around it fitted "
+        f"{entry['evaluated']} laws to the heat it carries plus the missing heat; the picked "
+        "laws were refitted as replacements of it (likelihood ratio and Δ BIC against the "
+        "model that holds it).")
+
+
+def _file_values_table(entry: dict | None) -> list[str]:
+    """`### Laws searched at the file's values`: where no candidate was supported, the
+    front of the search on the missing heat of the structure at the model file's
+    values, the refitted ones' evidence."""
+    if not entry:
+        return []
+    if "front" not in entry:
+        return ["### Laws searched at the file's values", "",
+                _sentence(entry.get("verdict", "no search")), ""]
+    return _picked_table(
+        "### Laws searched at the file's values", entry,
+        f"No candidate was supported. A search fitted {entry['evaluated']} laws to the "
+        f"missing heat at {entry['node']} of this structure at the model file's values (the "
+        "fitted model's parameters had moved to mimic what it lacks); the picked laws were "
+        "refitted from the file's values and judged like every candidate.")
+
+
+def _picked_table(title: str, entry: dict, text: str) -> list[str]:
+    md = [title, "", text, "",
+          "| complexity | law | R² | refitted | likelihood ratio | Δ BIC | supported |",
+          "|---|---|---|---|---|---|---|"]
+    for row in entry["front"]:
+        ev = row.get("evidence") or {}
+        refit = ev.get("method") == "refit"
+        md.append(f"| {row['complexity']} | `{row['expression']}` | {_num(row['r2'], '.5f')} "
+                  f"| {_yes_no(refit)} | {_num(ev.get('likelihood_ratio'))} "
+                  f"| {_num(ev.get('delta_bic'))} "
                   f"| {_yes_no(ev.get('supported')) if refit else '–'} |")
     return md + [""]
 

@@ -1,18 +1,18 @@
 """A step's missing heat: reconstructed where the residuals are not white
-(`record_missing_heat`), offered to the heat network when no candidate was supported
-(`_network_step`), and described where nothing explained it (`record_unexplained`,
-`_unexplained`)."""
+(`record_missing_heat`), searched at the file's values (`_file_values_step`) and offered
+to the heat network (`_network_step`) when no candidate was supported, and described
+where nothing explained it (`record_unexplained`, `_unexplained`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from ._candidates import Candidate
-from ._diagnose_step import unused_columns
+from ._diagnose_step import at_file_values, unused_columns
 from ._held_out import _choose
 from ._physical_range import data_span, reject_unphysical
 from ._refits import _refit_side_by_side
-from ._selection import judge, prefer_vocabulary
+from ._selection import judge, prefer_simpler_laws, prefer_vocabulary
 from ._separation import separation_advice
 from ._step import Step
 
@@ -42,6 +42,33 @@ def record_missing_heat(step: Step, out: Path | None, i: int, white_p: float, sa
                                "note": f"could not reconstruct: {type(err).__name__}: {err}"[:300]}
         say(rec["missing_heat"]["note"])
         return None
+
+
+def _file_values_step(current: Step, runs, cands: list[Candidate], likelihood, fdr,
+                      white_p, initial, search, holdout_check, say, held_out
+                      ) -> Candidate | None:
+    """When no candidate was supported: the laws of the search on the missing heat of
+    the step's structure at the file's values (`_diagnose_step.at_file_values`; the
+    fitted model's missing heat is what its bent parameters left of a law), refitted
+    and judged beside the step's candidates (whose own verdicts stand), and, if
+    supported, held-out checked like any other.
+
+    **Returns:** the chosen candidate, or None."""
+    new = at_file_values(current, runs, initial, search, say)
+    if not new:
+        return None
+    _refit_side_by_side(new, current, runs, likelihood,
+                        set(unused_columns(current.spec, runs)), initial, say, white_p)
+    kept = [(c.supported, c.note, c.tied_with) for c in cands]
+    judge(cands + new, fdr, separation_advice)
+    prefer_vocabulary(cands + new)
+    prefer_simpler_laws(new)
+    reject_unphysical(new, data_span(current.spec, runs))
+    for c, (supported, note, tied) in zip(cands, kept):
+        c.supported, c.note, c.tied_with = supported, note, tied
+    cands += new
+    new.sort(key=lambda c: (c.method != "refit", -c.score))
+    return _choose(new, current, runs, likelihood, holdout_check, say, held_out)
 
 
 def _network_step(current: Step, runs, mh, cands: list[Candidate], likelihood, fdr,

@@ -121,15 +121,17 @@ def _refit_starts(c: Candidate, step: Step, new_columns, initial, runs=(), neste
     # its null value: the fit chooses how finely to integrate it (`fitting._integration`).
     leading = _within_data(c, c.estimate, runs, spec) if KINDS[c.kind].nonlinear else None
     starts = []
+    # a refined law replaces the laws it refines (`_symbolic_step.refine_laws`)
+    kept = tuple(e for i, e in enumerate(spec.effects) if i not in c.replaces)
     for hold in ("zoh", "foh") if brings else (None,):
         try:
             effect = diffusing(_candidate_effect(c, spec, lowered, {w: hold for w in brings},
                                                  None if nested else leading))
             if nested:
                 starts.append((hold, START_NESTED,
-                               spec.replace(effects=spec.effects + (_at_null(effect),))))
+                               spec.replace(effects=kept + (_at_null(effect),))))
                 continue
-            extended = spec.replace(effects=spec.effects + (effect,))
+            extended = spec.replace(effects=kept + (effect,))
             if initial is None or c.learned is None:
                 starts.append((hold, START_FITTED, extended))
             if initial is not None:
@@ -140,8 +142,7 @@ def _refit_starts(c: Candidate, step: Step, new_columns, initial, runs=(), neste
                                                     {w: hold for w in brings}, None,
                                                     c.time_constant))
                 if _far_from(timed, effect):
-                    starts.append((hold, START_TAU,
-                                   spec.replace(effects=spec.effects + (timed,))))
+                    starts.append((hold, START_TAU, spec.replace(effects=kept + (timed,))))
         except Exception as err:
             c.note = f"refit failed: {type(err).__name__}: {err}"[:300]
     return starts
