@@ -59,7 +59,8 @@ def test_resumed_report_is_the_uninterrupted_one(tmp_path, monkeypatch):
     phases = step0["phase_times_s"]
     assert {"score tests", "refits", "held-out folds"} <= set(phases), phases
     assert sum(v for k, v in phases.items() if k != "compilation") <= step0["wall_time_s"]
-    assert 0.0 < phases["compilation"] <= step0["wall_time_s"]
+    # (absent where an earlier test in this process compiled every program already)
+    assert 0.0 < phases.get("compilation", 1e-9) <= step0["wall_time_s"]
     a = (whole / "report.md").read_text(encoding="utf-8")
     b = (cut / "report.md").read_text(encoding="utf-8")
     assert "step0_" in a  # the finished step's figures are in the report at all
