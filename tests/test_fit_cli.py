@@ -344,3 +344,20 @@ def test_fit_writes_report_md_naming_its_plots(oe_cli):
     # T_sheath's noise is fixed in the model file, T_core's estimated: said so
     assert re.search(r"\| T_sheath \|.*\| given \(fixed\) \|", md)
     assert re.search(r"\| T_core \|.*\| estimated \|", md)
+
+
+def test_a_law_infinite_where_the_data_go_is_named_not_a_traceback(tmp_path, monkeypatch,
+                                                                     capsys):
+    """A heat law `c / P` is infinite where the recorded power is 0: the fit stops with
+    one line naming the cause, not numpy's 'SVD did not converge'."""
+    write_runs(tmp_path)
+    (tmp_path / "rtd2h.toml").write_text(RTD2H_TEXT + """
+[[effects]]
+kind = "expression"
+where = ["core"]
+expression = "c / P_heater"
+parameters = { c = 0.01 }
+""")
+    monkeypatch.chdir(tmp_path)
+    rc, _, err = run(capsys, "fit", "--model", "rtd2h.toml", "--data", "a.csv", "--out", "o")
+    assert_user_error(rc, err, "not finite", "1/x of a value reaching 0")

@@ -35,7 +35,11 @@ CHUNK = 32  # laws per call (the last padded)
 MAX_TERMS, MAX_PER_TERM = 2, 2
 _SHAPE = ((0, 1), (2, 3))
 # A power's exponent outside this range is no law but a spike at the variable's zero
-# (|ΔT|^-12 fits a few noisy samples near ΔT = 0): such a start is discarded.
+# (|ΔT|^-12 fits a few noisy samples near ΔT = 0): such a start is discarded. So is a
+# negative exponent where the law is infinitely steep in the data (an odd power |x|^n x:
+# an infinite conductance at x = 0; x^n at a variable that reaches 0: `exponent_floors`)
+# and a saturating or rational factor with its pole inside the data (1 + k Z ≤ 0 at
+# some sample): the dynamics cannot integrate them.
 EXPONENT_RANGE = (-2.0, 6.0)
 _POWERS = [i for i, p in enumerate(PRIMITIVES) if p.name in ("pow", "spow")]
 
@@ -207,6 +211,8 @@ def fit_shape(trees, variables, tables, yw, w, Zw, rng: np.random.Generator):
     theta0 = np.stack([_padded(t, starts_for(t, variables, rng)) for t in trees])
     out = []
     M, Z, fam = tables
+    floors, fam_np = exponent_floors(M, V), np.asarray(fam)
+    z_lo, z_hi = np.min(Z, axis=1), np.max(Z, axis=1)
     M, Z, yw, w, Zw = (jnp.asarray(a, float) for a in (M, Z, yw, w, Zw))
     fam = jnp.asarray(fam)
     for k in range(0, len(trees), CHUNK):
@@ -216,8 +222,12 @@ def fit_shape(trees, variables, tables, yw, w, Zw, rng: np.random.Generator):
             jnp.asarray(theta0[pad]), M, Z, fam, jnp.asarray(rows[pad]), yw, w, Zw, _SHAPE))
         slot_prims = rows[pad] // V  # (laws, slots); padding rows are past the last
         powers = np.isin(slot_prims, _POWERS)[:, None, :]
-        wild = np.any(powers & ((theta < EXPONENT_RANGE[0]) | (theta > EXPONENT_RANGE[1])),
-                      -1)
+        floor = floors[rows[pad]][:, None, :]
+        wild = np.any(powers & ((theta < floor) | (theta > EXPONENT_RANGE[1])), -1)
+        ratios = (fam_np[rows[pad]] == 2)[:, None, :]
+        pole = np.minimum(1.0 + theta * z_lo[rows[pad]][:, None, :],
+                          1.0 + theta * z_hi[rows[pad]][:, None, :]) <= 0.0
+        wild |= np.any(ratios & pole, -1)
         cost = np.where(wild | ~np.isfinite(cost), np.inf, cost)
         for j in range(len(idx)):
             s = int(np.argmin(cost[j]))
@@ -226,6 +236,19 @@ def fit_shape(trees, variables, tables, yw, w, Zw, rng: np.random.Generator):
                     for f in range(len(term))]
             out.append((float(cost[j, s]), np.array(flat), beta[j, s, :len(t)]))
     return out
+
+
+def exponent_floors(M: np.ndarray, V: int) -> np.ndarray:
+    """The least exponent (rows,) of each row of `primitive_tables`' `M` (`V`
+    variables): 0 for an odd power and for a power of a variable that reaches 0 (`M`,
+    its indicator of `x > 0`, is 0 somewhere), else `EXPONENT_RANGE[0]`."""
+    floors = np.full(M.shape[0], EXPONENT_RANGE[0])
+    prim = np.arange(M.shape[0]) // V
+    spow = [i for i, p in enumerate(PRIMITIVES) if p.name == "spow"]
+    pow_ = [i for i, p in enumerate(PRIMITIVES) if p.name == "pow"]
+    floors[np.isin(prim, spow)] = 0.0
+    floors[np.isin(prim, pow_) & np.any(M <= 0.0, axis=1)] = 0.0
+    return floors
 
 
 def _padded(tree, starts):

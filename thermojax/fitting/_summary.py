@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 
+from .._errors import InputError
 from ._metrics import fit_metrics, fit_percent, rmse
 from ..model._model import model_to_spec
 from ..model._spec import ModelSpec, Parameter
@@ -28,11 +29,26 @@ from ._twin_optima import with_twin_optima
 from ._problem import Prepared, Solution, _is_log
 
 
+def _check_finite_information(information, names) -> None:
+    """Raise an `InputError` naming the parameters whose sensitivities are not finite at
+    the fitted values (`information`: (P, P); `names`: P)."""
+    bad = ~np.all(np.isfinite(np.asarray(information, float)), axis=1)
+    if bad.any():
+        which = ("every parameter" if bad.all() else
+                 ", ".join(n for n, b in zip(names, bad) if b))
+        raise InputError(
+            f"the sensitivities of {which} are not finite at the fitted values: an expression is undefined or "
+            "infinitely steep where the data go (abs(x)^n or x^n with n < 0 at x = 0, "
+            "log or 1/x of a value reaching 0); write it so it stays finite there, or "
+            "fix those parameters")
+
+
 def summarize(prep: Prepared, sol: Solution, likelihood: str, t_start: float) -> FitResult:
     """The `FitResult` of a solved fit (`t_start`: `time.perf_counter()` at its start)."""
     spec, data = prep.spec, prep.data
     fitted_spec = model_to_spec(sol.state.model, spec, process_noise=likelihood == "kalman")
     heat = [spec.input_columns.index(c) for c in spec.heat_columns]
+    _check_finite_information(sol.information, sol.names)
     ident = identifiability(sol.information, sol.names, fitted_spec,
                             sample_period=float(np.max(np.asarray(data.dt))),
                             powered=bool(heat) and bool(np.any(
