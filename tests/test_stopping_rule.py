@@ -132,7 +132,8 @@ def test_a_refit_gone_non_finite_fails_softly(tmp_path, monkeypatch):
     for module in (_step, _held_out):  # the steps' and refits' fits, the held-out ones
         monkeypatch.setattr(module, "fit", broken_fit)
     spec, runs = _one_run("one_run", tmp_path, 900.0)
-    report = investigate(spec, runs, max_steps=1, refits=1, out=tmp_path / "out")
+    report = investigate(spec, runs, max_steps=1, refits=1, out=tmp_path / "out",
+                         search=None)  # the library's law only: one learned law
     assert report["stopped_because"] == "no_supported_candidate"
     cands = report["steps"][0]["candidates"]
     failed = [c for c in cands if c["note"].startswith("refit from")]
