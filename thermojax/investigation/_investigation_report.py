@@ -450,17 +450,13 @@ def _front_table(entry: dict | None) -> list[str]:
            "every simpler law (on the front: yes; the others are the best of their "
            "complexity). Every law was score-tested through the dynamics, the best "
            "significant ones refitted and judged by the same rule as every candidate.",
-           "", "| complexity | law | R² on the missing heat | on the front | score test "
-           "| refitted | likelihood ratio | Δ BIC | held-out gain | supported |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
-    for row in entry["front"]:
-        ev = row.get("evidence") or {}
-        refit = ev.get("method") == "refit"
-        md.append(f"| {row['complexity']} | `{row['expression']}` | {_num(row['r2'], '.5f')} "
-                  f"| {_yes_no(row.get('on_front'))} | {_num(ev.get('score_test'))} "
-                  f"| {_yes_no(refit)} | {_num(ev.get('likelihood_ratio'))} "
-                  f"| {_num(ev.get('delta_bic'))} | {_num(ev.get('holdout_gain'))} "
-                  f"| {_yes_no(ev.get('supported')) if refit else '–'} |")
+           ""]
+    md += _law_rows(entry["front"], (
+        _COMPLEXITY, _LAW, ("R² on the missing heat", _r2),
+        ("on the front", lambda row, ev, refit: _yes_no(row.get("on_front"))),
+        ("score test", lambda row, ev, refit: _num(ev.get("score_test"))),
+        _REFITTED, _RATIO, _DELTA_BIC,
+        ("held-out gain", lambda row, ev, refit: _num(ev.get("holdout_gain"))), _SUPPORTED))
     return (md + [""] + _file_values_table(entry.get("at_file_values"))
             + _refinement_table(entry.get("refinement")))
 
@@ -500,17 +496,34 @@ def _file_values_table(entry: dict | None) -> list[str]:
 
 
 def _picked_table(title: str, entry: dict, text: str) -> list[str]:
-    md = [title, "", text, "",
-          "| complexity | law | R² | refitted | likelihood ratio | Δ BIC | supported |",
-          "|---|---|---|---|---|---|---|"]
-    for row in entry["front"]:
+    """`title`, `text` and the table of `entry`'s front (the picked laws' evidence)."""
+    return [title, "", text, "", *_law_rows(entry["front"], (
+        _COMPLEXITY, _LAW, ("R²", _r2), _REFITTED, _RATIO, _DELTA_BIC, _SUPPORTED)), ""]
+
+
+def _r2(row, ev, refit) -> str:
+    return _num(row["r2"], ".5f")
+
+
+# The searched laws' tables' columns: (header, cell(row, its evidence, refitted or not)).
+_COMPLEXITY = ("complexity", lambda row, ev, refit: str(row["complexity"]))
+_LAW = ("law", lambda row, ev, refit: f"`{row['expression']}`")
+_REFITTED = ("refitted", lambda row, ev, refit: _yes_no(refit))
+_RATIO = ("likelihood ratio", lambda row, ev, refit: _num(ev.get("likelihood_ratio")))
+_DELTA_BIC = ("Δ BIC", lambda row, ev, refit: _num(ev.get("delta_bic")))
+_SUPPORTED = ("supported",
+              lambda row, ev, refit: _yes_no(ev.get("supported")) if refit else "–")
+
+
+def _law_rows(front: list[dict], columns) -> list[str]:
+    """A Markdown table of the searched laws `front` (each with its `evidence`), one
+    column per `(header, cell)` of `columns`."""
+    md = ["| " + " | ".join(h for h, _ in columns) + " |", "|" + "---|" * len(columns)]
+    for row in front:
         ev = row.get("evidence") or {}
         refit = ev.get("method") == "refit"
-        md.append(f"| {row['complexity']} | `{row['expression']}` | {_num(row['r2'], '.5f')} "
-                  f"| {_yes_no(refit)} | {_num(ev.get('likelihood_ratio'))} "
-                  f"| {_num(ev.get('delta_bic'))} "
-                  f"| {_yes_no(ev.get('supported')) if refit else '–'} |")
-    return md + [""]
+        md.append("| " + " | ".join(cell(row, ev, refit) for _, cell in columns) + " |")
+    return md
 
 
 def write_investigation_report(out_dir, report: dict, step_traces: list, columns: list[str],
