@@ -37,9 +37,8 @@ _SHAPE = ((0, 1), (2, 3))
 # A power's exponent outside this range is no law but a spike at the variable's zero
 # (|ΔT|^-12 fits a few noisy samples near ΔT = 0): such a start is discarded. So is a
 # negative exponent where the law is infinitely steep in the data (an odd power |x|^n x:
-# an infinite conductance at x = 0; x^n at a variable that reaches 0: `exponent_floors`)
-# and a saturating or rational factor with its pole inside the data (1 + k Z ≤ 0 at
-# some sample): the dynamics cannot integrate them.
+# an infinite conductance at x = 0; x^n at a variable that reaches 0: `exponent_floors`):
+# the dynamics cannot integrate it. (A pole inside the data is no law either: `_factor`.)
 EXPONENT_RANGE = (-2.0, 6.0)
 _POWERS = [i for i, p in enumerate(PRIMITIVES) if p.name in ("pow", "spow")]
 
@@ -211,8 +210,7 @@ def fit_shape(trees, variables, tables, yw, w, Zw, rng: np.random.Generator):
     theta0 = np.stack([_padded(t, starts_for(t, variables, rng)) for t in trees])
     out = []
     M, Z, fam = tables
-    floors, fam_np = exponent_floors(M, V), np.asarray(fam)
-    z_lo, z_hi = np.min(Z, axis=1), np.max(Z, axis=1)
+    floors = exponent_floors(M, V)
     M, Z, yw, w, Zw = (jnp.asarray(a, float) for a in (M, Z, yw, w, Zw))
     fam = jnp.asarray(fam)
     for k in range(0, len(trees), CHUNK):
@@ -224,10 +222,6 @@ def fit_shape(trees, variables, tables, yw, w, Zw, rng: np.random.Generator):
         powers = np.isin(slot_prims, _POWERS)[:, None, :]
         floor = floors[rows[pad]][:, None, :]
         wild = np.any(powers & ((theta < floor) | (theta > EXPONENT_RANGE[1])), -1)
-        ratios = (fam_np[rows[pad]] == 2)[:, None, :]
-        pole = np.minimum(1.0 + theta * z_lo[rows[pad]][:, None, :],
-                          1.0 + theta * z_hi[rows[pad]][:, None, :]) <= 0.0
-        wild |= np.any(ratios & pole, -1)
         cost = np.where(wild | ~np.isfinite(cost), np.inf, cost)
         for j in range(len(idx)):
             s = int(np.argmin(cost[j]))
