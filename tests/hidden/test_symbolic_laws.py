@@ -50,8 +50,7 @@ def test_law_outside_the_library_is_found_by_the_search(case, tmp_path):
     files = g.write_case(case, tmp_path / "data", seed=0, horizon_s=HORIZON_S)
     out = tmp_path / "out"
     argv = ["investigate", "--model", str(files["model"]), "--out", str(out),
-            "--max-steps", "2", "--search-seconds", "600"]  # the default 1500 laws,
-    # not cut short by the other tests' load (60 s by default)
+            "--max-steps", "2", "--search-laws", "1500", "--search-seconds", "600"]
     for p in files["data"]:
         argv += ["--data", str(p)]
     assert main(argv) == 0

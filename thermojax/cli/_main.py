@@ -468,14 +468,14 @@ def _add_investigate(sub):
     p.add_argument("--no-network", action="store_true",
                    help="stop where nothing is supported, without first training a heat "
                    "network at the node missing most heat (about a minute per such step)")
-    p.add_argument("--search-laws", type=_nonnegative_int, default=1500, metavar="N",
+    p.add_argument("--search-laws", type=_nonnegative_int, default=0, metavar="N",
                    help="at every step whose residuals are not white, search expression "
                    "trees for the missing heat at the node missing most, fitting at most N "
-                   "laws; its best are candidates beside the others. The same budget "
-                   "refines a law the model holds (a search around it, whose laws replace "
-                   "it) and, where nothing is supported, searches the missing heat at the "
-                   "model file's values (default 1500: seconds to a minute a step; 0: no "
-                   "search, the library's laws only)")
+                   "laws (1500 is a good start: about a minute a step); its best are "
+                   "candidates beside the others. The same budget refines a law the model "
+                   "holds (a search around it, whose laws replace it) and, where nothing "
+                   "is supported, searches the missing heat at the model file's values "
+                   "(default 0: no search, the library's laws only)")
     p.add_argument("--search-seconds", type=float, default=60.0, metavar="S",
                    help="stop that search after S seconds with the laws found so far "
                    "(default 60; 0: no limit but --search-laws)")

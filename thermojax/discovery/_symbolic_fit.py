@@ -35,10 +35,7 @@ CHUNK = 32  # laws per call (the last padded)
 MAX_TERMS, MAX_PER_TERM = 2, 2
 _SHAPE = ((0, 1), (2, 3))
 # A power's exponent outside this range is no law but a spike at the variable's zero
-# (|ΔT|^-12 fits a few noisy samples near ΔT = 0): such a start is discarded. So is a
-# negative exponent where the law is infinitely steep in the data (an odd power |x|^n x:
-# an infinite conductance at x = 0; x^n at a variable that reaches 0: `exponent_floors`):
-# the dynamics cannot integrate it. (A pole inside the data is no law either: `_factor`.)
+# (|ΔT|^-12 fits a few noisy samples near ΔT = 0): such a start is discarded.
 EXPONENT_RANGE = (-2.0, 6.0)
 _POWERS = [i for i, p in enumerate(PRIMITIVES) if p.name in ("pow", "spow")]
 
@@ -210,7 +207,6 @@ def fit_shape(trees, variables, tables, yw, w, Zw, rng: np.random.Generator):
     theta0 = np.stack([_padded(t, starts_for(t, variables, rng)) for t in trees])
     out = []
     M, Z, fam = tables
-    floors = exponent_floors(M, V)
     M, Z, yw, w, Zw = (jnp.asarray(a, float) for a in (M, Z, yw, w, Zw))
     fam = jnp.asarray(fam)
     for k in range(0, len(trees), CHUNK):
@@ -220,8 +216,8 @@ def fit_shape(trees, variables, tables, yw, w, Zw, rng: np.random.Generator):
             jnp.asarray(theta0[pad]), M, Z, fam, jnp.asarray(rows[pad]), yw, w, Zw, _SHAPE))
         slot_prims = rows[pad] // V  # (laws, slots); padding rows are past the last
         powers = np.isin(slot_prims, _POWERS)[:, None, :]
-        floor = floors[rows[pad]][:, None, :]
-        wild = np.any(powers & ((theta < floor) | (theta > EXPONENT_RANGE[1])), -1)
+        wild = np.any(powers & ((theta < EXPONENT_RANGE[0]) | (theta > EXPONENT_RANGE[1])),
+                      -1)
         cost = np.where(wild | ~np.isfinite(cost), np.inf, cost)
         for j in range(len(idx)):
             s = int(np.argmin(cost[j]))
@@ -230,19 +226,6 @@ def fit_shape(trees, variables, tables, yw, w, Zw, rng: np.random.Generator):
                     for f in range(len(term))]
             out.append((float(cost[j, s]), np.array(flat), beta[j, s, :len(t)]))
     return out
-
-
-def exponent_floors(M: np.ndarray, V: int) -> np.ndarray:
-    """The least exponent (rows,) of each row of `primitive_tables`' `M` (`V`
-    variables): 0 for an odd power and for a power of a variable that reaches 0 (`M`,
-    its indicator of `x > 0`, is 0 somewhere), else `EXPONENT_RANGE[0]`."""
-    floors = np.full(M.shape[0], EXPONENT_RANGE[0])
-    prim = np.arange(M.shape[0]) // V
-    spow = [i for i, p in enumerate(PRIMITIVES) if p.name == "spow"]
-    pow_ = [i for i, p in enumerate(PRIMITIVES) if p.name == "pow"]
-    floors[np.isin(prim, spow)] = 0.0
-    floors[np.isin(prim, pow_) & np.any(M <= 0.0, axis=1)] = 0.0
-    return floors
 
 
 def _padded(tree, starts):

@@ -109,16 +109,15 @@ def investigate(spec: ModelSpec, runs: list[Telemetry], *, likelihood: str = "ou
                 max_steps: int = 4, refits: int = 3, fdr: float = 0.05,
                 white_p: float = 0.01, out: Path | None = None, progress=None,
                 resume: bool = True, holdout_check: bool = True, network: bool = True,
-                search: SearchSettings | None = SearchSettings()) -> dict:
+                search: SearchSettings | None = None) -> dict:
     """Run the loop; returns the `report.json` dict (docs/formats.md §5). With `out`, writes the
     report, every step's model, `model_final.toml`, the Markdown report and its plots,
     and a checkpoint after each finished step, from which a rerun resumes. With
     `network`, a step that finds nothing supported while heat is missing asks a heat
-    network before it stops (`_network_step`). With `search` (its budget; default
-    `SearchSettings()`: 1500 laws or 60 s; None: no search), a step whose residuals are
-    not white searches laws of its missing heat, whose best are candidates beside the
-    others; a law the model holds is refined by a search around it, and where nothing is
-    supported the missing heat at the file's values is searched (`_symbolic_step`)."""
+    network before it stops (`_network_step`). With `search` (its budget, e.g.
+    `SearchSettings()`; None, the default: none), a step whose residuals are not white
+    searches laws of its missing heat, whose best are candidates beside the others
+    (`_symbolic_step`)."""
     say = progress or (lambda _m: None)
     t0 = time.perf_counter()
     out = Path(out) if out is not None else None
